@@ -1,0 +1,47 @@
+from setuptools import find_packages, setup
+
+PACKAGE = "pair_vpr_ros"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    description="ROS 2 loop-closure detection with Pair-VPR (global descriptor + pair re-ranking)",
+    long_description=open("README.md", encoding="utf-8").read(),
+    long_description_content_type="text/markdown",
+    license="BSD-3-Clause",
+    python_requires=">=3.10",
+    packages=find_packages(exclude=["test", "test.*"]),
+    package_data={PACKAGE: ["demo/assets/*"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", ["config/vpr_node.yaml"]),
+    ],
+    # torch comes first from the CPU/CUDA build the user picked (see README); a bare
+    # requirement here would otherwise pull the multi-GB CUDA wheel on a fresh machine.
+    install_requires=[
+        "torch>=2.1",
+        "numpy>=1.24",
+        "opencv-python-headless>=4.8",
+        "faiss-cpu>=1.7.4",
+        "rosbags>=0.10",
+        "tqdm>=4.60",
+        "matplotlib>=3.7",
+    ],
+    extras_require={
+        "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],
+        "train": ["pytorch-metric-learning>=2.3"],
+        "test": ["pytest>=7", "ruff>=0.5", "mcap-ros2-support>=0.5"],
+    },
+    zip_safe=False,
+    entry_points={
+        "console_scripts": [
+            "vpr_node = pair_vpr_ros.node:main",
+            "pairvpr-bag-replay = pair_vpr_ros.replay:main",
+            "pairvpr-eval = pair_vpr_ros.evaluate:main",
+            "pairvpr-train-stage1 = pair_vpr_ros.train.stage1:main",
+            "pairvpr-train-stage2 = pair_vpr_ros.train.stage2:main",
+            "pairvpr-make-demo-bag = pair_vpr_ros.demo.make_bag:main",
+        ],
+    },
+)
