@@ -1,0 +1,212 @@
+"""Loop-closure decisions: keyframe selection, top-K query, pair re-ranking, acceptance.
+
+For each keyframe: search the map for the top-K most similar earlier keyframes (recent ones
+excluded), re-rank them with the pair classifier's bidirectional score, and accept the best when
+its score reaches the threshold (and, optionally, when consecutive queries agree and the images
+verify geometrically). Every decision is a `LoopRecord`, accepted or with the reason it was not.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, fields, replace
+
+import numpy as np
+
+from .errors import ConfigError
+
+MODES = ("mapping", "localization")
+
+
+@dataclass
+class DetectorConfig:
+    """Detector settings. Times in seconds; similarities are cosine of global descriptors."""
+
+    top_k: int = 10  # candidates re-ranked per keyframe
+    score_threshold: float = 0.0  # accept when logit(q,c) + logit(c,q) >= this
+    global_floor: float = (
+        -1.0
+    )  # skip re-ranking when the best global similarity is lower (-1: off)
+    min_frame_interval: float = 0.0  # frames closer than this to the last encoded one are skipped
+    keyframe_max_similarity: float = (
+        0.98  # a frame this similar to the last keyframe is no keyframe
+    )
+    exclude_recent_s: float = 30.0  # never match keyframes younger than this ...
+    exclude_recent_keyframes: int = 10  # ... or among the newest this many
+    temporal_consistency: int = 1  # accept after N consecutive agreeing queries (1: off)
+    temporal_tolerance: int = 5  # "agreeing": matched ids within this many keyframes
+    geometric_verification: bool = False
+    min_inliers: int = 15  # with geometric verification
+    mode: str = "mapping"  # "mapping": query then add; "localization": query only
+
+    def __post_init__(self) -> None:
+        checks = [
+            ("top_k", self.top_k >= 1, ">= 1"),
+            ("global_floor", -1.0 <= self.global_floor <= 1.0, "in [-1, 1]"),
+            ("min_frame_interval", self.min_frame_interval >= 0, ">= 0"),
+            ("keyframe_max_similarity", -1.0 <= self.keyframe_max_similarity <= 1.0, "in [-1, 1]"),
+            ("exclude_recent_s", self.exclude_recent_s >= 0, ">= 0"),
+            ("exclude_recent_keyframes", self.exclude_recent_keyframes >= 0, ">= 0"),
+            ("temporal_consistency", self.temporal_consistency >= 1, ">= 1"),
+            ("temporal_tolerance", self.temporal_tolerance >= 0, ">= 0"),
+            ("min_inliers", self.min_inliers >= 0, ">= 0"),
+            ("mode", self.mode in MODES, f"one of {MODES}"),
+            ("score_threshold", math.isfinite(self.score_threshold), "a finite number"),
+        ]
+        for name, ok, rule in checks:
+            if not ok:
+                raise ConfigError(f"detector {name}={getattr(self, name)!r} must be {rule}")
+
+    def updated(self, **changes) -> DetectorConfig:
+        return replace(self, **changes)
+
+
+# Named presets: the paper's "speed" setting re-ranks K=100, ours is sized for a laptop CPU.
+PRESETS: dict[str, dict] = {
+    "speed": dict(top_k=10, min_frame_interval=0.2),
+    "performance": dict(top_k=100, min_frame_interval=0.0),
+}
+
+
+def preset(name: str, **overrides) -> DetectorConfig:
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}: choose one of {', '.join(PRESETS)}")
+    return DetectorConfig(**{**PRESETS[name], **overrides})
+
+
+@dataclass
+class LoopRecord:
+    """One loop-closure decision; field order is the CSV column order and the topic layout."""
+
+    query_id: int  # -1 in localization mode (the query is not added)
+    query_stamp: float
+    query_frame_id: str
+    match_id: int
+    match_stamp: float
+    match_frame_id: str
+    pair_score: float  # NaN when re-ranking was skipped
+    global_similarity: float
+    rank_before: int  # 1-based rank of the match in the global (FAISS) list
+    rank_after: int  # 1-based rank after re-ranking
+    inliers: int = -1  # -1: not verified
+    inlier_ratio: float = float("nan")
+    accepted: bool = False
+    reason: str = ""  # why it was not accepted; "" when accepted
+
+    @classmethod
+    def field_names(cls) -> list[str]:
+        return [f.name for f in fields(cls)]
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class Candidate:
+    """A map keyframe considered for one query."""
+
+    id: int
+    stamp: float
+    frame_id: str
+    global_similarity: float
+    rank_before: int
+    pair_score: float = float("nan")
+
+
+# Re-ranking function: query dense [N,D] and candidate ids -> pair scores [K].
+Reranker = Callable[[np.ndarray, list[int]], np.ndarray]
+Verifier = Callable[[int], tuple[int, float]]  # match id -> (inliers, inlier ratio)
+
+
+@dataclass
+class LoopDetector:
+    """The decision logic; `LoopClosurePipeline` feeds it descriptors and the map."""
+
+    config: DetectorConfig = field(default_factory=DetectorConfig)
+
+    def __post_init__(self) -> None:
+        self._recent_matches: deque[int] = deque(maxlen=self.config.temporal_consistency)
+
+    def reset(self) -> None:
+        self._recent_matches.clear()
+
+    def set_config(self, config: DetectorConfig) -> None:
+        self.config = config
+        self._recent_matches = deque(self._recent_matches, maxlen=config.temporal_consistency)
+
+    def is_new_keyframe(self, similarity_to_last: float | None) -> bool:
+        """A frame becomes a keyframe unless it nearly repeats the previous keyframe."""
+        return (
+            similarity_to_last is None or similarity_to_last < self.config.keyframe_max_similarity
+        )
+
+    def eligible_max_id(self, stamp: float, stamps: list[float]) -> int | None:
+        """Newest map id that is not recent for a query at `stamp` (None: nothing eligible).
+        `stamps[i]` is keyframe i's stamp; walking back stops at the first old-enough keyframe."""
+        c = self.config
+        i = len(stamps) - 1 - c.exclude_recent_keyframes
+        while i >= 0 and abs(stamp - stamps[i]) < c.exclude_recent_s:
+            i -= 1
+        return i if i >= 0 else None
+
+    def decide(
+        self,
+        query_stamp: float,
+        query_frame_id: str,
+        candidates: list[Candidate],
+        rerank: Callable[[list[Candidate]], np.ndarray],
+        verify: Verifier | None = None,
+    ) -> LoopRecord | None:
+        """Re-rank `candidates` (global order) and accept or reject the best one."""
+        if not candidates:
+            self._recent_matches.clear()
+            return None
+        c = self.config
+        best_global = candidates[0]
+        if best_global.global_similarity < c.global_floor:
+            self._recent_matches.clear()
+            return self._record(query_stamp, query_frame_id, best_global, 1, "below global floor")
+        for cand, score in zip(candidates, rerank(candidates), strict=True):
+            cand.pair_score = float(score)
+        order = sorted(candidates, key=lambda x: (-x.pair_score, x.rank_before))
+        best = order[0]
+        if not best.pair_score >= c.score_threshold:
+            self._recent_matches.clear()
+            return self._record(query_stamp, query_frame_id, best, 1, "score below threshold")
+        record = self._record(query_stamp, query_frame_id, best, 1, "")
+        if not self._temporally_consistent(best.id):
+            seen = len(self._recent_matches)
+            record.reason = f"awaiting temporal consistency ({seen}/{c.temporal_consistency})"
+            return record
+        if c.geometric_verification and verify is not None:
+            record.inliers, record.inlier_ratio = verify(best.id)
+            if record.inliers < c.min_inliers:
+                record.reason = f"geometric verification failed ({record.inliers} inliers)"
+                return record
+        record.accepted = True
+        return record
+
+    def _temporally_consistent(self, match_id: int) -> bool:
+        recent = self._recent_matches
+        if recent and abs(match_id - recent[-1]) > self.config.temporal_tolerance:
+            recent.clear()
+        recent.append(match_id)
+        return len(recent) >= self.config.temporal_consistency
+
+    @staticmethod
+    def _record(stamp: float, frame_id: str, cand: Candidate, rank_after: int, reason: str):
+        return LoopRecord(
+            query_id=-1,
+            query_stamp=stamp,
+            query_frame_id=frame_id,
+            match_id=cand.id,
+            match_stamp=cand.stamp,
+            match_frame_id=cand.frame_id,
+            pair_score=cand.pair_score,
+            global_similarity=cand.global_similarity,
+            rank_before=cand.rank_before,
+            rank_after=rank_after,
+            reason=reason,
+        )
