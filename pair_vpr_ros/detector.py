@@ -182,6 +182,9 @@ class LoopDetector:
             return record
         if c.geometric_verification and verify is not None:
             record.inliers, record.inlier_ratio = verify(best.id)
+            if record.inliers < 0:
+                record.reason = "geometric verification impossible (no features for the match)"
+                return record
             if record.inliers < c.min_inliers:
                 record.reason = f"geometric verification failed ({record.inliers} inliers)"
                 return record

@@ -19,6 +19,7 @@ import torch
 
 from .detector import Candidate, DetectorConfig, LoopDetector, LoopRecord
 from .errors import ConfigError, MapFingerprintError
+from .geometry import Features, extract_features, verify_pair
 from .model import PairVPR, preprocess_batch
 from .place_map import KeyframeMeta, PlaceMap
 
@@ -69,6 +70,8 @@ class LoopClosurePipeline:
         self._stamps = [m.stamp for m in self._place_map.all_meta()]
         self._last_encoded: float | None = None
         self._last_desc: np.ndarray | None = None
+        # ORB features for geometric verification, for keyframes added in this process only.
+        self._features: dict[int, Features] = {}
         self.counts: Counter[str] = Counter()
         self.timing_totals: Counter[str] = Counter()
 
@@ -107,6 +110,7 @@ class LoopClosurePipeline:
 
     def _reset_tracking(self) -> None:
         self._stamps = [m.stamp for m in self._place_map.all_meta()]
+        self._features.clear()
         self._last_encoded = None
         self._last_desc = None
         self.detector.reset()
@@ -202,13 +206,16 @@ class LoopClosurePipeline:
             self.counts["similar_to_keyframe"] += 1
             outcome.skipped = "similar to previous keyframe"
             return outcome
-        outcome.loop = self._query(frame, dense, desc, outcome.timings_ms)
+        features = extract_features(frame.rgb) if self.config.geometric_verification else None
+        outcome.loop = self._query(frame, dense, desc, outcome.timings_ms, features)
         if self.config.mode == "mapping":
             meta = KeyframeMeta(
                 stamp=frame.stamp, frame_id=frame.frame_id, pose=frame.pose, source=frame.source
             )
             outcome.keyframe_id = self._place_map.add(desc, dense, meta)
             self._stamps.append(frame.stamp)
+            if features is not None:
+                self._features[outcome.keyframe_id] = features
             if outcome.loop is not None:
                 outcome.loop.query_id = outcome.keyframe_id
         self._last_desc = desc
@@ -217,7 +224,7 @@ class LoopClosurePipeline:
             self.counts["loops" if outcome.loop.accepted else "rejected"] += 1
         return outcome
 
-    def _query(self, frame: Frame, dense: np.ndarray, desc: np.ndarray, timings: dict):
+    def _query(self, frame: Frame, dense, desc, timings: dict, features: Features | None):
         max_id = self.detector.eligible_max_id(frame.stamp, self._stamps)
         if max_id is None:
             return None
@@ -234,7 +241,13 @@ class LoopClosurePipeline:
             timings["rerank"] = (time.perf_counter() - t1) * 1e3
             return scores
 
-        return self.detector.decide(frame.stamp, frame.frame_id, candidates, rerank)
+        def verify(match_id: int) -> tuple[int, float]:
+            stored = self._features.get(match_id)
+            if features is None or stored is None:
+                return -1, float("nan")  # keyframe loaded from disk: nothing to verify against
+            return verify_pair(features, stored)
+
+        return self.detector.decide(frame.stamp, frame.frame_id, candidates, rerank, verify)
 
     def _candidate(self, kf_id: int, sim: float, rank: int) -> Candidate:
         meta = self._place_map.meta(kf_id)

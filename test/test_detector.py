@@ -144,3 +144,12 @@ def test_presets():
     assert preset("speed", top_k=5).top_k == 5
     with pytest.raises(ConfigError, match="unknown preset 'fast': choose one of speed, perf"):
         preset("fast")
+
+
+def test_verification_without_features_rejects():
+    det = LoopDetector(DetectorConfig(geometric_verification=True))
+    rec = det.decide(1.0, "c", cands(0.9), scorer(1.0), verify=lambda _id: (-1, float("nan")))
+    assert (rec.accepted, rec.reason) == (
+        False,
+        "geometric verification impossible (no features for the match)",
+    )

@@ -123,3 +123,20 @@ def test_map_of_another_model_is_refused(model, places, tmp_path):
 def test_bad_batch_size(model):
     with pytest.raises(ConfigError, match="batch size must be >= 1, got 0"):
         list(LoopClosurePipeline(model).process_many([], batch_size=0))
+
+
+def test_geometric_verification_in_the_pipeline(model):
+    rng = np.random.default_rng(5)
+    scenes = []
+    for _ in range(4):
+        img = np.full((120, 160, 3), 80, np.uint8)
+        for _ in range(60):
+            x, y = (int(v) for v in rng.integers(0, 150, 2))
+            img[y % 110 : y % 110 + 10, x : x + 10] = rng.integers(0, 256, 3)
+        scenes.append(img)
+    pipe = LoopClosurePipeline(
+        model, DetectorConfig(**EXACT, geometric_verification=True, min_inliers=15)
+    )
+    out = run(pipe, scenes, [0, 1, 2, 3, 0])
+    rec = out[4].loop
+    assert rec.accepted and rec.inliers >= 15 and rec.inlier_ratio > 0.5

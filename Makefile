@@ -1,0 +1,23 @@
+# Two entry points (see README): `make demo` and `make test`. Each sets up .venv itself.
+VENV ?= .venv
+PY := $(VENV)/bin/python
+export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
+export MPLBACKEND := Agg
+
+.PHONY: setup demo test lint clean
+
+setup:
+	@VENV=$(VENV) bash scripts/setup_env.sh
+
+demo: setup
+	@bash scripts/demo.sh $(VENV)
+
+test: setup
+	$(PY) -m pytest -q test
+
+lint: setup
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+clean:
+	rm -rf build install log demo_out .pytest_cache
