@@ -37,3 +37,7 @@ class BagError(PairVPRError):
 
 class DatasetError(PairVPRError):
     """A training or evaluation dataset folder is missing or not in the expected layout."""
+
+
+class TrainingError(PairVPRError):
+    """Training cannot go on: the loss became NaN/inf or a resumed run does not fit its config."""

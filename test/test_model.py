@@ -145,3 +145,11 @@ def test_int8_keeps_outputs_close_and_leaves_original(tiny):
         _, qdesc = q.encode(images)
     assert (desc * qdesc).sum(-1).min() > 0.99
     assert q.fingerprint != tiny.fingerprint and "+int8" in q.fingerprint
+
+
+def test_model_built_inside_inference_mode_encodes():
+    with torch.inference_mode():
+        model = build_pairvpr(ModelConfig.tiny(), seed=0)
+        dense, desc = model.encode(torch.randn(1, 3, 70, 70))
+        scores = model.pair_scores(dense[0], dense)
+    assert desc.shape == (1, 512) and scores.shape == (1,)

@@ -19,7 +19,16 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .config import ModelConfig
-from .layers import Mlp, SelfAttention, attend, init_weights, layer_norm, merge_heads, split_heads
+from .layers import (
+    Mlp,
+    SelfAttention,
+    attend,
+    init_weights,
+    layer_norm,
+    merge_heads,
+    split_heads,
+    tensor_version,
+)
 
 
 class CrossAttention(nn.Module):
@@ -108,7 +117,7 @@ class PairClassifier(nn.Module):
         table = self.dec_pos_embed
         if table.shape[0] == n:
             return self.dec_pos_embed_cls, table
-        key = (n, table._version, table.device, table.dtype)
+        key = (n, tensor_version(table), table.device, table.dtype)
         if key not in self._dec_pos_cache:
             side, new = math.isqrt(table.shape[0]), math.isqrt(n)
             if new * new != n:

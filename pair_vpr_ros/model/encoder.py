@@ -12,7 +12,15 @@ from torch import Tensor, nn
 
 from ..errors import ConfigError
 from .config import PATCH, ModelConfig
-from .layers import LayerScale, Mlp, SelfAttention, SwiGLU, init_weights, layer_norm
+from .layers import (
+    LayerScale,
+    Mlp,
+    SelfAttention,
+    SwiGLU,
+    init_weights,
+    layer_norm,
+    tensor_version,
+)
 
 LAYERSCALE_INIT = 0.1  # for models trained from scratch here; released weights overwrite it
 
@@ -65,7 +73,7 @@ class DinoViT(nn.Module):
 
     def patch_position(self, gh: int, gw: int) -> Tensor:
         """Position embedding of the patch grid [1, gh*gw, D], bicubic + antialias in float32."""
-        key = (gh, gw, self.pos_embed._version, self.pos_embed.device, self.pos_embed.dtype)
+        key = (gh, gw, tensor_version(self.pos_embed), self.pos_embed.device, self.pos_embed.dtype)
         cached = self._pos_cache.get(key)
         if cached is not None and not torch.is_grad_enabled():
             return cached

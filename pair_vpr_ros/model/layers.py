@@ -86,6 +86,15 @@ class LayerScale(nn.Module):
         return x * self.gamma
 
 
+def tensor_version(t: Tensor) -> int:
+    """In-place modification counter (cache key); inference tensors have none and never change
+    outside inference mode."""
+    try:
+        return t._version
+    except RuntimeError:
+        return -1
+
+
 def layer_norm(dim: int) -> nn.LayerNorm:
     return nn.LayerNorm(dim, eps=1e-6)
 
