@@ -175,7 +175,7 @@ def load_model(cfg: EvalConfig) -> torch.nn.Module:
     if cfg.checkpoint is not None:
         return load_pairvpr(cfg.checkpoint, device=device, image_size=cfg.image_size)
     if cfg.random_arch is None:
-        raise ConfigError("give a checkpoint (--checkpoint PATH) or --random-init ARCH")
+        raise ConfigError("give a checkpoint (--weights PATH) or --random-init ARCH")
     overrides = {"image_size": cfg.image_size} if cfg.image_size else {}
     return build_pairvpr(ModelConfig.preset(cfg.random_arch, **overrides), device, seed=0)
 
@@ -246,7 +246,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="dataset roots: ROOT/database and ROOT/queries image folders, ground "
         "truth from ROOT/ground_truth.npy or @easting@northing@ file names",
     )
-    p.add_argument("--checkpoint", type=Path, help="Pair-VPR weights (e.g. pairvpr-vitB.pth)")
+    p.add_argument(
+        "--weights",
+        "--checkpoint",
+        dest="checkpoint",
+        type=Path,
+        help="Pair-VPR weights (e.g. pairvpr-vitB.pth)",
+    )
     p.add_argument(
         "--random-init",
         metavar="ARCH",

@@ -18,8 +18,8 @@ both publish identical data. One accepted ``LoopRecord`` gives three messages:
         3      match_stamp        matched header stamp, s
         4      pair_score         pair-classifier score (logit(q,c) + logit(c,q))
         5      global_similarity  global-descriptor similarity
-        6      rank_before        candidate rank by global similarity (0 = best)
-        7      rank_after         rank after pair re-ranking
+        6      rank_before        rank by global similarity (1 = best)
+        7      rank_after         rank after pair re-ranking (1 = best)
         8      inliers            geometric-verification inliers, -1 when not verified
         9      inlier_ratio       inliers / matches
         10     accepted           1.0 accepted, 0.0 rejected

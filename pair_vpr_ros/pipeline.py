@@ -42,6 +42,9 @@ class FrameOutcome:
     keyframe_id: int | None = None  # id in the map when the frame was added
     skipped: str = ""  # why the frame was not a keyframe ("" when it was)
     loop: LoopRecord | None = None  # the best candidate after re-ranking, accepted or not
+    # Candidates in global (FAISS) order with their pair scores: [0] is what ranking by global
+    # similarity alone would return.
+    candidates: list[Candidate] = field(default_factory=list)
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
@@ -207,7 +210,7 @@ class LoopClosurePipeline:
             outcome.skipped = "similar to previous keyframe"
             return outcome
         features = extract_features(frame.rgb) if self.config.geometric_verification else None
-        outcome.loop = self._query(frame, dense, desc, outcome.timings_ms, features)
+        outcome.loop = self._query(frame, dense, desc, outcome, features)
         if self.config.mode == "mapping":
             meta = KeyframeMeta(
                 stamp=frame.stamp, frame_id=frame.frame_id, pose=frame.pose, source=frame.source
@@ -224,14 +227,15 @@ class LoopClosurePipeline:
             self.counts["loops" if outcome.loop.accepted else "rejected"] += 1
         return outcome
 
-    def _query(self, frame: Frame, dense, desc, timings: dict, features: Features | None):
+    def _query(self, frame: Frame, dense, desc, outcome: FrameOutcome, features: Features | None):
         max_id = self.detector.eligible_max_id(frame.stamp, self._stamps)
         if max_id is None:
             return None
+        timings = outcome.timings_ms
         t0 = time.perf_counter()
         hits = self._place_map.search(desc, self.config.top_k, max_id=max_id)
         timings["search"] = (time.perf_counter() - t0) * 1e3
-        candidates = [
+        outcome.candidates = candidates = [
             self._candidate(kf_id, sim, rank) for rank, (kf_id, sim) in enumerate(hits, start=1)
         ]
 

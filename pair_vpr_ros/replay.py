@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from pair_vpr_ros import bag_io
 from pair_vpr_ros.bag_io import BagFrame, LoopBagWriter
-from pair_vpr_ros.detector import DetectorConfig, LoopDetector, LoopRecord
+from pair_vpr_ros.detector import Candidate, DetectorConfig, LoopRecord
 from pair_vpr_ros.errors import BagError, ConfigError, PairVPRError
 from pair_vpr_ros.model import load_pairvpr
 from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
@@ -78,6 +78,7 @@ class _Run:
     pending: deque[BagFrame] = field(default_factory=deque)
     reasons: Counter[str] = field(default_factory=Counter)
     records: list[LoopRecord] = field(default_factory=list)
+    global_top1: list[LoopRecord] = field(default_factory=list)  # global-only baseline
     positions: list[tuple[float, float, float]] = field(default_factory=list)
 
 
@@ -109,34 +110,13 @@ def _load_model(weights: str | Path | None, model: Any, device: str) -> Any:
     return load_pairvpr(weights, device=device)
 
 
-def _global_top1(pipe: LoopClosurePipeline, records: list[LoopRecord]) -> list[LoopRecord]:
-    """For each record, the query's top-1 global candidate among the keyframes that were
-    eligible at query time (what ranking by global similarity alone would have returned)."""
-    metas = pipe.place_map.all_meta()
-    stamps = [m.stamp for m in metas]
-    detector = LoopDetector(pipe.config)
-    out = []
-    for record in records:
-        q = record.query_id
-        if q < 0:  # localization-mode query: not in the map
-            continue
-        max_id = detector.eligible_max_id(record.query_stamp, stamps[:q])
-        if max_id is None:
-            continue
-        hits = pipe.place_map.search(pipe.place_map.get_desc([q])[0], 1, max_id=max_id)
-        if not hits:
-            continue
-        match_id, similarity = hits[0]
-        match = metas[match_id]
-        out.append(
-            replace(
-                record, match_id=match_id, match_stamp=match.stamp,
-                match_frame_id=match.frame_id, global_similarity=similarity,
-                pair_score=float("nan"), rank_before=1, rank_after=1, accepted=False,
-                reason="global top-1",
-            )
-        )  # fmt: skip
-    return out
+def _global_top1(record: LoopRecord, best: Candidate) -> LoopRecord:
+    """The record ranking by global similarity alone would give: the top FAISS candidate."""
+    return replace(
+        record, match_id=best.id, match_stamp=best.stamp, match_frame_id=best.frame_id,
+        global_similarity=best.global_similarity, pair_score=float("nan"), rank_before=1,
+        rank_after=1, accepted=False, reason="global top-1",
+    )  # fmt: skip
 
 
 def _keyframes(
@@ -171,6 +151,8 @@ def _drive(
                 writer.write_image(bf.cdr, bf.log_time_ns)
             if outcome.loop is not None:
                 run.records.append(outcome.loop)
+                if outcome.loop.query_id >= 0:
+                    run.global_top1.append(_global_top1(outcome.loop, outcome.candidates[0]))
                 if outcome.loop.accepted:
                     summary.loops += 1
                     if writer is not None:
@@ -291,7 +273,7 @@ def _finish(
             summary.map_dir = str(pipe.save_map(Path(map_dir) if map_dir else out / "map"))
         keyframes = _keyframes(pipe, poses, pose_tolerance)
         has_poses = any(k.pose is not None for k in keyframes)
-        global_top1 = _global_top1(pipe, run.records) if has_poses else None
+        global_top1 = run.global_top1 if has_poses else None
         positions = np.asarray(run.positions, dtype=np.float64).reshape(-1, 3)
         evaluation = write_report(
             out, run.records, keyframes, positions, gt_radius, pipe.config.exclude_recent_s,

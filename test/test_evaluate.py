@@ -131,7 +131,7 @@ def test_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     assert "error: dataset folder " in capsys.readouterr().err
     root = make_utm_eval_set(tmp_path / "set", places=2)
     assert main([str(root)]) == 2
-    assert capsys.readouterr().err.startswith("error: give a checkpoint (--checkpoint PATH)")
+    assert capsys.readouterr().err.startswith("error: give a checkpoint (--weights PATH)")
     assert main([str(root), "--checkpoint", str(tmp_path / "missing.pth")]) == 2
     assert "missing.pth does not exist" in capsys.readouterr().err
 

@@ -1,0 +1,283 @@
+"""Soak test of `vpr_node`: synthetic 640x480 frames at 30 Hz into the running node for N minutes.
+
+Starts the node as a subprocess (a checkpoint, or the tiny random network by default), publishes
+a camera that tours `--places` synthetic places (each shown for `--frames-per-place` frames) and
+then tours them again, so loops come back every `places * frames_per_place / rate` seconds. It
+prints a row every `--sample` seconds and a summary: frames published / received / processed /
+dropped, loops, loop latency (the frame's publish stamp to the loop message's arrival), the
+node's own processing latency from /diagnostics, and the node's resident memory (VmRSS) against
+the map's size. Memory must grow no faster than the map: the summary checks RSS growth after
+warm-up <= map growth + `--slack-mb`.
+
+    python benchmarks/soak_node.py --minutes 2
+    python benchmarks/soak_node.py --minutes 10 --weights pairvpr-vitB.pth --device cuda
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+# Tiny random-network settings: only identical images pass (see test/test_pipeline.py).
+TINY = dict(
+    global_floor=0.99999, score_threshold=-1e6, keyframe_max_similarity=0.99999, top_k=1
+)  # fmt: skip
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--minutes", type=float, default=2.0, help="duration (%(default)s)")
+    p.add_argument("--weights", default="random-tiny", help="checkpoint (%(default)s)")
+    p.add_argument("--device", default="cpu", help="node torch device (%(default)s)")
+    p.add_argument("--rate", type=float, default=30.0, help="frames per second (%(default)s)")
+    p.add_argument("--size", default="640x480", help="frame size WxH (%(default)s)")
+    p.add_argument("--places", type=int, default=240, help="places per tour (%(default)s)")
+    p.add_argument("--frames-per-place", type=int, default=6, help="(%(default)s)")
+    p.add_argument("--sample", type=float, default=10.0, help="seconds per row (%(default)s)")
+    p.add_argument("--warmup", type=float, default=20.0, help="s before the memory baseline")
+    p.add_argument("--slack-mb", type=float, default=64.0, help="allowed non-map RSS growth")
+    p.add_argument(
+        "--param", action="append", default=[], metavar="NAME:=VALUE",
+        help="extra node parameter (repeatable), e.g. --param precision:=int8",
+    )  # fmt: skip
+    p.add_argument("--out", type=Path, help="write the samples and summary as JSON here")
+    p.add_argument("--plot", type=Path, help="write an RSS / map-size plot (PNG) here")
+    return p.parse_args(argv)
+
+
+def rss_mb(pid: int) -> float:
+    """Resident memory of `pid` in MiB, from /proc/<pid>/status."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def percentiles(values: list[float]) -> str:
+    if not values:
+        return "n/a"
+    p50, p95 = np.percentile(values, [50, 95])
+    return f"p50 {p50:.1f} ms, p95 {p95:.1f} ms, max {max(values):.1f} ms (n={len(values)})"
+
+
+class Camera:
+    """Synthetic places: a random 60x80 texture per place, upscaled to the frame size."""
+
+    def __init__(self, size: tuple[int, int], places: int, per_place: int) -> None:
+        rng = np.random.default_rng(0)
+        self.textures = rng.integers(0, 256, (places, 60, 80, 3), dtype=np.uint8)
+        self.size, self.per_place = size, per_place
+
+    def frame(self, i: int) -> bytes:
+        texture = self.textures[(i // self.per_place) % len(self.textures)]
+        return cv2.resize(texture, self.size, interpolation=cv2.INTER_NEAREST).tobytes()
+
+
+def start_node(args: argparse.Namespace, log_path: Path) -> subprocess.Popen:
+    values = {"weights": args.weights, "device": args.device, "image_topic": "/soak/image"}
+    if args.weights == "random-tiny":
+        values.update(TINY)
+    cmd = [sys.executable, "-m", "pair_vpr_ros.node", "--ros-args"]
+    for name, value in values.items():
+        cmd += ["-p", f"{name}:={value}"]
+    for extra in args.param:
+        cmd += ["-p", extra]
+    log = open(log_path, "w")  # noqa: SIM115 - the node writes to it until it exits
+    return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+
+
+class Soak:
+    """The publisher / listener side; runs rclpy in this process."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.executors import MultiThreadedExecutor
+        from rclpy.qos import qos_profile_sensor_data
+        from sensor_msgs.msg import Image
+        from std_msgs.msg import String
+
+        self.rclpy, self.Image = rclpy, Image
+        rclpy.init()
+        self.node = rclpy.create_node("vpr_soak")
+        self.pub = self.node.create_publisher(Image, "/soak/image", qos_profile_sensor_data)
+        self.diag: dict[str, str] = {}
+        self.loop_ms: list[float] = []
+        self.node.create_subscription(String, "/loop_closure/json", self._on_loop, 100)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
+        self.executor = MultiThreadedExecutor(num_threads=2)
+        self.executor.add_node(self.node)
+        threading.Thread(target=self.executor.spin, daemon=True).start()
+        w, h = (int(v) for v in args.size.lower().split("x"))
+        self.camera = Camera((w, h), args.places, args.frames_per_place)
+        self.w, self.h, self.rate = w, h, args.rate
+        self.published = 0
+        self.stop = threading.Event()
+
+    def now(self) -> float:
+        return self.node.get_clock().now().nanoseconds * 1e-9
+
+    def _on_loop(self, msg) -> None:
+        record = json.loads(msg.data)
+        self.loop_ms.append((self.now() - record["query_stamp"]) * 1e3)
+
+    def _on_diag(self, msg) -> None:
+        for status in msg.status:
+            if status.name.startswith("vpr_node"):
+                self.diag = {kv.key: kv.value for kv in status.values}
+
+    def publish_forever(self) -> None:
+        """Publish at `rate` on a fixed schedule (late frames are sent at once, not skipped)."""
+        period, next_t = 1.0 / self.rate, time.monotonic()
+        while not self.stop.is_set():
+            data = self.camera.frame(self.published)
+            msg = self.Image(height=self.h, width=self.w, encoding="rgb8", step=3 * self.w)
+            msg.data = data
+            msg.header.frame_id = "soak_cam"
+            msg.header.stamp = self.node.get_clock().now().to_msg()
+            self.pub.publish(msg)
+            self.published += 1
+            next_t += period
+            time.sleep(max(0.0, next_t - time.monotonic()))
+
+    def close(self) -> None:
+        self.stop.set()
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.rclpy.try_shutdown()
+
+
+def run(args: argparse.Namespace) -> int:
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random(os.getpid()).randint(30, 99)))
+    log_path = Path(tempfile.mkdtemp(prefix="vpr-soak-")) / "node.log"
+    node = start_node(args, log_path)
+    soak = Soak(args)
+    try:
+        started = time.monotonic()
+        while not soak.diag:  # the node is up once it publishes diagnostics
+            if node.poll() is not None or time.monotonic() - started > 120:
+                print(f"error: the node did not start:\n{log_path.read_text()}", file=sys.stderr)
+                return 1
+            time.sleep(0.2)
+        print(f"node pid {node.pid} up after {time.monotonic() - started:.1f} s; log {log_path}")
+        return soak_loop(args, soak, node)
+    finally:
+        soak.close()
+        if node.poll() is None:
+            node.send_signal(signal.SIGINT)
+            try:
+                print(f"node exit code after SIGINT: {node.wait(60)}")
+            except subprocess.TimeoutExpired:
+                node.kill()
+                print("error: the node did not stop within 60 s of SIGINT", file=sys.stderr)
+
+
+def soak_loop(args: argparse.Namespace, soak: Soak, node: subprocess.Popen) -> int:
+    threading.Thread(target=soak.publish_forever, daemon=True).start()
+    t0, samples = time.monotonic(), []
+    keys = ("frames_received", "frames_processed", "frames_dropped", "map_size", "loops")
+    print(f"{'t_s':>6} {'sent':>7} {'recv':>7} {'proc':>7} {'drop':>6} {'map':>6} {'loops':>5} "
+          f"{'rss_MiB':>8} {'map_MiB':>8} {'lat_p50':>8} {'lat_p95':>8}")  # fmt: skip
+    while (elapsed := time.monotonic() - t0) < args.minutes * 60:
+        time.sleep(min(args.sample, args.minutes * 60 - elapsed))
+        if node.poll() is not None:
+            print(f"error: the node exited with {node.returncode}", file=sys.stderr)
+            return 1
+        d = soak.diag
+        row = {"t": round(time.monotonic() - t0, 1), "published": soak.published,
+               **{k: int(d.get(k, 0)) for k in keys}, "rss_mb": rss_mb(node.pid),
+               "map_mb": int(d.get("map_bytes", 0)) / 2**20,
+               "latency_p50": float(d.get("latency_ms_p50", "nan")),
+               "latency_p95": float(d.get("latency_ms_p95", "nan"))}  # fmt: skip
+        samples.append(row)
+        print(f"{row['t']:6.0f} {row['published']:7d} {row['frames_received']:7d} "
+              f"{row['frames_processed']:7d} {row['frames_dropped']:6d} {row['map_size']:6d} "
+              f"{row['loops']:5d} {row['rss_mb']:8.1f} {row['map_mb']:8.2f} "
+              f"{row['latency_p50']:8.1f} {row['latency_p95']:8.1f}")  # fmt: skip
+    soak.stop.set()
+    time.sleep(2.0)  # let the last frames and diagnostics arrive
+    return summarise(args, soak, samples)
+
+
+def summarise(args: argparse.Namespace, soak: Soak, samples: list[dict]) -> int:
+    d = soak.diag
+    base = next((s for s in samples if s["t"] >= args.warmup), samples[0])
+    last = samples[-1]
+    rss_growth = last["rss_mb"] - base["rss_mb"]
+    map_growth = last["map_mb"] - base["map_mb"]
+    bounded = rss_growth <= map_growth + args.slack_mb
+    summary = {
+        "minutes": args.minutes, "weights": args.weights, "device": args.device,
+        "published": soak.published, **{k: d.get(k) for k in (
+            "frames_received", "frames_processed", "frames_dropped", "frames_invalid",
+            "frames_rate_limited", "frames_similar_to_keyframe", "map_size", "loops",
+            "bytes_per_keyframe", "latency_ms_p50", "latency_ms_p95", "latency_ms_max",
+            "encode_ms_p50", "encode_ms_p95", "rerank_ms_p50", "rerank_ms_p95")},
+        "loop_messages": len(soak.loop_ms), "rss_mb_start": samples[0]["rss_mb"],
+        "rss_mb_baseline": base["rss_mb"], "rss_mb_end": last["rss_mb"],
+        "rss_mb_max": max(s["rss_mb"] for s in samples), "rss_growth_mb": rss_growth,
+        "map_growth_mb": map_growth, "memory_bounded": bounded,
+    }  # fmt: skip
+    print("\nsummary")
+    print(
+        f"  frames: published {soak.published}, received {d.get('frames_received')}, "
+        f"processed {d.get('frames_processed')}, dropped {d.get('frames_dropped')}, "
+        f"rate-limited {d.get('frames_rate_limited')}, invalid {d.get('frames_invalid')}"
+    )
+    print(
+        f"  map: {d.get('map_size')} keyframes x {d.get('bytes_per_keyframe')} B, "
+        f"loops {d.get('loops')} ({len(soak.loop_ms)} loop messages received)"
+    )
+    print(f"  loop latency (publish stamp -> loop message): {percentiles(soak.loop_ms)}")
+    print(
+        f"  node latency (receipt -> processed, last 300 frames): p50 "
+        f"{d.get('latency_ms_p50')} ms, p95 {d.get('latency_ms_p95')} ms, "
+        f"max {d.get('latency_ms_max')} ms; encode p50 {d.get('encode_ms_p50')} ms"
+    )
+    print(f"  RSS: start {samples[0]['rss_mb']:.1f} MiB, at {base['t']:.0f} s "
+          f"{base['rss_mb']:.1f}, end {last['rss_mb']:.1f}, max {summary['rss_mb_max']:.1f}; "
+          f"growth since {base['t']:.0f} s {rss_growth:+.1f} MiB vs map growth "
+          f"{map_growth:+.2f} MiB -> {'bounded' if bounded else 'NOT BOUNDED'}")  # fmt: skip
+    if args.out:
+        args.out.write_text(json.dumps({"summary": summary, "samples": samples}, indent=1))
+    if args.plot:
+        plot(samples, args.plot)
+    return 0 if bounded else 2
+
+
+def plot(samples: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = [s["t"] for s in samples]
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    ax.plot(t, [s["rss_mb"] for s in samples], label="node RSS (MiB)")
+    ax.plot(t, [samples[0]["rss_mb"] + s["map_mb"] for s in samples], "--",
+            label="start RSS + map size (MiB)")  # fmt: skip
+    ax.set_xlabel("time (s)")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run(parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

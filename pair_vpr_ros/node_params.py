@@ -1,0 +1,199 @@
+"""The parameters of `vpr_node`, ROS-free: one table, validation, and the detector config.
+
+`node.py` declares every entry of `PARAMS` with a `ParameterDescriptor` built from it, and
+`config/vpr_node.yaml` mirrors the table (`yaml_text()` renders it; a test keeps them equal).
+`read_only` parameters take effect at start-up only; the others can change at run time
+(`ros2 param set /vpr_node top_k 20`), and a refused change comes back with the reason.
+"""
+
+from __future__ import annotations
+
+import math
+import textwrap
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from .detector import DetectorConfig, preset
+from .errors import ConfigError
+
+Value = bool | int | float | str
+RANDOM_TINY = "random-tiny"  # test-only weights value: a tiny random network (finds nothing real)
+PATCH = 14
+TYPE_NAMES = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One node parameter: its default fixes the ROS type; `low`/`high` bound numbers."""
+
+    name: str
+    default: Value
+    description: str
+    low: float | None = None
+    high: float | None = None
+    choices: tuple[str, ...] = ()
+    read_only: bool = False
+
+
+def _p(name: str, default: Value, description: str, *bounds: float, **kw: Any) -> ParamSpec:
+    low, high = bounds if bounds else (None, None)
+    return ParamSpec(name, default, description, low, high, **kw)
+
+
+RO = dict(read_only=True)
+PARAMS: tuple[ParamSpec, ...] = (
+    # ---- model (start-up only)
+    _p("weights", "", "Pair-VPR checkpoint (.pth), e.g. /path/pairvpr-vitB.pth; "
+       f"'{RANDOM_TINY}' builds a tiny random network (tests only)", **RO),
+    _p("device", "cpu", "torch device: cpu, cuda, cuda:1, ...", **RO),
+    _p("precision", "fp32", "fp32; int8 (dynamic quantization, CPU only); bf16 (autocast, CPU "
+       "or GPU); fp16 (autocast, GPU only)", choices=("fp32", "int8", "bf16", "fp16"), **RO),
+    _p("image_size", 0, "network input side in pixels, a multiple of 14; 0: the checkpoint's",
+       0, 1022, **RO),
+    _p("index", "flat", "map index: flat (exact) or hnsw (approximate, very large maps)",
+       choices=("flat", "hnsw"), **RO),
+    # ---- inputs (start-up only)
+    _p("image_topic", "image", "sensor_msgs/Image input topic ('' = none)", **RO),
+    _p("compressed_image_topic", "", "sensor_msgs/CompressedImage input topic ('' = none)", **RO),
+    _p("pose_topic", "", "pose input topic attached to keyframes ('' = none)", **RO),
+    _p("pose_type", "odometry", "message type of pose_topic",
+       choices=("odometry", "pose_stamped", "pose_with_covariance_stamped"), **RO),
+    _p("pose_buffer_size", 2000, "poses kept for matching frames by stamp", 10, 1000000, **RO),
+    _p("qos", "sensor_data", "input QoS: sensor_data (best effort, hears every publisher) or "
+       "reliable (hears reliable publishers only)", choices=("sensor_data", "reliable"), **RO),
+    _p("queue_size", 4, "frames waiting for the worker; when full the oldest is dropped",
+       1, 1000, **RO),
+    _p("diagnostics_period", 1.0, "seconds between /diagnostics messages", 0.1, 60.0, **RO),
+    _p("autosave_period", 0.0, "seconds between saves of a changed map to map_dir (0 = off)",
+       0.0, 86400.0, **RO),
+    _p("load_map_on_start", False, "load the map in map_dir at start-up (empty if none yet)",
+       **RO),
+    # ---- run time
+    _p("save_on_shutdown", False, "save the map to map_dir when the node stops"),
+    _p("map_dir", "", "map folder of the save_map / load_map / build_map services"),
+    _p("build_source", "", "build_map input: a rosbag (folder, .mcap, .db3, .bag) or an image "
+       "folder (sorted by name)"),
+    _p("build_image_topic", "", "image topic of a build_source bag ('' = its only one)"),
+    _p("build_image_period", 1.0, "seconds between the synthetic stamps of folder images",
+       0.001, 3600.0),
+    _p("pose_tolerance", 0.2, "largest stamp gap (s) between a frame and its pose", 0.0, 60.0),
+    _p("publish_rejected", False, "also publish rejected best candidates on the detail and json "
+       "topics (accepted = 0)"),
+    _p("marker_frame_id", "map", "frame of the loop-closure markers (the poses' frame)"),
+    # ---- detector (run time)
+    _p("mode", "mapping", "mapping: query, then add keyframes; localization: query only",
+       choices=("mapping", "localization")),
+    _p("preset", "speed", "detector preset (speed: top_k 10, min_frame_interval 0.2; "
+       "performance: top_k 100, min_frame_interval 0)", choices=("speed", "performance")),
+    _p("top_k", 0, "candidates re-ranked per keyframe (0 = the preset's)", 0, 1000),
+    _p("score_threshold", 0.0, "accept when logit(q,c) + logit(c,q) >= this", -1.0e6, 1.0e6),
+    _p("global_floor", -1.0, "skip re-ranking below this global similarity (-1 = off)",
+       -1.0, 1.0),
+    _p("min_frame_interval", -1.0, "skip frames closer than this (s) to the last encoded one "
+       "(-1 = the preset's)", -1.0, 3600.0),
+    _p("keyframe_max_similarity", 0.98, "a frame this similar to the last keyframe is skipped",
+       -1.0, 1.0),
+    _p("exclude_recent_s", 30.0, "never match keyframes younger than this (s)", 0.0, 86400.0),
+    _p("exclude_recent_keyframes", 10, "... nor among the newest this many", 0, 1000000),
+    _p("temporal_consistency", 1, "accept after this many consecutive agreeing queries", 1, 100),
+    _p("temporal_tolerance", 5, "agreeing: matched ids within this many keyframes", 0, 100000),
+    _p("geometric_verification", False, "also require ORB + fundamental-matrix RANSAC inliers"),
+    _p("min_inliers", 15, "inliers needed with geometric_verification", 0, 100000),
+)  # fmt: skip
+
+SPECS: dict[str, ParamSpec] = {p.name: p for p in PARAMS}
+DETECTOR_PARAMS = (
+    "mode",
+    "preset",
+    "top_k",
+    "score_threshold",
+    "global_floor",
+    "min_frame_interval",
+    "keyframe_max_similarity",
+    "exclude_recent_s",
+    "exclude_recent_keyframes",
+    "temporal_consistency",
+    "temporal_tolerance",
+    "geometric_verification",
+    "min_inliers",
+)
+
+
+def defaults() -> dict[str, Value]:
+    return {p.name: p.default for p in PARAMS}
+
+
+def check_value(name: str, value: Any) -> str | None:
+    """Why `value` is not valid for parameter `name` (None when it is)."""
+    spec = SPECS.get(name)
+    if spec is None:
+        return f"unknown parameter {name!r}"
+    kind = type(spec.default)
+    ok = isinstance(value, kind) and not (kind is not bool and isinstance(value, bool))
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        ok, value = True, float(value)
+    if not ok:
+        return f"{name} must be {TYPE_NAMES[kind]}, got {value!r}"
+    if kind is float and not math.isfinite(value):
+        return f"{name} must be a finite number, got {value!r}"
+    if spec.low is not None and not spec.low <= value <= spec.high:
+        return f"{name}={value!r} is out of range [{spec.low}, {spec.high}]"
+    if spec.choices and value not in spec.choices:
+        return f"{name}={value!r} must be one of {', '.join(spec.choices)}"
+    if name == "image_size" and value % PATCH:
+        return f"image_size={value} must be 0 or a multiple of {PATCH} (e.g. 224, 322)"
+    return None
+
+
+def detector_config(values: Mapping[str, Any]) -> DetectorConfig:
+    """The `DetectorConfig` of a full parameter set: the preset, then explicit overrides."""
+    overrides = {k: values[k] for k in DETECTOR_PARAMS if k != "preset"}
+    if overrides["top_k"] == 0:
+        del overrides["top_k"]
+    if overrides["min_frame_interval"] < 0:
+        del overrides["min_frame_interval"]
+    return preset(values["preset"], **overrides)
+
+
+def check_change(current: Mapping[str, Any], changes: Mapping[str, Any]) -> str | None:
+    """Why applying `changes` to the parameter set `current` is refused (None: accepted)."""
+    for name, value in changes.items():
+        reason = check_value(name, value)
+        if reason is None and SPECS[name].read_only:
+            reason = f"{name} is read-only: set it at start-up (--ros-args -p {name}:=...)"
+        if reason is not None:
+            return reason
+    if any(name in DETECTOR_PARAMS for name in changes):
+        try:
+            detector_config({**current, **changes})
+        except ConfigError as err:
+            return str(err)
+    return None
+
+
+def _yaml_scalar(value: Value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return f'"{value}"'
+    return repr(value)
+
+
+def yaml_text() -> str:
+    """`config/vpr_node.yaml`: every parameter with its default, description as a comment."""
+    lines = [
+        "# vpr_node parameters (defaults). Start with:",
+        "#   ros2 run pair_vpr_ros vpr_node --ros-args --params-file config/vpr_node.yaml \\",
+        "#       -p weights:=/path/pairvpr-vitB.pth",
+        "# (read-only) = start-up only; the others can change with `ros2 param set`.",
+        "/**:",
+        "  ros__parameters:",
+    ]
+    for p in PARAMS:
+        bounds = f" [{p.low}, {p.high}]" if p.low is not None else ""
+        flag = " (read-only)" if p.read_only else ""
+        text = f"{p.description}{bounds}{flag}"
+        lines += textwrap.wrap(text, 95, initial_indent="    # ", subsequent_indent="    #   ")
+        lines.append(f"    {p.name}: {_yaml_scalar(p.default)}")
+    return "\n".join(lines) + "\n"
