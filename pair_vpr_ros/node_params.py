@@ -12,7 +12,10 @@ import math
 import textwrap
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
+
+import yaml
 
 from .detector import DetectorConfig, preset
 from .errors import ConfigError
@@ -170,6 +173,30 @@ def check_change(current: Mapping[str, Any], changes: Mapping[str, Any]) -> str 
         except ConfigError as err:
             return str(err)
     return None
+
+
+def read_params_file(path: str | Path, node_name: str = "vpr_node") -> dict[str, Value]:
+    """The full parameter set of a ROS 2 parameter file (`/**:` or `<node_name>:` with
+    `ros__parameters`), defaults filled in and every value checked (ConfigError)."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as err:
+        raise ConfigError(f"cannot read parameter file {path}: {err}") from err
+    sections = [v for k, v in (data or {}).items() if k in ("/**", node_name, f"/{node_name}")]
+    if not sections or not all(isinstance(v, dict) and "ros__parameters" in v for v in sections):
+        raise ConfigError(
+            f"parameter file {path} has no '/**:' or '{node_name}:' section with "
+            "'ros__parameters:' (see config/vpr_node.yaml)"
+        )
+    values = defaults()
+    for section in sections:
+        for name, value in (section["ros__parameters"] or {}).items():
+            reason = check_value(name, value)
+            if reason is not None:
+                raise ConfigError(f"parameter file {path}: {reason}")
+            values[name] = float(value) if isinstance(SPECS[name].default, float) else value
+    return values
 
 
 def _yaml_scalar(value: Value) -> str:

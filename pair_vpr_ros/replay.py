@@ -31,6 +31,7 @@ from pair_vpr_ros.bag_io import BagFrame, LoopBagWriter
 from pair_vpr_ros.detector import Candidate, DetectorConfig, LoopRecord
 from pair_vpr_ros.errors import BagError, ConfigError, PairVPRError
 from pair_vpr_ros.model import load_pairvpr
+from pair_vpr_ros.node_params import detector_config, read_params_file
 from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
 from pair_vpr_ros.report import KeyframeInfo, write_report
 
@@ -57,6 +58,8 @@ class ReplaySummary:
     map_dir: str | None = None
     bag_out: str | None = None
     evaluation: dict[str, Any] | None = None
+    config: dict[str, Any] = field(default_factory=dict)  # the DetectorConfig used
+    model: str = ""  # the model's fingerprint (weights, input size, descriptor size)
     warnings: list[str] = field(default_factory=list)
     error: str | None = None
 
@@ -229,6 +232,8 @@ def replay_bag(
             summary.warnings.append(poses.error)
         bag_out = _prepare_out(out, write_bag)
         pipe = LoopClosurePipeline(_load_model(weights, model, device), config)
+        summary.config = asdict(config)
+        summary.model = pipe.model.fingerprint
         run = _Run(summary)
         frames = bag_io.iter_frames(
             reader, topic, poses, pose_tolerance, max_frames, keep_cdr=write_bag
@@ -324,6 +329,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--threshold", type=float, help="pair-score acceptance threshold (default: detector's)"
     )
     p.add_argument(
+        "--params-file",
+        type=Path,
+        help="take the detector settings from a vpr_node parameter file "
+        "(e.g. config/vpr_node.yaml); --threshold and --top-k still override",
+    )
+    p.add_argument(
         "--top-k",
         type=_positive_int,
         help="candidates re-ranked per keyframe (default: detector's)",
@@ -359,8 +370,12 @@ def _fmt(value: float | None) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     overrides = {"score_threshold": args.threshold, "top_k": args.top_k}
+    overrides = {k: v for k, v in overrides.items() if v is not None}
     try:
-        config = DetectorConfig(**{k: v for k, v in overrides.items() if v is not None})
+        if args.params_file is not None:
+            config = detector_config(read_params_file(args.params_file)).updated(**overrides)
+        else:
+            config = DetectorConfig(**overrides)
         summary = replay_bag(
             args.bag, args.out, weights=args.weights, topic=args.topic, pose_topic=args.pose_topic,
             config=config, write_bag=args.write_bag, gt_radius=args.gt_radius, device=args.device,

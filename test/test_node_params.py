@@ -72,3 +72,25 @@ def test_changes_check_read_only_and_the_combined_config():
     assert params.check_change(v, {"mode": "slam"}) == (
         "mode='slam' must be one of mapping, localization"
     )
+
+
+def test_read_params_file_fills_defaults_and_checks(tmp_path):
+    from pair_vpr_ros.errors import ConfigError
+    from pair_vpr_ros.node_params import detector_config, read_params_file
+
+    good = tmp_path / "p.yaml"
+    good.write_text("vpr_node:\n  ros__parameters:\n    top_k: 3\n    exclude_recent_s: 12\n")
+    values = read_params_file(good)
+    assert values["top_k"] == 3 and values["exclude_recent_s"] == 12.0
+    assert values["score_threshold"] == params.defaults()["score_threshold"]
+    assert detector_config(values).top_k == 3
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("/**:\n  ros__parameters:\n    top_k: -4\n")
+    with pytest.raises(ConfigError, match=r"bad.yaml: top_k=-4 is out of range \[0, 1000\]"):
+        read_params_file(bad)
+    bad.write_text("other_node:\n  ros__parameters: {}\n")
+    with pytest.raises(ConfigError, match="has no '/\\*\\*:' or 'vpr_node:' section"):
+        read_params_file(bad)
+    assert (
+        read_params_file(Path(__file__).parents[1] / "config/vpr_node.yaml") == params.defaults()
+    )

@@ -140,3 +140,23 @@ def test_geometric_verification_in_the_pipeline(model):
     out = run(pipe, scenes, [0, 1, 2, 3, 0])
     rec = out[4].loop
     assert rec.accepted and rec.inliers >= 15 and rec.inlier_ratio > 0.5
+
+
+def test_map_can_be_used_from_another_thread(model, places, tmp_path):
+    import threading
+
+    pipe = LoopClosurePipeline(model, DetectorConfig(**EXACT))
+    run(pipe, places, [0, 1])
+    errors = []
+
+    def worker():
+        try:
+            run(pipe, places, [2, 0], t0=10.0)
+            pipe.save_map(tmp_path / "map")
+        except Exception as err:  # surfaced below
+            errors.append(err)
+
+    thread = threading.Thread(target=worker)
+    thread.start()
+    thread.join()
+    assert errors == [] and len(pipe.place_map) == 4

@@ -204,3 +204,21 @@ def test_cli_failure_part_way(tmp_path, weights, capsys):
     assert captured.err.endswith("(what was processed before is written)\n")
     assert captured.out.splitlines()[-1].startswith("frames ")
     assert not (tmp_path / "o" / "map").exists()
+
+
+def test_cli_params_file(tmp_path, weights, capsys):
+    images, poses = _world()
+    bag = write_rosbag2(tmp_path / "bag", images, poses)
+    params = tmp_path / "params.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    top_k: 1\n    score_threshold: -900000.0\n")
+    out = tmp_path / "out"
+    argv = [str(bag), "--weights", str(weights), "--out", str(out), "--quiet"]
+    assert main(argv + ["--params-file", str(params), "--threshold=-5e5"]) == 0
+    capsys.readouterr()
+    saved = json.loads((out / "summary.json").read_text())
+    assert saved["config"]["top_k"] == 1 and saved["config"]["score_threshold"] == -5e5
+    params.write_text("/**:\n  ros__parameters:\n    top_k: many\n")
+    assert main(argv + ["--params-file", str(params)]) == 1
+    assert capsys.readouterr().err == (
+        f"error: parameter file {params}: top_k must be an integer, got 'many'\n"
+    )
