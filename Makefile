@@ -4,7 +4,7 @@ PY := $(VENV)/bin/python
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 export MPLBACKEND := Agg
 
-.PHONY: setup demo test lint clean
+.PHONY: setup demo demo-model test lint clean
 
 setup:
 	@VENV=$(VENV) bash scripts/setup_env.sh
@@ -21,3 +21,6 @@ lint: setup
 
 clean:
 	rm -rf build install log demo_out .pytest_cache
+
+demo-model: setup
+	@PY=$(PY) bash scripts/train_demo_model.sh

@@ -15,23 +15,12 @@ from typing import Any
 import numpy as np
 import torch
 
+from .devices import check_device
 from .errors import CheckpointError, ConfigError
 from .model import ModelConfig, build_pairvpr, load_pairvpr, quantize_int8
 from .node_params import RANDOM_TINY
 
 WEIGHTS_HINT = "pass --ros-args -p weights:=/path/pairvpr-vitB.pth"
-
-
-def check_device(device: str) -> None:
-    """Refuse a device string torch does not know, or CUDA where there is none."""
-    try:
-        kind = torch.device(device).type
-    except (RuntimeError, ValueError) as err:
-        raise ConfigError(f"device {device!r} is not a torch device (cpu, cuda, cuda:1)") from err
-    if kind == "cuda" and not torch.cuda.is_available():
-        raise ConfigError(f"device {device!r}: CUDA is not available here; use device:=cpu")
-    if kind not in ("cpu", "cuda"):
-        raise ConfigError(f"device {device!r}: only cpu and cuda devices are supported")
 
 
 def load_model(weights: str, device: str = "cpu", precision: str = "fp32", image_size: int = 0):

@@ -23,12 +23,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from pair_vpr_ros import bag_io
 from pair_vpr_ros.bag_io import BagFrame, LoopBagWriter
 from pair_vpr_ros.detector import Candidate, DetectorConfig, LoopRecord
+from pair_vpr_ros.devices import check_device
 from pair_vpr_ros.errors import BagError, ConfigError, PairVPRError
 from pair_vpr_ros.model import load_pairvpr
 from pair_vpr_ros.node_params import detector_config, read_params_file
@@ -166,15 +166,6 @@ def _drive(
         summary.error = f"interrupted after {summary.frames} image messages"
 
 
-def _check_device(device: str) -> None:
-    try:
-        kind = torch.device(device).type
-    except (RuntimeError, ValueError) as err:
-        raise ConfigError(f"device {device!r} is not a torch device (cpu, cuda, cuda:1)") from err
-    if kind == "cuda" and not torch.cuda.is_available():
-        raise ConfigError(f"device {device}: CUDA is not available here; use cpu")
-
-
 def _prepare_out(out: Path, write_bag: bool) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     for stale in ("pr_curve.png", "trajectory.png"):  # a previous run's plots would mislead
@@ -215,7 +206,7 @@ def replay_bag(
     config = config or DetectorConfig()
     out = Path(out_dir)
     if device != "cpu" and model is None:
-        _check_device(device)
+        check_device(device)
     with bag_io.open_bag(bag) as reader:
         topic = bag_io.choose_image_topic(reader, topic)
         summary = ReplaySummary(str(bag), topic, None, out_dir=str(out))

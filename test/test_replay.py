@@ -191,7 +191,7 @@ def test_cli_device_errors(tmp_path, weights, capsys):
     if not torch.cuda.is_available():
         assert main([*args, "--device", "cuda"]) == 1
         assert capsys.readouterr().err == (
-            "error: device cuda: CUDA is not available here; use cpu\n"
+            "error: device 'cuda': CUDA is not available here; use cpu\n"
         )
 
 
