@@ -1,0 +1,32 @@
+"""The keyframe place map: FAISS descriptor index, float16 dense-token store, SQLite metadata.
+
+```python
+m = PlaceMap(desc_dim=512, dense_shape=(529, 768), fingerprint=model.fingerprint, index="hnsw")
+kf_id = m.add(desc, dense, KeyframeMeta(stamp=t, frame_id="cam"))   # ids 0, 1, 2, ...
+hits = m.search(desc, k=10, max_id=kf_id - 50)                      # [(id, similarity)]
+m.save("maps/site")                                                 # atomic
+m = PlaceMap.load("maps/site", expected_fingerprint=model.fingerprint)  # continue mapping
+```
+
+A map directory holds `manifest.json` (format_version, generation, count, dims, index settings,
+model fingerprint, sha256 + size of the small files), `index-<g>.faiss`, `meta-<g>.sqlite`,
+`dense-<g>.crc` (CRC32 per keyframe), the append-only `dense-<h>.f16` ([count, N, D] float16,
+possibly longer: bytes past `count` are an unsaved tail) and `map.lock` (writer lock).
+
+Detected on load (MapError naming the file): missing directory/manifest/files, bad JSON, unknown
+format version, missing or invalid fields, any change to the index/metadata/CRC files (sha256),
+unreadable FAISS index or SQLite file, counts that disagree, a dense file shorter than `count`.
+Detected on read: a damaged dense entry (CRC32, unless verify_dense_reads=False); `load(...,
+verify_dense=True)` checks them all up front. Not detected: damage to a dense entry that is only
+read while verification is off or that already sits in the in-memory LRU, and memory errors.
+
+A PlaceMap is not thread-safe: callers serialise add/search/save (the pipeline owns one map).
+"""
+
+from __future__ import annotations
+
+from .index import IndexConfig
+from .metadata import KeyframeMeta
+from .place_map import PlaceMap
+
+__all__ = ["IndexConfig", "KeyframeMeta", "PlaceMap"]

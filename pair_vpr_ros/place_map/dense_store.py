@@ -1,0 +1,183 @@
+"""Append-only float16 file of per-keyframe dense tokens [N, D], read through a memory map.
+
+Entry i lives at byte i * N * D * 2 and is never rewritten, so a saved map can share the file with
+the live map: the manifest records how many entries are valid, later bytes are ignored (and
+overwritten by the next append after a crash). Each entry's CRC32 is kept at add time and checked
+when the entry is read from disk, so a flipped bit gives a MapError instead of wrong tokens.
+Not detected: damage to an entry while verification is off, or to entries already in the LRU.
+"""
+
+from __future__ import annotations
+
+import mmap
+import os
+import zlib
+from array import array
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ..errors import MapError
+from .files import copy_prefix
+
+DTYPE = np.float16
+
+
+class DenseStore:
+    """Entries [N, D] float16 in one file; `count` of them are valid.
+
+    path: the file (created when missing if writable).
+    crcs: CRC32 of each valid entry (loaded maps), or None for a new, empty store.
+    cache_size: hot entries kept in memory (LRU); 0 disables the cache.
+    verify_reads: check the CRC32 of every entry read from the file.
+    owned: the file belongs to this store alone (no saved manifest names it): may be moved/deleted.
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        shape: tuple[int, int],
+        crcs: array | None = None,
+        *,
+        writable: bool = True,
+        cache_size: int = 128,
+        verify_reads: bool = True,
+        owned: bool = False,
+    ) -> None:
+        self.path = Path(path)
+        self.shape = (int(shape[0]), int(shape[1]))
+        self.entry_bytes = self.shape[0] * self.shape[1] * np.dtype(DTYPE).itemsize
+        self.crcs = crcs if crcs is not None else array("I")
+        self.count = len(self.crcs)
+        self.writable, self.cache_size, self.verify_reads = writable, cache_size, verify_reads
+        self.owned = owned
+        self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._mmap: mmap.mmap | None = None
+        self._mapped = 0  # entries covered by the current mapping
+        flags = os.O_RDWR | os.O_CREAT if writable else os.O_RDONLY
+        try:
+            self._fd: int | None = os.open(self.path, flags, 0o644)
+        except OSError as err:
+            raise MapError(f"cannot open dense token file {self.path}: {err.strerror}") from err
+        size = os.fstat(self._fd).st_size
+        if size < self.count * self.entry_bytes:
+            self.close()
+            raise MapError(
+                f"dense token file {self.path} is too short: {size} bytes hold "
+                f"{size // self.entry_bytes} keyframes, the manifest lists {self.count}; the map "
+                "is damaged (truncated copy?): restore it from a backup or rebuild it"
+            )
+        if writable and size > self.count * self.entry_bytes:
+            os.ftruncate(self._fd, self.count * self.entry_bytes)  # torn or unsaved appends
+
+    def append(self, dense: np.ndarray) -> int:
+        """dense [N, D] float16 C-contiguous (validated by the caller) -> its entry index."""
+        assert self._fd is not None and self.writable and dense.dtype == DTYPE
+        data = dense.tobytes()
+        offset = self.count * self.entry_bytes
+        try:
+            written = os.pwrite(self._fd, data, offset)
+        except OSError as err:
+            raise MapError(f"writing dense tokens to {self.path} failed: {err.strerror}") from err
+        if written != len(data):
+            raise MapError(f"writing dense tokens to {self.path} stopped early: disk full?")
+        self.crcs.append(zlib.crc32(data))
+        self.count += 1
+        return self.count - 1
+
+    def drop_last(self) -> None:
+        """Undo the last append (its bytes become an ignored tail)."""
+        self.crcs.pop()
+        self.count -= 1
+        self._cache.pop(self.count, None)
+
+    def read(self, ids: np.ndarray) -> np.ndarray:
+        """ids [K] valid entry indices -> [K, N, D] float16 (a copy)."""
+        out = np.empty((len(ids), *self.shape), DTYPE)
+        for row, i in enumerate(ids):
+            out[row] = self._entry(int(i))
+        return out
+
+    def _entry(self, i: int) -> np.ndarray:
+        hit = self._cache.get(i)
+        if hit is not None:
+            self._cache.move_to_end(i)
+            return hit
+        if i >= self._mapped:
+            self._remap()
+        buf = self._mmap[i * self.entry_bytes : (i + 1) * self.entry_bytes]
+        if self.verify_reads and zlib.crc32(buf) != self.crcs[i]:
+            raise self._corrupt(i)
+        entry = np.frombuffer(buf, DTYPE).reshape(self.shape)
+        if self.cache_size > 0:
+            self._cache[i] = entry
+            if len(self._cache) > self.cache_size:
+                self._cache.popitem(last=False)
+        return entry
+
+    def _remap(self) -> None:
+        if self._mmap is not None:
+            self._mmap.close()  # slices are bytes copies, so no view can outlive the mapping
+        self._mmap = mmap.mmap(self._fd, self.count * self.entry_bytes, access=mmap.ACCESS_READ)
+        self._mapped = self.count
+
+    def _corrupt(self, i: int) -> MapError:
+        return MapError(
+            f"dense tokens of keyframe {i} in {self.path} fail their CRC32 check: the file is "
+            "damaged on disk; restore the map from a backup or rebuild it"
+        )
+
+    def verify_all(self) -> None:
+        """Check every entry's CRC32 (reads the whole file)."""
+        step = max(1, (64 << 20) // self.entry_bytes)
+        starts = range(0, self.count, step)
+        for start in tqdm(starts, desc="verify dense", disable=self.count < 5000):
+            stop = min(start + step, self.count)
+            data = os.pread(self._fd, (stop - start) * self.entry_bytes, start * self.entry_bytes)
+            for i in range(start, stop):
+                lo = (i - start) * self.entry_bytes
+                if zlib.crc32(data[lo : lo + self.entry_bytes]) != self.crcs[i]:
+                    raise self._corrupt(i)
+
+    def crc_bytes(self) -> bytes:
+        """The CRC32 of each valid entry as little-endian uint32 [count]."""
+        return np.frombuffer(self.crcs, dtype=np.uint32).astype("<u4").tobytes()
+
+    def sync(self) -> None:
+        """Make the valid entries durable."""
+        os.fsync(self._fd)
+
+    def copy_to(self, dst: Path) -> None:
+        """Write the valid entries to a new file `dst` (fsynced)."""
+        copy_prefix(self._fd, dst, self.count * self.entry_bytes)
+
+    def clear_cache(self) -> None:
+        self._cache.clear()
+
+    def close(self) -> None:
+        self._cache.clear()
+        if self._mmap is not None:
+            self._mmap.close()
+            self._mmap = None
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+    def __del__(self) -> None:
+        if getattr(self, "_fd", None) is not None:
+            self.close()
+
+
+def read_crcs(path: Path, count: int) -> array:
+    """Read a file written from `DenseStore.crc_bytes`; -> array of `count` CRC32 values."""
+    data = path.read_bytes()
+    if len(data) != 4 * count:
+        raise MapError(
+            f"dense checksum file {path} holds {len(data) // 4} entries, the manifest lists "
+            f"{count}: the map is damaged, restore it from a backup or rebuild it"
+        )
+    crcs = array("I")
+    crcs.frombytes(np.frombuffer(data, dtype="<u4").astype(np.uint32).tobytes())
+    return crcs

@@ -1,0 +1,164 @@
+"""FAISS inner-product index over L2-normalised global descriptors; ids are insertion positions.
+
+Recent keyframes are excluded with an `IDSelectorRange` passed as search parameters, so FAISS
+only ever ranks eligible ids: k results come back even when thousands of newer frames are closer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import faiss
+import numpy as np
+
+from ..errors import ConfigError, MapError
+
+INDEX_KINDS = ("flat", "hnsw")
+
+
+@dataclass(frozen=True)
+class IndexConfig:
+    """How descriptors are searched.
+
+    kind: "flat" = exact inner product (`IndexFlatIP`); "hnsw" = approximate graph search
+        (`IndexHNSWFlat`, inner product) for maps of ~1e5-1e6 keyframes.
+    hnsw_m: HNSW neighbours per node (M); memory ~ 2*M*4 bytes per keyframe on top of the vector.
+    ef_construction: HNSW candidate list while inserting; higher = better graph, slower add.
+    ef_search: HNSW candidate list while searching (raised to k when k is larger); recall vs time.
+    exact_below: with "hnsw", a search with at most this many eligible ids (<= max_id) scans them
+        exactly instead (cheap at that size, and a filtered graph search can miss a few).
+    search_threads: OpenMP threads for one search (0 = FAISS default). 1 by default: a single
+        query is latency-bound, and on a 2-core machine FAISS's fan-out made a flat search of
+        1e5 keyframes 4x slower (63 ms vs 17 ms, see benchmarks/bench_map.py).
+    """
+
+    kind: str = "flat"
+    hnsw_m: int = 32
+    ef_construction: int = 80
+    ef_search: int = 64
+    exact_below: int = 4096
+    search_threads: int = 1
+
+    def __post_init__(self) -> None:
+        if self.kind not in INDEX_KINDS:
+            raise ConfigError(f"place map index must be one of {INDEX_KINDS}, got {self.kind!r}")
+        for name in ("hnsw_m", "ef_construction", "ef_search"):
+            if int(getattr(self, name)) < 1:
+                raise ConfigError(f"IndexConfig.{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("exact_below", "search_threads"):
+            if int(getattr(self, name)) < 0:
+                raise ConfigError(f"IndexConfig.{name} must be >= 0, got {getattr(self, name)}")
+
+
+class DescriptorIndex:
+    """Wraps a FAISS index of `dim`-d float32 vectors; id i = the i-th vector added."""
+
+    def __init__(self, dim: int, config: IndexConfig | None = None) -> None:
+        self.dim = int(dim)
+        self.config = config or IndexConfig()
+        self._index = self._new_index()
+
+    def _new_index(self) -> faiss.Index:
+        if self.config.kind == "flat":
+            return faiss.IndexFlatIP(self.dim)
+        index = faiss.IndexHNSWFlat(self.dim, self.config.hnsw_m, faiss.METRIC_INNER_PRODUCT)
+        index.hnsw.efConstruction = self.config.ef_construction
+        index.hnsw.efSearch = self.config.ef_search
+        return index
+
+    def __len__(self) -> int:
+        return int(self._index.ntotal)
+
+    def add(self, desc: np.ndarray) -> None:
+        """desc [B, dim] float32 (already validated and normalised)."""
+        self._index.add(np.ascontiguousarray(desc, dtype=np.float32).reshape(-1, self.dim))
+
+    def reset(self) -> None:
+        self._index = self._new_index()
+
+    def search(
+        self, desc: np.ndarray, k: int, max_id: int | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """desc [dim] -> (ids [k'] int64, similarities [k'] float32), best first, ids <= max_id.
+
+        k' = min(k, number of eligible ids); never returns FAISS's -1 padding.
+        """
+        limit = len(self) if max_id is None else min(len(self), int(max_id) + 1)
+        k = min(int(k), limit)
+        if k <= 0:
+            return np.empty(0, np.int64), np.empty(0, np.float32)
+        query = np.ascontiguousarray(desc, dtype=np.float32).reshape(1, self.dim)
+        selector = faiss.IDSelectorRange(0, limit) if limit < len(self) else None
+        threads = faiss.omp_get_max_threads()
+        if self.config.search_threads:
+            faiss.omp_set_num_threads(self.config.search_threads)  # this thread only (ICV)
+        try:
+            ids, sims = self._search(query, k, limit, selector)
+        finally:
+            faiss.omp_set_num_threads(threads)
+        keep = ids[0] >= 0
+        return ids[0][keep].astype(np.int64), sims[0][keep].astype(np.float32)
+
+    def _search(
+        self, query: np.ndarray, k: int, limit: int, selector: faiss.IDSelector | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        if self.config.kind == "flat":
+            sims, ids = self._flat_search(self._index, query, k, selector)
+        elif limit <= self.config.exact_below:
+            sims, ids = self._flat_search(self._storage(), query, k, selector)
+        else:
+            params = faiss.SearchParametersHNSW(efSearch=max(self.config.ef_search, k))
+            if selector is not None:
+                params.sel = selector
+            sims, ids = self._index.search(query, k, params=params)
+            if int((ids[0] >= 0).sum()) < k:
+                # The filtered graph walk found fewer than k eligible nodes (rare: only when
+                # max_id excludes most of the map); an exact scan of the prefix is then correct.
+                sims, ids = self._flat_search(self._storage(), query, k, selector)
+        return ids, sims
+
+    @staticmethod
+    def _flat_search(
+        index: faiss.Index, query: np.ndarray, k: int, selector: faiss.IDSelector | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        if selector is None:
+            return index.search(query, k)
+        return index.search(query, k, params=faiss.SearchParameters(sel=selector))
+
+    def _storage(self) -> faiss.Index:
+        return faiss.downcast_index(self._index.storage)
+
+    def reconstruct(self, ids: np.ndarray) -> np.ndarray:
+        """ids [K] (validated) -> descriptors [K, dim] float32."""
+        if len(ids) == 0:
+            return np.empty((0, self.dim), np.float32)
+        return self._index.reconstruct_batch(np.asarray(ids, dtype=np.int64))
+
+    def write(self, path: Path) -> None:
+        faiss.write_index(self._index, str(path))
+
+    @classmethod
+    def read(cls, path: Path, dim: int, config: IndexConfig) -> DescriptorIndex:
+        """Load a file written by `write`; the stored kind must be `config.kind`."""
+        try:
+            index = faiss.read_index(str(path))
+        except RuntimeError as err:
+            raise MapError(
+                f"FAISS index {path} could not be read ({str(err).splitlines()[-1][:200]}); "
+                "the map is damaged: restore it from a backup or rebuild it"
+            ) from err
+        want = faiss.IndexFlatIP if config.kind == "flat" else faiss.IndexHNSWFlat
+        if not isinstance(index, want) or index.d != dim:
+            raise MapError(
+                f"FAISS index {path} is a {type(index).__name__} of dim {index.d}, but the "
+                f"manifest says {config.kind!r} of dim {dim}: the map is damaged, rebuild it"
+            )
+        if index.metric_type != faiss.METRIC_INNER_PRODUCT:
+            raise MapError(f"FAISS index {path} does not use inner product: rebuild the map")
+        obj = cls.__new__(cls)
+        obj.dim, obj.config, obj._index = int(dim), config, index
+        if config.kind == "hnsw":
+            index.hnsw.efConstruction = config.ef_construction
+            index.hnsw.efSearch = config.ef_search
+        return obj
