@@ -33,7 +33,12 @@ setup(
     extras_require={
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],
         "train": ["pytorch-metric-learning>=2.3"],
-        "test": ["pytest>=7", "ruff>=0.5", "mcap-ros2-support>=0.5"],
+        "test": [
+            "pytest>=7",
+            "ruff>=0.5",
+            "mcap-ros2-support>=0.5",
+            "colcon-common-extensions",  # the test that builds the package as ros2 run sees it
+        ],
     },
     zip_safe=False,
     entry_points={
