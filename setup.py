@@ -15,7 +15,7 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
-        (f"share/{PACKAGE}/config", ["config/vpr_node.yaml"]),
+        (f"share/{PACKAGE}/config", ["config/vpr_node.yaml", "config/demo.yaml"]),
         (f"share/{PACKAGE}/launch", ["launch/vpr_node.launch.py"]),
     ],
     # torch comes first from the CPU/CUDA build the user picked (see README); a bare
