@@ -61,7 +61,7 @@ class LoopClosurePipeline:
         config: DetectorConfig | None = None,
         place_map: PlaceMap | None = None,
         index: str = "flat",
-        rerank_chunk: int = 16,
+        rerank_chunk: int | None = None,
     ) -> None:
         self.model = model.eval()
         self.detector = LoopDetector(config or DetectorConfig())

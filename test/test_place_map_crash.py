@@ -27,15 +27,15 @@ sys.path.insert(0, {test_dir!r})
 from test_place_map_persist import DIM, N0, SHAPE, add_range
 from pair_vpr_ros.place_map import PlaceMap, persist
 
-mode, directory, step = sys.argv[1:4]
+mode, directory, step, work = sys.argv[1:5]  # work: its temp folders, left behind by the crash
 if mode == "append":  # continue the saved map and save it again in place
-    m = PlaceMap.load(directory)
+    m = PlaceMap.load(directory, work_dir=work)
     add_range(m, N0, N0 + 3)
 elif mode == "fresh":  # a new map (dense file in the temp folder, moved) saved over the old one
-    m = PlaceMap(DIM, SHAPE, "fp-a")
+    m = PlaceMap(DIM, SHAPE, "fp-a", work_dir=work)
     add_range(m, 0, 3)
 elif mode == "loop":  # keep saving until killed
-    m = PlaceMap.load(directory)
+    m = PlaceMap.load(directory, work_dir=work)
     for i in range(N0, N0 + 10_000):
         add_range(m, i, i + 1)
         m.save(directory)
@@ -50,7 +50,10 @@ def run_child(tmp_path: Path, *args: str, **popen) -> subprocess.Popen:
     script = tmp_path / "child.py"
     script.write_text(CHILD.format(test_dir=str(Path(__file__).parent)))
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    return subprocess.Popen([sys.executable, str(script), *args], env=env, **popen)
+    work = tmp_path / "work"
+    work.mkdir(exist_ok=True)
+    cmd = [sys.executable, str(script), *args, str(work)]
+    return subprocess.Popen(cmd, env=env, **popen)
 
 
 @pytest.fixture

@@ -166,11 +166,15 @@ class PairClassifier(nn.Module):
         return torch.cat(scores) if scores else query.new_zeros(0)
 
     # ---- fast path -----------------------------------------------------------------------
-    def pair_scores(self, query: Tensor, cands: Tensor, chunk: int = 16) -> Tensor:
+    def pair_scores(self, query: Tensor, cands: Tensor, chunk: int | None = None) -> Tensor:
         """Bidirectional score logit(q,c) + logit(c,q): query [N,D], cands [K,N,D] -> [K].
-        Candidates go through in chunks of `chunk` to bound memory ([2*chunk, 1+N, 4C] peak)."""
+        Candidates go through in chunks of `chunk` ([2*chunk, 1+N, 4C] activations at most).
+        Default: 2 on a CPU, where larger chunks fall out of cache (ViT-B/322 measured 0.82x the
+        reference per candidate at 2, 0.94x at 8, 1.0x at 16), and 32 on a GPU."""
         if cands.shape[0] == 0:
             return query.new_zeros(0)
+        if chunk is None:
+            chunk = 32 if query.is_cuda else 2
         eq = self.decoder_embed(query.unsqueeze(0))  # computed once for every candidate
         x_query = self.first_input(eq)
         x_query = x_query + self.dec_blocks[0].attn(self.dec_blocks[0].norm1(x_query))
