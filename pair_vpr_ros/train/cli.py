@@ -109,6 +109,23 @@ def add_common_args(
     )
 
 
+# Config fields named like the shared flags (see `add_common_args`).
+COMMON_FIELDS = (
+    "arch", "image_size", "dinov2", "train_blocks", "epochs", "max_steps", "places_per_batch",
+    "weight_decay", "grad_clip", "workers", "device", "seed", "save_every", "checkpoint_every",
+    "log_every", "resume",
+)  # fmt: skip
+
+
+def common_config(args: argparse.Namespace) -> dict:
+    """The config fields both stages take from the shared flags."""
+    fields = {name: getattr(args, name) for name in COMMON_FIELDS}
+    return {
+        **fields, "data": args.data, "out_dir": args.out, "amp": not args.no_amp,
+        "augment": not args.no_augment,
+    }  # fmt: skip
+
+
 def run(fn: Callable[[], Path]) -> int:
     """Run a trainer; user errors print ``error: ...`` and return 2, Ctrl-C returns 130."""
     try:

@@ -27,7 +27,7 @@ from pair_vpr_ros.model import (
     load_pairvpr,
     save_pairvpr,
 )
-from pair_vpr_ros.train.cli import add_common_args, run
+from pair_vpr_ros.train.cli import add_common_args, common_config, run
 from pair_vpr_ros.train.common import (
     DistContext,
     init_distributed,
@@ -211,31 +211,12 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     cfg = Stage1Config(
-        data=args.data,
-        out_dir=args.out,
-        arch=args.arch,
-        image_size=args.image_size,
-        dinov2=args.dinov2,
-        train_blocks=args.train_blocks,
-        epochs=args.epochs,
-        max_steps=args.max_steps,
-        places_per_batch=args.places_per_batch,
+        **common_config(args),
         mask_ratio=args.mask_ratio,
         lr=args.lr,
         min_lr_factor=args.min_lr_factor,
         warmup_steps=args.warmup_steps,
-        weight_decay=args.weight_decay,
         layer_decay=args.layer_decay,
-        grad_clip=args.grad_clip,
-        workers=args.workers,
-        device=args.device,
-        amp=not args.no_amp,
-        augment=not args.no_augment,
-        seed=args.seed,
-        save_every=args.save_every,
-        checkpoint_every=args.checkpoint_every,
-        log_every=args.log_every,
-        resume=args.resume,
     )
     return run(lambda: train_stage1(cfg))
 

@@ -33,7 +33,7 @@ from pair_vpr_ros.model import (
     save_pairvpr,
 )
 from pair_vpr_ros.model.checkpoint import STAGE2_NEW
-from pair_vpr_ros.train.cli import add_common_args, run
+from pair_vpr_ros.train.cli import add_common_args, common_config, run
 from pair_vpr_ros.train.common import (
     DistContext,
     gather_batch,
@@ -307,34 +307,15 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     cfg = Stage2Config(
-        data=args.data,
-        out_dir=args.out,
+        **common_config(args),
         init=args.init,
-        dinov2=args.dinov2,
-        arch=args.arch,
-        image_size=args.image_size,
-        train_blocks=args.train_blocks,
-        epochs=args.epochs,
-        max_steps=args.max_steps,
-        places_per_batch=args.places_per_batch,
         images_per_place=args.images_per_place,
         lr=args.lr,
         end_lr_factor=args.end_lr_factor,
-        weight_decay=args.weight_decay,
         pair_weight=args.pair_weight,
         pair_directions=args.pair_directions,
-        grad_clip=args.grad_clip,
         val=tuple(args.val),
         val_rerank_k=args.val_rerank_k,
-        workers=args.workers,
-        device=args.device,
-        amp=not args.no_amp,
-        augment=not args.no_augment,
-        seed=args.seed,
-        save_every=args.save_every,
-        checkpoint_every=args.checkpoint_every,
-        log_every=args.log_every,
-        resume=args.resume,
     )
     return run(lambda: train_stage2(cfg))
 
