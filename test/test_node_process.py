@@ -85,7 +85,7 @@ def test_colcon_install_resolves_like_ros2_run(tmp_path):
     src.mkdir(parents=True)
     for name in ("setup.py", "setup.cfg", "package.xml", "README.md"):
         shutil.copy(ROOT / name, src / name)
-    for name in ("resource", "config", "pair_vpr_ros"):
+    for name in ("resource", "config", "launch", "pair_vpr_ros"):
         shutil.copytree(ROOT / name, src / name, ignore=ignore)
     build = subprocess.run(
         [colcon, "build", "--base-paths", "src", "--build-base", "build",
@@ -109,6 +109,8 @@ def test_colcon_install_resolves_like_ros2_run(tmp_path):
     assert Path(found) == prefix and Path(module).is_relative_to(site)
     config = (ROOT / "config" / "vpr_node.yaml").read_text()
     assert (Path(share) / "config" / "vpr_node.yaml").read_text() == config
+    assert (Path(share) / "config" / "demo.yaml").is_file()
+    assert (Path(share) / "launch" / "vpr_node.launch.py").is_file()
     exe = Path(found) / "lib" / "pair_vpr_ros" / "vpr_node"
     assert os.access(exe, os.X_OK)
     done = run_without_weights([str(exe)], env, tmp_path)
