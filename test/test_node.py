@@ -19,6 +19,7 @@ import pytest
 import rclpy
 from bag_fixtures import synthetic_images, write_rosbag2
 from diagnostic_msgs.msg import DiagnosticArray
+from exact_match import EXACT_MATCH
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rclpy.executors import MultiThreadedExecutor
@@ -37,12 +38,7 @@ from pair_vpr_ros.place_map import PlaceMap
 
 EXACT = dict(
     weights="random-tiny",
-    global_floor=0.99999,
-    score_threshold=-1e6,
-    keyframe_max_similarity=0.99999,
-    exclude_recent_s=2.5,
-    exclude_recent_keyframes=1,
-    top_k=1,
+    **EXACT_MATCH,
     min_frame_interval=0.0,
     qos="reliable",
     queue_size=50,

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 from bag_fixtures import synthetic_images, write_rosbag2
+from exact_match import EXACT_MATCH
 
 from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.model import ModelConfig, build_pairvpr
@@ -17,14 +18,7 @@ from pair_vpr_ros.node_build import build_map
 from pair_vpr_ros.node_maps import MapControl
 from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
 
-EXACT = DetectorConfig(
-    global_floor=0.99999,
-    score_threshold=-1e6,
-    keyframe_max_similarity=0.99999,
-    exclude_recent_s=2.5,
-    exclude_recent_keyframes=1,
-    top_k=1,
-)
+EXACT = DetectorConfig(**EXACT_MATCH)
 
 
 @pytest.fixture(scope="module")

@@ -5,20 +5,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from exact_match import EXACT_MATCH
 
 from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.errors import ConfigError, MapFingerprintError
 from pair_vpr_ros.model import ModelConfig, build_pairvpr
 from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
 
-EXACT = dict(
-    global_floor=0.99999,
-    score_threshold=-1e6,
-    keyframe_max_similarity=0.99999,
-    exclude_recent_s=2.5,
-    exclude_recent_keyframes=1,
-    top_k=1,
-)
+EXACT = EXACT_MATCH  # only exact repeats of images are loops (see exact_match.py)
 
 
 @pytest.fixture(scope="module")
