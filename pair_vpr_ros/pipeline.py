@@ -70,11 +70,12 @@ class LoopClosurePipeline:
         self._lock = threading.RLock()
         self._place_map = place_map if place_map is not None else self._new_map()
         self._check_fingerprint(self._place_map)
-        self._stamps = [m.stamp for m in self._place_map.all_meta()]
-        self._last_encoded: float | None = None
-        self._last_desc: np.ndarray | None = None
         # ORB features for geometric verification, for keyframes added in this process only.
         self._features: dict[int, Features] = {}
+        self._stamps: list[float] = []  # keyframe stamps by id, for recent-frame exclusion
+        self._last_encoded: float | None = None
+        self._last_desc: np.ndarray | None = None
+        self._reset_tracking()
         self.counts: Counter[str] = Counter()
         self.timing_totals: Counter[str] = Counter()
 
