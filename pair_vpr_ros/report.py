@@ -78,6 +78,11 @@ class PRCurve:
         full = self.precision >= 1.0
         return float(self.recall[full].max()) if full.any() else 0.0
 
+    def recall_at_precision(self, precision: float) -> float:
+        """The highest recall reached at a threshold whose precision is >= ``precision``."""
+        ok = self.precision >= precision
+        return float(self.recall[ok].max()) if ok.any() else 0.0
+
     def best_f1(self) -> tuple[float, float | None]:
         """``(F1, threshold)`` of the best F1 point; ``(0.0, None)`` for an empty curve."""
         denom = self.precision + self.recall
@@ -94,6 +99,7 @@ class PRCurve:
         return {
             "average_precision": self.average_precision(),
             "recall_at_100_precision": self.recall_at_full_precision(),
+            "recall_at_90_precision": self.recall_at_precision(0.9),
             "best_f1": f1,
             "best_f1_threshold": threshold,
         }

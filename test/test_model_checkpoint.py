@@ -13,6 +13,7 @@ from pair_vpr_ros.model import (
     build_pairvpr,
     load_dinov2_encoder,
     load_pairvpr,
+    save_encoder_backbone,
     save_pairvpr,
 )
 from pair_vpr_ros.model.checkpoint import STAGE2_NEW
@@ -116,6 +117,16 @@ def test_dinov2_backbone_loads_into_encoder(tmp_path, model):
         CheckpointError, match=r"are D=128 with 2 blocks, but the model's encoder is D=32"
     ):
         load_dinov2_encoder(other, path)
+
+
+def test_our_encoder_saved_as_a_backbone_loads_like_dinov2(tmp_path, model):
+    path = save_encoder_backbone(model, tmp_path / "enc" / "encoder_reg4.pth")
+    fresh = build_pairvpr(RELEASED_LIKE, seed=9)
+    assert load_dinov2_encoder(fresh, path) == []
+    for name, tensor in model.encoder.model.state_dict().items():
+        assert torch.equal(fresh.encoder.model.state_dict()[name], tensor), name
+    assert not torch.equal(fresh.globalizer[0].weight, model.globalizer[0].weight)
+    assert [p.name for p in path.parent.iterdir()] == ["encoder_reg4.pth"]  # no temp file left
 
 
 def write_bad(tmp_path, kind, model):

@@ -108,11 +108,14 @@ def test_precision_recall_exact():
     np.testing.assert_allclose(glob.recall, [0, 1 / 3, 2 / 3, 2 / 3, 2 / 3], rtol=1e-15)
     assert glob.average_precision() == pytest.approx(7 / 18, abs=1e-15)
     assert glob.recall_at_full_precision() == 0.0
+    assert glob.recall_at_precision(0.6) == pytest.approx(2 / 3, abs=1e-15)
+    assert glob.recall_at_precision(0.9) == 0.0
     assert glob.best_f1() == (pytest.approx(2 / 3, abs=1e-15), 0.8)
 
     summary = ev.to_dict()
     assert summary["positives"] == 3 and summary["precision"] == 0.5
     assert summary["global_only"]["average_precision"] == pytest.approx(7 / 18, abs=1e-15)
+    assert summary["reranked"]["recall_at_90_precision"] == pytest.approx(1 / 3, abs=1e-15)
     json.dumps(summary, allow_nan=False)
 
 

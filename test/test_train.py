@@ -102,6 +102,9 @@ def test_schedules() -> None:
     assert [linear_decay(s, 100, 0.2) for s in (0, 50, 100, 150)] == pytest.approx(
         [1.0, 0.6, 0.2, 0.2]
     )
+    assert [linear_decay(s, 110, 0.2, warmup=10) for s in (0, 9, 10, 60, 110)] == pytest.approx(
+        [0.1, 1.0, 1.0, 0.6, 0.2]
+    )
 
 
 def test_set_trainable_and_layer_decay_groups() -> None:
@@ -207,6 +210,42 @@ def test_stage_objectives_reduce_their_loss_on_a_fixed_batch(tmp_path: Path) -> 
     obj2 = Stage2Objective(model, Stage2Config(data=[], out_dir=tmp_path), DistContext())
     losses = _fit(obj2, lambda: obj2(images.flatten(0, 1), labels.flatten())["loss"])
     assert losses[-1] < 0.9 * losses[0]
+
+
+def test_stage_two_global_only_leaves_the_decoder_alone(trained: dict[str, Path]) -> None:
+    out = trained["root"] / "s2_global"
+    final = train_stage2(
+        Stage2Config(
+            data=[str(trained["data"])],
+            out_dir=out,
+            init=trained["s2"],
+            epochs=1,
+            places_per_batch=3,
+            pair_weight=0.0,
+            warmup_steps=2,
+            **TINY,
+        )
+    )
+    before, after = load_pairvpr(trained["s2"]).state_dict(), load_pairvpr(final).state_dict()
+    changed = {k for k in before if not torch.equal(before[k], after[k])}
+    assert changed and all(k.startswith(("encoder.", "globalizer.")) for k in changed)
+    log = _log(out / "train_log.jsonl")
+    assert [r["pair"] for r in log] == [0.0, 0.0] and log[0]["lr"] < log[1]["lr"]
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "text"),
+    [
+        ("pair_weight", -1.0, "pair_weight must be >= 0, got -1.0"),
+        ("warmup_steps", -1, "warmup_steps must be >= 0, got -1"),
+    ],
+)
+def test_stage_two_rejects_negative_settings(
+    tmp_path: Path, field: str, value: float, text: str
+) -> None:
+    cfg = Stage2Config(data=[], out_dir=tmp_path, **{field: value})
+    with pytest.raises(ConfigError, match=f"^{text}$"):
+        train_stage2(cfg)
 
 
 @pytest.fixture(scope="module")

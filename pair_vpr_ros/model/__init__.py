@@ -1,6 +1,6 @@
 """The Pair-VPR network (ROS-free): encoder, global head, pair classifier, loading and input."""
 
-from .checkpoint import load_dinov2_encoder, load_pairvpr, save_pairvpr
+from .checkpoint import load_dinov2_encoder, load_pairvpr, save_encoder_backbone, save_pairvpr
 from .config import ModelConfig
 from .network import PairVPR, build_pairvpr
 from .preprocess import preprocess, preprocess_batch
@@ -15,5 +15,6 @@ __all__ = [
     "preprocess",
     "preprocess_batch",
     "quantize_int8",
+    "save_encoder_backbone",
     "save_pairvpr",
 ]

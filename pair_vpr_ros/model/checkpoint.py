@@ -195,10 +195,21 @@ def _unchunk(key: str) -> str:
 
 def save_pairvpr(model: PairVPR, path: str | os.PathLike, extra: dict | None = None) -> Path:
     """Write `{"model": state_dict, "arch": config, "format": ...}` atomically (temp + rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     payload = {"model": model.state_dict(), "arch": model.config.to_dict(), "format": FORMAT}
     payload.update(extra or {})
+    return _save_atomic(payload, Path(path))
+
+
+def save_encoder_backbone(model: PairVPR, path: str | os.PathLike) -> Path:
+    """Write the encoder alone with DINOv2's key names (`cls_token`, `blocks.N.*`, ...), so that
+    `load_dinov2_encoder` and the trainers' `--dinov2` take it: an encoder we trained ourselves
+    can then stand in for DINOv2 (the demo model's 128-d encoder has no DINOv2 counterpart)."""
+    state = {k: v.detach().clone() for k, v in model.encoder.model.state_dict().items()}
+    return _save_atomic(state, Path(path))
+
+
+def _save_atomic(payload: dict, path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(fd)
     try:

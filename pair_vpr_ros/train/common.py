@@ -202,9 +202,12 @@ def warmup_cosine(step: int, total: int, warmup: int, min_factor: float = 0.0) -
     return min_factor + (1.0 - min_factor) * 0.5 * (1.0 + math.cos(math.pi * progress))
 
 
-def linear_decay(step: int, total: int, end_factor: float) -> float:
-    """lr factor: 1 at step 0 falling linearly to ``end_factor`` at ``total``."""
-    return 1.0 + (end_factor - 1.0) * min(1.0, step / max(1, total))
+def linear_decay(step: int, total: int, end_factor: float, warmup: int = 0) -> float:
+    """lr factor: linear 0->1 over ``warmup`` steps, then 1 falling linearly to ``end_factor``
+    at ``total``."""
+    if step < warmup:
+        return (step + 1) / warmup
+    return 1.0 + (end_factor - 1.0) * min(1.0, (step - warmup) / max(1, total - warmup))
 
 
 def apply_lr(optimizer: torch.optim.Optimizer, base_lr: float, factor: float) -> float:

@@ -73,6 +73,7 @@ class Stage2Config:
     images_per_place: int = 4
     lr: float = 8e-5
     end_lr_factor: float = 0.2
+    warmup_steps: int = 0  # linear warm-up before the decay (the paper uses none)
     weight_decay: float = 0.05
     pair_weight: float = 2.0
     pair_directions: str = "both"  # "both" or "first" (see the module docstring)
@@ -112,6 +113,13 @@ class Stage2Objective(nn.Module):
         labels_all = gather_batch(labels, self.ctx)
         with torch.autocast(desc.device.type, enabled=False):  # beta=50 needs float32
             global_loss, mined = self.metric(desc_all, labels_all)
+        if self.pair_weight == 0:  # global descriptor only: the decoder is frozen and not run
+            return {
+                "loss": global_loss,
+                "global": global_loss.detach(),
+                "pair": torch.zeros(()),
+                "mined": torch.tensor(float(mined)),
+            }
         own = self.ctx.rank * labels.shape[0] + torch.arange(labels.shape[0], device=labels.device)
         with torch.no_grad():
             sim = desc.detach().float() @ desc_all.detach().T
@@ -193,6 +201,10 @@ def train_stage2(cfg: Stage2Config) -> Path:
         raise ConfigError(
             f"pair_directions must be 'both' or 'first', got {cfg.pair_directions!r}"
         )
+    if cfg.pair_weight < 0:
+        raise ConfigError(f"pair_weight must be >= 0, got {cfg.pair_weight}")
+    if cfg.warmup_steps < 0:
+        raise ConfigError(f"warmup_steps must be >= 0, got {cfg.warmup_steps}")
     if cfg.images_per_place < 2:
         raise ConfigError("images_per_place must be >= 2 (positives come from the same place)")
     if cfg.resume is None:  # a bad size or preset fails now, before datasets are scanned
@@ -214,6 +226,10 @@ def _train(cfg: Stage2Config, ctx: DistContext) -> Path:
         load_eval_set(root)
     model, state = _build_model(cfg, ctx)
     set_trainable(model, 2, cfg.train_blocks or max(1, model.config.depth // 2))
+    if cfg.pair_weight == 0:  # DDP must not wait for gradients of a decoder that never runs
+        for name, param in model.named_parameters():
+            if not name.startswith(("encoder.", "globalizer.")):
+                param.requires_grad_(False)
     optimizer = torch.optim.AdamW(param_groups(model, cfg.weight_decay), lr=cfg.lr)
     progress = Progress()
     if state is not None:
@@ -242,7 +258,7 @@ def _train(cfg: Stage2Config, ctx: DistContext) -> Path:
         stage=2,
         epochs=cfg.epochs,
         base_lr=cfg.lr,
-        lr_factor=lambda s: linear_decay(s, total, cfg.end_lr_factor),
+        lr_factor=lambda s: linear_decay(s, total, cfg.end_lr_factor, cfg.warmup_steps),
         max_steps=cfg.max_steps,
         grad_clip=cfg.grad_clip,
         amp=cfg.amp,
@@ -281,7 +297,20 @@ def build_parser() -> argparse.ArgumentParser:
         default=0.2,
         help="the lr falls linearly to this fraction of --lr at the end (default 0.2)",
     )
-    add("--pair-weight", type=float, default=2.0, help="weight of the pair loss (default 2.0)")
+    add(
+        "--warmup-steps",
+        type=int,
+        default=0,
+        help="raise the lr linearly from 0 over this many steps first (default 0, as the paper); "
+        "from a random init a warm-up keeps the global descriptor from collapsing early",
+    )
+    add(
+        "--pair-weight",
+        type=float,
+        default=2.0,
+        help="weight of the pair loss (default 2.0); 0 trains the global descriptor alone, "
+        "without running the decoder",
+    )
     add(
         "--pair-directions",
         choices=("both", "first"),
@@ -312,6 +341,7 @@ def main(argv: list[str] | None = None) -> int:
         images_per_place=args.images_per_place,
         lr=args.lr,
         end_lr_factor=args.end_lr_factor,
+        warmup_steps=args.warmup_steps,
         pair_weight=args.pair_weight,
         pair_directions=args.pair_directions,
         val=tuple(args.val),
