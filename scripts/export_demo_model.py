@@ -18,6 +18,8 @@ from pair_vpr_ros.model.checkpoint import FORMAT
 
 
 def log_summary(path: Path) -> dict:
+    if not path.is_file():
+        return {}
     rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     if not rows:
         return {}
@@ -45,6 +47,7 @@ def main(argv: list[str] | None = None) -> int:
         "parameters": sum(v.numel() for v in state.values()),
         "arch": model.config.to_dict(),
         "recipe": "scripts/train_demo_model.sh",
+        "pretrain": log_summary(args.train_dir / "pretrain" / "train_log.jsonl"),
         "stage1": log_summary(args.train_dir / "stage1" / "train_log.jsonl"),
         "stage2": log_summary(args.train_dir / "stage2" / "train_log.jsonl"),
     }
