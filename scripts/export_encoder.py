@@ -3,7 +3,8 @@
 The demo recipe pre-trains its 128-d encoder itself (there is no DINOv2 of that size) and hands
 it to stage one this way, as the paper hands DINOv2 to stage one:
 
-    python scripts/export_encoder.py demo_train/pretrain/stage2_final.pt demo_train/encoder.pth
+    python scripts/export_encoder.py demo_train/pretrain/stage2_final.pt \\
+        demo_train/pretrain/encoder_reg4.pth
 """
 
 from __future__ import annotations

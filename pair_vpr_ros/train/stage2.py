@@ -10,6 +10,10 @@ cross-entropy pushes logit(anchor, positive) to 1 and logit(anchor, negative) to
 both are trained. The network spec does not say which of the two the paper used; "first" trains
 the anchor-first direction only. Total = global + 2.0 * pair. AdamW lr 8e-5, weight decay 0.05,
 lr falling linearly to 0.2x; the last half of the encoder blocks train.
+
+Two options beyond the paper, for training from a random init (the demo model): a linear lr
+warm-up, and ``pair_weight=0``, which trains the global descriptor alone without running the
+decoder (an encoder pre-training that can stand in for DINOv2 when no DINOv2 of that size exists).
 """
 
 from __future__ import annotations
@@ -117,7 +121,7 @@ class Stage2Objective(nn.Module):
             return {
                 "loss": global_loss,
                 "global": global_loss.detach(),
-                "pair": torch.zeros(()),
+                "pair": global_loss.new_zeros(()),
                 "mined": torch.tensor(float(mined)),
             }
         own = self.ctx.rank * labels.shape[0] + torch.arange(labels.shape[0], device=labels.device)
