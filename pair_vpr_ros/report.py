@@ -75,8 +75,7 @@ class PRCurve:
 
     def recall_at_full_precision(self) -> float:
         """The highest recall reached with no false loop accepted (0 when none)."""
-        full = self.precision >= 1.0
-        return float(self.recall[full].max()) if full.any() else 0.0
+        return self.recall_at_precision(1.0)
 
     def recall_at_precision(self, precision: float) -> float:
         """The highest recall reached at a threshold whose precision is >= ``precision``."""

@@ -147,6 +147,8 @@ def test_set_trainable_and_layer_decay_groups() -> None:
     assert scales["encoder.model.blocks.0.attn.qkv.weight"] == (0.25, 0.05)
     assert scales["encoder.model.blocks.1.attn.qkv.bias"] == (0.5, 0.0)
     assert scales["dec_blocks.0.mlp.fc1.weight"] == (1.0, 0.05)
+    global_only = set(set_trainable(model, 2, train_blocks=2, decoder=False))
+    assert global_only == {n for n in names2 if n.startswith(("encoder.", "globalizer."))}
     with pytest.raises(ConfigError, match=r"train_blocks=3 must be in 1..2"):
         set_trainable(model, 2, train_blocks=3)
 

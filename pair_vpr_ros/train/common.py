@@ -126,23 +126,27 @@ def mean_over_ranks(value: float, ctx: DistContext) -> float:
     return float(t.item()) / ctx.world_size
 
 
-def set_trainable(model: nn.Module, stage: int, train_blocks: int) -> list[str]:
+def set_trainable(
+    model: nn.Module, stage: int, train_blocks: int, decoder: bool = True
+) -> list[str]:
     """Freeze all but what ``stage`` trains; returns the trainable parameter names.
 
     Both stages: the last ``train_blocks`` encoder blocks (all of them also free the embeddings)
     and the encoder's final norm. Stage one adds the encoder mask token, the decoder without its
     class token, and `prediction_head`; stage two the decoder with its class token, `globalizer`
-    and `classvprmodule`. Parameters a stage never uses stay frozen so DDP sees no unused ones."""
+    and `classvprmodule`; stage two with ``decoder=False`` (global descriptor only) adds just
+    `globalizer`. Parameters a stage never uses stay frozen so DDP sees no unused ones."""
     depth = model.config.depth
     if not 0 < train_blocks <= depth:
         raise ConfigError(f"train_blocks={train_blocks} must be in 1..{depth} (encoder depth)")
     first = depth - train_blocks
-    decoder = ("decoder_embed.", "dec_blocks.", "dec_norm.")
-    extra = (
-        ("encoder.model.mask_token", "prediction_head.")
-        if stage == 1
-        else ("decoder_clstoken", "globalizer.", "classvprmodule.")
-    )
+    dec = ("decoder_embed.", "dec_blocks.", "dec_norm.")
+    if stage == 1:
+        heads = (*dec, "encoder.model.mask_token", "prediction_head.")
+    elif decoder:
+        heads = (*dec, "decoder_clstoken", "globalizer.", "classvprmodule.")
+    else:
+        heads = ("globalizer.",)
     names = []
     for name, param in model.named_parameters():
         block = _BLOCK.match(name)
@@ -153,7 +157,7 @@ def set_trainable(model: nn.Module, stage: int, train_blocks: int) -> list[str]:
             train = rest.startswith("norm.") or (first == 0 and rest.startswith(_EMBED[:4]))
             train = train or (stage == 1 and rest == "mask_token")
         else:
-            train = name.startswith(decoder + extra)
+            train = name.startswith(heads)
         param.requires_grad_(train)
         if train:
             names.append(name)

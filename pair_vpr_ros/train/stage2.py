@@ -229,11 +229,9 @@ def _train(cfg: Stage2Config, ctx: DistContext) -> Path:
     for root in cfg.val:  # fail before training, not after the first epoch
         load_eval_set(root)
     model, state = _build_model(cfg, ctx)
-    set_trainable(model, 2, cfg.train_blocks or max(1, model.config.depth // 2))
-    if cfg.pair_weight == 0:  # DDP must not wait for gradients of a decoder that never runs
-        for name, param in model.named_parameters():
-            if not name.startswith(("encoder.", "globalizer.")):
-                param.requires_grad_(False)
+    # pair_weight 0: the decoder never runs, so it stays frozen (DDP must not wait for it)
+    blocks = cfg.train_blocks or max(1, model.config.depth // 2)
+    set_trainable(model, 2, blocks, decoder=cfg.pair_weight > 0)
     optimizer = torch.optim.AdamW(param_groups(model, cfg.weight_decay), lr=cfg.lr)
     progress = Progress()
     if state is not None:
