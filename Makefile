@@ -4,7 +4,7 @@ PY := $(VENV)/bin/python
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 export MPLBACKEND := Agg
 
-.PHONY: setup demo demo-model test lint clean
+.PHONY: setup demo demo-model test test-quick lint clean
 
 setup:
 	@VENV=$(VENV) bash scripts/setup_env.sh
@@ -14,6 +14,9 @@ demo: setup
 
 test: setup
 	$(PY) -m pytest -q test
+
+test-quick: setup
+	$(PY) -m pytest -q -m "not slow" test
 
 lint: setup
 	$(VENV)/bin/ruff check .

@@ -15,7 +15,10 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
-        (f"share/{PACKAGE}/config", ["config/vpr_node.yaml", "config/demo.yaml"]),
+        (
+            f"share/{PACKAGE}/config",
+            ["config/vpr_node.yaml", "config/demo.yaml", "config/posegraph_node.yaml"],
+        ),
         (f"share/{PACKAGE}/launch", ["launch/vpr_node.launch.py"]),
     ],
     # torch comes first from the CPU/CUDA build the user picked (see README); a bare
@@ -33,6 +36,8 @@ setup(
     extras_require={
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],
         "train": ["pytorch-metric-learning>=2.3"],
+        # The reference pose-graph back end (pairvpr-posegraph, posegraph_node) and its metrics.
+        "slam": ["gtsam>=4.2", "evo>=1.28"],
         "test": [
             "pytest>=7",
             "ruff>=0.5",
@@ -43,11 +48,13 @@ setup(
     zip_safe=False,
     entry_points={
         "console_scripts": [
-            "vpr_node = pair_vpr_ros.node:main",
-            "pairvpr-bag-replay = pair_vpr_ros.replay:main",
-            "pairvpr-eval = pair_vpr_ros.evaluate:main",
-            "pairvpr-train-stage1 = pair_vpr_ros.train.stage1:main",
-            "pairvpr-train-stage2 = pair_vpr_ros.train.stage2:main",
+            "vpr_node = pair_vpr_ros.ros.node:main",
+            "posegraph_node = pair_vpr_ros.ros.posegraph_node:main",
+            "pairvpr-posegraph = pair_vpr_ros.offline.posegraph:main",
+            "pairvpr-bag-replay = pair_vpr_ros.offline.replay:main",
+            "pairvpr-eval = pair_vpr_ros.learn.evaluate:main",
+            "pairvpr-train-stage1 = pair_vpr_ros.learn.train.stage1:main",
+            "pairvpr-train-stage2 = pair_vpr_ros.learn.train.stage2:main",
             "pairvpr-make-demo-bag = pair_vpr_ros.demo.make_bag:main",
         ],
     },

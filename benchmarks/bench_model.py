@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, load_pairvpr, quantize_int8
+from pair_vpr_ros.model.config import PATCH
 
 
 def interleaved(
@@ -52,7 +53,7 @@ def encode_fns(models: dict, size: int, device: str, batch: int) -> dict:
 
 
 def rerank_fns(models: dict, size: int, device: str, k: int, with_reference: bool) -> dict:
-    n, d = (size // 14) ** 2, models["fp32"].config.embed_dim
+    n, d = (size // PATCH) ** 2, models["fp32"].config.embed_dim
     q, c = torch.randn(n, d, device=device), torch.randn(k, n, d, device=device)
     fns = {name: (lambda m=m: m.pair_scores(q, c)) for name, m in models.items()
            if name != "reference"}  # fmt: skip

@@ -23,7 +23,7 @@ import torch
 from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.errors import PairVPRError
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, load_pairvpr
-from pair_vpr_ros.replay import replay_bag
+from pair_vpr_ros.offline.replay import replay_bag
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -60,7 +60,7 @@ def demo_bag(args: argparse.Namespace, folder: Path) -> Path:
     width, height = (int(v) for v in args.size.lower().split("x"))
     bag = folder / "demo.mcap"
     return write_demo_bag(
-        bag, frames=args.frames, compressed=args.compressed, size=(width, height)
+        bag, frames=args.frames, compressed=args.compressed, size=(width, height), depth=False
     )
 
 

@@ -89,7 +89,7 @@ def start_node(args: argparse.Namespace, log_path: Path) -> subprocess.Popen:
     values = {"weights": args.weights, "device": args.device, "image_topic": "/soak/image"}
     if args.weights == "random-tiny":
         values.update(TINY)
-    cmd = [sys.executable, "-m", "pair_vpr_ros.node", "--ros-args"]
+    cmd = [sys.executable, "-m", "pair_vpr_ros.ros.node", "--ros-args"]
     for name, value in values.items():
         cmd += ["-p", f"{name}:={value}"]
     for extra in args.param:

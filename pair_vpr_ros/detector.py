@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 
 import numpy as np
 
-from .errors import ConfigError
+from pair_vpr_ros.errors import ConfigError
 
 MODES = ("mapping", "localization")
 
@@ -94,6 +94,19 @@ class LoopRecord:
     inlier_ratio: float = float("nan")
     accepted: bool = False
     reason: str = ""  # why it was not accepted; "" when accepted
+    # Relative pose T_match_query (see geometry.relpose): the query camera's pose in the match
+    # camera's optical frame. Only accepted loops get one; NaN / () when there is none.
+    pose_status: str = ""  # "metric", "scale-free" or "" (no pose: see pose_reason)
+    pose_reason: str = ""  # why there is no pose (or no scale); "" for a metric pose
+    pose_inliers: int = -1  # PnP / essential-matrix inliers; -1 when not tried
+    tx: float = float("nan")  # m (scale-free: a unit vector)
+    ty: float = float("nan")
+    tz: float = float("nan")
+    qx: float = float("nan")
+    qy: float = float("nan")
+    qz: float = float("nan")
+    qw: float = float("nan")
+    covariance: tuple[float, ...] = ()  # 36 row-major, order (x, y, z, rx, ry, rz); () w/o pose
 
     @classmethod
     def field_names(cls) -> list[str]:
@@ -115,8 +128,15 @@ class Candidate:
     pair_score: float = float("nan")
 
 
-# Re-ranking function: query dense [N,D] and candidate ids -> pair scores [K].
-Reranker = Callable[[np.ndarray, list[int]], np.ndarray]
+def rank_by_pair_score(candidates: list[Candidate], scores: np.ndarray) -> list[Candidate]:
+    """Store each candidate's pair score (``scores`` [K], in the order of ``candidates``) and
+    return the candidates best first; equal scores keep their global order. The node's
+    decisions and ``pairvpr-eval``'s re-ranked recall both rank through this one function."""
+    for cand, score in zip(candidates, scores, strict=True):
+        cand.pair_score = float(score)
+    return sorted(candidates, key=lambda c: (-c.pair_score, c.rank_before))
+
+
 Verifier = Callable[[int], tuple[int, float]]  # match id -> (inliers, inlier ratio)
 
 
@@ -168,10 +188,7 @@ class LoopDetector:
         if best_global.global_similarity < c.global_floor:
             self._recent_matches.clear()
             return self._record(query_stamp, query_frame_id, best_global, 1, "below global floor")
-        for cand, score in zip(candidates, rerank(candidates), strict=True):
-            cand.pair_score = float(score)
-        order = sorted(candidates, key=lambda x: (-x.pair_score, x.rank_before))
-        best = order[0]
+        best = rank_by_pair_score(candidates, rerank(candidates))[0]
         if not best.pair_score >= c.score_threshold:
             self._recent_matches.clear()
             return self._record(query_stamp, query_frame_id, best, 1, "score below threshold")

@@ -11,6 +11,10 @@ class PairVPRError(Exception):
     """Base class: catch this to handle any user-facing error of the package."""
 
 
+class UsageError(PairVPRError):
+    """A command line is wrong beyond what argparse checks (missing or conflicting options)."""
+
+
 class CheckpointError(PairVPRError):
     """A weights file is missing, unreadable, truncated or does not fit the network."""
 
@@ -21,6 +25,10 @@ class ConfigError(PairVPRError):
 
 class ImageConversionError(PairVPRError):
     """An image message cannot be turned into an RGB array (unsupported or malformed)."""
+
+
+class ImageTooLargeError(ImageConversionError):
+    """An image has more pixels than the configured limit (max_image_pixels); it is skipped."""
 
 
 class MapError(PairVPRError):
@@ -35,9 +43,23 @@ class BagError(PairVPRError):
     """A rosbag is missing, not a bag, corrupt, or lacks the requested topics."""
 
 
+class OutputError(PairVPRError):
+    """An output cannot be written where asked (a file where a folder is expected, read-only,
+    disk full), or would replace data (an existing map) without being told to."""
+
+
 class DatasetError(PairVPRError):
     """A training or evaluation dataset folder is missing or not in the expected layout."""
 
 
 class TrainingError(PairVPRError):
     """Training cannot go on: the loss became NaN/inf or a resumed run does not fit its config."""
+
+
+class PoseGraphError(PairVPRError):
+    """Pose-graph input cannot be used: no odometry, unreadable loops, trajectories that share
+    no stamps."""
+
+
+class GeometryInputError(PairVPRError):
+    """Camera intrinsics or a depth image are missing, malformed or do not fit the image."""

@@ -30,19 +30,26 @@ the image_transport form ``"<enc>; jpeg compressed bgr8"`` and
 ``"<16UC1|32FC1>; compressedDepth png"`` (a 12-byte header before the PNG; 32FC1 depth is recovered
 from the quantised inverse depth). Decoded colour is BGR(A) and becomes RGB, grey becomes RGB,
 single-channel 16-bit is scaled as above and 16-bit colour is ``>> 8``.
+
+Size limit: an image of more than ``max_pixels`` (width * height, default ``MAX_PIXELS`` = 50
+megapixels, the node's ``max_image_pixels``) raises ``ImageTooLargeError`` before anything is
+decoded: a 388 KB PNG can claim 20000 x 20000 pixels (1.2 GB as RGB). PNG, JPEG, BMP and WebP
+sizes are read from the header; other codecs (TIFF) are checked right after decoding.
 """
 
 from __future__ import annotations
 
 import math
 import operator
+import os
+import struct
 from dataclasses import dataclass
 from typing import Any
 
 import cv2
 import numpy as np
 
-from pair_vpr_ros.errors import ImageConversionError
+from pair_vpr_ros.errors import ImageConversionError, ImageTooLargeError
 
 
 @dataclass(frozen=True)
@@ -95,9 +102,14 @@ _CANONICAL = {name.lower(): name for name in ("8UC1", "8UC3", "8UC4", "16UC1", "
 _CANONICAL["32fc1"] = "32FC1"
 SUPPORTED_ENCODINGS: tuple[str, ...] = tuple(_CANONICAL.get(name, name) for name in _SPECS)
 _CODECS = ("jpeg", "jpg", "png", "tiff", "webp", "bmp")
+# Image files in folders (map build sources, datasets), matched case-insensitively.
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _DEPTH_HEADER = 12  # compressed_depth_image_transport ConfigHeader: int32 format, float32 quant[2]
 _SAMPLES = 16384  # pixels used to estimate the scaling percentiles
+MAX_PIXELS = 50_000_000  # default size limit (width * height): 8K video is 33 MP
+# JPEG start-of-frame markers (they carry the image size): C0..CF except DHT, JPG and DAC.
+_JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
 
 
 def _as_bytes(data: Any, what: str) -> np.ndarray:
@@ -160,10 +172,46 @@ def _check_size(value: Any, name: str, where: str) -> int:
     return number
 
 
+def check_pixels(width: int, height: int, max_pixels: int, where: str) -> None:
+    """ImageTooLargeError when width * height exceeds `max_pixels`."""
+    if width * height > max_pixels:
+        raise ImageTooLargeError(
+            f"{where}: the image is {width} x {height} = {width * height:,} pixels, more than "
+            f"the limit of {max_pixels:,} (max_image_pixels): skipped; raise the limit if the "
+            "camera really sends images this large"
+        )
+
+
 def image_to_rgb(
-    encoding: str, height: int, width: int, step: int, data: Any, is_bigendian: bool = False
+    encoding: str,
+    height: int,
+    width: int,
+    step: int,
+    data: Any,
+    is_bigendian: bool = False,
+    max_pixels: int = MAX_PIXELS,
 ) -> np.ndarray:
     """Raw ``sensor_msgs/Image`` fields -> RGB uint8 [height, width, 3] (see module docstring)."""
+    view, spec, where = image_samples(
+        encoding, height, width, step, data, is_bigendian, max_pixels
+    )
+    try:
+        return _convert(view, spec)
+    except cv2.error as err:
+        raise ImageConversionError(f"{where}: OpenCV could not convert it ({err})") from err
+
+
+def image_samples(
+    encoding: str,
+    height: int,
+    width: int,
+    step: int,
+    data: Any,
+    is_bigendian: bool = False,
+    max_pixels: int = MAX_PIXELS,
+) -> tuple[np.ndarray, _Spec, str]:
+    """Raw ``sensor_msgs/Image`` fields, checked -> (strided view [rows, W, C] of the samples in
+    their byte order, the encoding's spec, a description for error messages); no copy."""
     fields = f"Image (encoding={encoding!r}, height={height}, width={width}, step={step}"
     buf = _as_bytes(data, fields + ")")
     where = f"{fields}, len(data)={buf.size})"
@@ -175,6 +223,7 @@ def image_to_rgb(
     h = _check_size(height, "height", where)
     w = _check_size(width, "width", where)
     step = _check_size(step, "step", where)
+    check_pixels(w, h, max_pixels, where)
     if spec.kind == "yuv422" and w % 2:
         raise ImageConversionError(f"{where}: width must be even for 4:2:2 YUV")
     if spec.kind == "nv" and (w % 2 or h % 2):
@@ -194,11 +243,7 @@ def image_to_rgb(
         )
     dtype = np.dtype((">" if is_bigendian else "<") + spec.dtype if itemsize > 1 else spec.dtype)
     shape = (rows, w, spec.channels)
-    view = np.ndarray(shape, dtype, buffer=buf, strides=(step, bpp, itemsize))
-    try:
-        return _convert(view, spec)
-    except cv2.error as err:
-        raise ImageConversionError(f"{where}: OpenCV could not convert it ({err})") from err
+    return np.ndarray(shape, dtype, buffer=buf, strides=(step, bpp, itemsize)), spec, where
 
 
 def _convert(view: np.ndarray, spec: _Spec) -> np.ndarray:
@@ -219,29 +264,76 @@ def _convert(view: np.ndarray, spec: _Spec) -> np.ndarray:
     return cv2.cvtColor(np.ascontiguousarray(src), spec.code)
 
 
-def compressed_to_rgb(fmt: str, data: Any) -> np.ndarray:
+def compressed_to_rgb(fmt: str, data: Any, max_pixels: int = MAX_PIXELS) -> np.ndarray:
     """``sensor_msgs/CompressedImage`` format and data -> RGB uint8 [H, W, 3]."""
     buf = _as_bytes(data, f"CompressedImage (format={fmt!r})")
     where = f"CompressedImage (format={fmt!r}, len(data)={buf.size})"
     text = str(fmt).strip().lower()
     if "compresseddepth" in text:
-        return cv2.cvtColor(_decode_depth(text, buf, where), cv2.COLOR_GRAY2RGB)
+        return cv2.cvtColor(_decode_depth(text, buf, where, max_pixels), cv2.COLOR_GRAY2RGB)
     if not any(codec in text for codec in _CODECS):
         raise ImageConversionError(
             f"{where}: unsupported format; supported: {', '.join(_CODECS)}, "
             "'<enc>; jpeg compressed bgr8' and '<16UC1|32FC1>; compressedDepth png'"
         )
-    image = _imdecode(buf, where)
+    image = _imdecode(buf, where, max_pixels)
     try:
         return _decoded_to_rgb(image, where)
     except cv2.error as err:
         raise ImageConversionError(f"{where}: OpenCV could not convert it ({err})") from err
 
 
-def _imdecode(buf: np.ndarray, where: str) -> np.ndarray:
+def encoded_size(buf: np.ndarray) -> tuple[int, int] | None:
+    """(width, height) from the header of a PNG, JPEG, BMP or WebP [L] uint8; None otherwise."""
+    head = buf[:32].tobytes()
+    if head.startswith(_PNG_MAGIC) and head[12:16] == b"IHDR" and len(head) >= 24:
+        return struct.unpack(">II", head[16:24])
+    if head.startswith(b"BM") and len(head) >= 26:
+        width, height = struct.unpack("<ii", head[18:26])
+        return abs(width), abs(height)
+    if head.startswith(b"RIFF") and head[8:12] == b"WEBP" and len(head) >= 30:
+        chunk = head[12:16]
+        if chunk == b"VP8X":  # 24-bit canvas width - 1, height - 1
+            width, height = (int.from_bytes(head[a : a + 3], "little") for a in (24, 27))
+            return 1 + width, 1 + height
+        if chunk == b"VP8L":  # 14-bit width - 1, height - 1 after a signature byte
+            bits = int.from_bytes(head[21:25], "little")
+            return 1 + (bits & 0x3FFF), 1 + ((bits >> 14) & 0x3FFF)
+        if chunk == b"VP8 ":
+            w, h = struct.unpack("<HH", head[26:30])
+            return w & 0x3FFF, h & 0x3FFF
+    if head.startswith(b"\xff\xd8"):
+        return _jpeg_size(buf)
+    return None
+
+
+def _jpeg_size(buf: np.ndarray) -> tuple[int, int] | None:
+    """Walk the JPEG marker segments to the start-of-frame that holds the size."""
+    pos, n = 2, buf.size
+    while pos + 9 <= n:
+        if buf[pos] != 0xFF:
+            return None
+        marker = int(buf[pos + 1])
+        if marker == 0xFF:  # fill byte
+            pos += 1
+        elif marker in _JPEG_SOF:
+            height = int(buf[pos + 5]) << 8 | int(buf[pos + 6])
+            width = int(buf[pos + 7]) << 8 | int(buf[pos + 8])
+            return width, height
+        elif marker == 0x01 or 0xD0 <= marker <= 0xD8:  # segments without a length
+            pos += 2
+        else:
+            pos += 2 + (int(buf[pos + 2]) << 8 | int(buf[pos + 3]))
+    return None
+
+
+def _imdecode(buf: np.ndarray, where: str, max_pixels: int) -> np.ndarray:
     """Encoded bytes [L] -> OpenCV image [H, W] or [H, W, C] (BGR order), any depth."""
     if buf.size == 0:
         raise ImageConversionError(f"{where}: data is empty")
+    size = encoded_size(buf)
+    if size is not None:
+        check_pixels(*size, max_pixels, where)
     try:
         image = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
     except cv2.error as err:
@@ -250,6 +342,7 @@ def _imdecode(buf: np.ndarray, where: str) -> np.ndarray:
         raise ImageConversionError(
             f"{where}: OpenCV could not decode the data (corrupt, truncated or not an image)"
         )
+    check_pixels(image.shape[1], image.shape[0], max_pixels, where)  # codecs without a probe
     return image
 
 
@@ -271,7 +364,7 @@ def _decoded_to_rgb(image: np.ndarray, where: str) -> np.ndarray:
     )
 
 
-def _decode_depth(text: str, buf: np.ndarray, where: str) -> np.ndarray:
+def _decode_depth(text: str, buf: np.ndarray, where: str, max_pixels: int) -> np.ndarray:
     """compressedDepth payload (12-byte header + 16-bit PNG) -> scaled grey uint8 [H, W]."""
     if "rvl" in text:  # older publishers name no codec at all: those are PNG
         raise ImageConversionError(
@@ -287,7 +380,7 @@ def _decode_depth(text: str, buf: np.ndarray, where: str) -> np.ndarray:
         raise ImageConversionError(
             f"{where}: no PNG after the {_DEPTH_HEADER}-byte compressedDepth header"
         )
-    image = _imdecode(buf[_DEPTH_HEADER:], where)
+    image = _imdecode(buf[_DEPTH_HEADER:], where, max_pixels)
     if image.ndim != 2 or image.dtype != np.uint16:
         raise ImageConversionError(
             f"{where}: compressedDepth PNG decoded to shape {image.shape} {image.dtype}, "
@@ -303,23 +396,38 @@ def _decode_depth(text: str, buf: np.ndarray, where: str) -> np.ndarray:
     return scale_to_uint8(image)
 
 
-def msg_to_rgb(msg: Any) -> np.ndarray:
+def msg_to_rgb(msg: Any, max_pixels: int = MAX_PIXELS) -> np.ndarray:
     """An Image (has ``.encoding``) or CompressedImage (has ``.format``) -> RGB uint8 [H, W, 3].
 
     Works with rclpy messages (``data`` as ``array.array``, bytes or list) and rosbags messages
-    (``data`` as a uint8 numpy array).
+    (``data`` as a uint8 numpy array). Larger than `max_pixels`: ImageTooLargeError.
     """
     kind = type(msg).__name__
     try:
         if hasattr(msg, "encoding"):
             fields = (msg.encoding, msg.height, msg.width, msg.step, msg.data)
             big = bool(getattr(msg, "is_bigendian", False))
-            return image_to_rgb(*fields, is_bigendian=big)
+            return image_to_rgb(*fields, is_bigendian=big, max_pixels=max_pixels)
         if hasattr(msg, "format"):
             fmt, data = msg.format, msg.data
-            return compressed_to_rgb(fmt, data)
+            return compressed_to_rgb(fmt, data, max_pixels=max_pixels)
     except AttributeError as err:
         raise ImageConversionError(f"{kind} message lacks a field: {err}") from err
     raise ImageConversionError(
         f"{kind} is neither a sensor_msgs/Image (no .encoding) nor a CompressedImage (no .format)"
     )
+
+
+def file_to_rgb(path: str | os.PathLike, max_pixels: int = MAX_PIXELS) -> np.ndarray:
+    """An image file (any codec OpenCV reads) -> RGB uint8 [H, W, 3], decoded like a
+    CompressedImage (size limit, 16-bit grey scaled)."""
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as err:
+        raise ImageConversionError(f"image file {path}: cannot read it ({err})") from err
+    where = f"image file {path}"
+    image = _imdecode(data, where, max_pixels)
+    try:
+        return _decoded_to_rgb(image, where)
+    except cv2.error as err:
+        raise ImageConversionError(f"{where}: OpenCV could not convert it ({err})") from err

@@ -1,37 +1,30 @@
 """The content of the loop-closure messages, as plain Python (no ROS types).
 
 The node fills rclpy messages and the bag writer fills rosbags messages from these functions, so
-both publish identical data. One accepted ``LoopRecord`` gives three messages:
+both publish identical data; the pose-graph tools decode them here too. One accepted
+``LoopRecord`` gives up to four messages:
 
 ``loop_closure`` — ``std_msgs/Float64MultiArray``, the LIO-SAM / LVI-SAM pair
     ``data = [t_current, t_previous]``: exactly 2 float64, the query and match keyframes' image
     header stamps in seconds. ``layout`` is empty. LIO-SAM listens on
-    ``lio_loop/loop_closure_detection``: remap this topic there.
+    ``lio_loop/loop_closure_detection``: remap this topic there. Every accepted loop, with or
+    without a relative pose.
 
 ``loop_closure/detail`` — ``std_msgs/Float64MultiArray``, every numeric field of the record,
-    one value per field, in this order::
+    one value per field, labelled: ``DETAIL_LABELS`` = ``NUMERIC_FIELDS`` (query_id,
+    query_stamp, match_id, match_stamp, pair_score, global_similarity, rank_before, rank_after,
+    inliers, inlier_ratio, accepted, pose_inliers, tx, ty, tz, qx, qy, qz, qw), then
+    ``pose_status`` (0 no pose, 1 metric, 2 scale-free), then the covariance ``cov_00`` ..
+    ``cov_55`` (row, column in x, y, z, rx, ry, rz order; NaN without a pose).
+    ``layout.dim`` has one ``MultiArrayDimension(label=<name>, size=1, stride=1)`` per value,
+    ``layout.data_offset = 0``: look values up by label (``detail_to_dict``).
 
-        index  label              value
-        0      query_id           query keyframe id in the place map
-        1      query_stamp        query header stamp, s
-        2      match_id           matched keyframe id
-        3      match_stamp        matched header stamp, s
-        4      pair_score         pair-classifier score (logit(q,c) + logit(c,q))
-        5      global_similarity  global-descriptor similarity
-        6      rank_before        rank by global similarity (1 = best)
-        7      rank_after         rank after pair re-ranking (1 = best)
-        8      inliers            geometric-verification inliers, -1 when not verified
-        9      inlier_ratio       inliers / matches
-        10     accepted           1.0 accepted, 0.0 rejected
+``loop_closure/json`` — ``std_msgs/String``, a JSON object with every ``LoopRecord`` field in
+    order; booleans as JSON booleans, non-finite floats as ``null``, ``covariance`` a list of 36
+    numbers or ``null``.
 
-    ``layout.dim`` has one ``MultiArrayDimension(label=<field>, size=1, stride=1)`` per value in
-    the same order, ``layout.data_offset = 0``, so a consumer can look values up by label.
-    The frame ids and the rejection reason are not numeric and appear only in the JSON.
-
-``loop_closure/json`` — ``std_msgs/String``, a JSON object with every ``LoopRecord`` field
-    (``query_id, query_stamp, query_frame_id, match_id, match_stamp, match_frame_id, pair_score,
-    global_similarity, rank_before, rank_after, inliers, inlier_ratio, accepted, reason``);
-    booleans as JSON booleans, non-finite floats as ``null``.
+``loop_closure/factor`` — ``nav_msgs/Odometry``, one message per loop that has a relative pose:
+    everything one between-factor needs (layout in ``loop_factor`` and the README).
 """
 
 from __future__ import annotations
@@ -42,6 +35,16 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+from pair_vpr_ros.loop_factor import (
+    FACTOR_MSG_TYPES,
+    FACTOR_TOPIC,
+    FACTOR_TYPE,
+    LoopFactor,
+    factor_from_msg,
+    factor_from_record,
+    factor_msg,
+)
 
 PAIR_TOPIC = "loop_closure"
 DETAIL_TOPIC = "loop_closure/detail"
@@ -64,19 +67,48 @@ LOOP_RECORD_FIELDS = (
     "inlier_ratio",
     "accepted",
     "reason",
+    "pose_status",
+    "pose_reason",
+    "pose_inliers",
+    "tx",
+    "ty",
+    "tz",
+    "qx",
+    "qy",
+    "qz",
+    "qw",
+    "covariance",
 )
-TEXT_FIELDS = ("query_frame_id", "match_frame_id", "reason")
-NUMERIC_FIELDS = tuple(f for f in LOOP_RECORD_FIELDS if f not in TEXT_FIELDS)
+TEXT_FIELDS = ("query_frame_id", "match_frame_id", "reason", "pose_status", "pose_reason")
+POSE_AXES = ("x", "y", "z", "rx", "ry", "rz")  # ROS PoseWithCovariance order
+NUMERIC_FIELDS = tuple(f for f in LOOP_RECORD_FIELDS if f not in (*TEXT_FIELDS, "covariance"))
+COVARIANCE_LABELS = tuple(f"cov_{r}{c}" for r in range(6) for c in range(6))
+DETAIL_LABELS = (*NUMERIC_FIELDS, "pose_status", *COVARIANCE_LABELS)
+POSE_STATUS_CODES = {"": 0, "metric": 1, "scale-free": 2}
+
+__all__ = [
+    "DETAIL_LABELS",
+    "FACTOR_MSG_TYPES",
+    "FACTOR_TOPIC",
+    "FACTOR_TYPE",
+    "LoopFactor",
+    "LoopMessages",
+    "factor_from_msg",
+    "factor_from_record",
+    "factor_msg",
+    "loop_messages",
+]
 
 
 @dataclass(frozen=True)
 class LoopMessages:
-    """The three messages of one loop closure, as plain data."""
+    """The messages of one loop closure, as plain data (``factor`` None: no relative pose)."""
 
     pair: list[float]
     detail_labels: tuple[str, ...]
     detail: list[float]
     json: str
+    factor: LoopFactor | None = None
 
 
 def pair_data(record: Any) -> list[float]:
@@ -84,26 +116,40 @@ def pair_data(record: Any) -> list[float]:
     return [float(record.query_stamp), float(record.match_stamp)]
 
 
+def covariance_values(record: Any) -> list[float]:
+    """The record's 36 covariance values (row-major), or 36 NaN when it has no pose."""
+    cov = tuple(getattr(record, "covariance", ()) or ())
+    return [float(v) for v in cov] if len(cov) == 36 else [math.nan] * 36
+
+
 def detail_data(record: Any) -> list[float]:
-    """The numeric fields of ``record`` in ``NUMERIC_FIELDS`` order, booleans as 1.0 / 0.0."""
-    return [float(getattr(record, name)) for name in NUMERIC_FIELDS]
+    """Values in ``DETAIL_LABELS`` order, booleans as 1.0 / 0.0."""
+    values = [float(getattr(record, name)) for name in NUMERIC_FIELDS]
+    values.append(float(POSE_STATUS_CODES.get(record.pose_status, 0)))
+    return values + covariance_values(record)
+
+
+def _json_value(value: Any) -> Any:
+    if isinstance(value, str) or value is None:
+        return value
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    value = float(value)
+    return value if math.isfinite(value) else None
 
 
 def record_dict(record: Any) -> dict[str, Any]:
-    """Every ``LoopRecord`` field in order, JSON-safe (non-finite floats become None)."""
+    """Every ``LoopRecord`` field in order, JSON-safe (non-finite floats become None; the
+    covariance a list of 36, or None without a pose)."""
     out: dict[str, Any] = {}
     for name in LOOP_RECORD_FIELDS:
-        value = getattr(record, name)
-        if isinstance(value, str) or value is None:
-            pass
-        elif isinstance(value, (bool, np.bool_)):
-            value = bool(value)
-        elif isinstance(value, (int, np.integer)):
-            value = int(value)
+        if name == "covariance":
+            cov = tuple(getattr(record, name) or ())
+            out[name] = [_json_value(v) for v in cov] if len(cov) == 36 else None
         else:
-            value = float(value)
-            value = value if math.isfinite(value) else None
-        out[name] = value
+            out[name] = _json_value(getattr(record, name))
     return out
 
 
@@ -112,13 +158,26 @@ def record_json(record: Any) -> str:
     return json.dumps(record_dict(record), allow_nan=False)
 
 
+def csv_row(record: Any) -> list[Any]:
+    """One CSV row in ``LOOP_RECORD_FIELDS`` order; the covariance is one cell of 36
+    space-separated numbers (empty without a pose)."""
+    row = []
+    for name in LOOP_RECORD_FIELDS:
+        value = getattr(record, name)
+        if name == "covariance":
+            value = " ".join(repr(float(v)) for v in value) if len(value) == 36 else ""
+        row.append(value)
+    return row
+
+
 def loop_messages(record: Any) -> LoopMessages:
-    """All three payloads of one loop closure."""
+    """All payloads of one loop closure."""
     return LoopMessages(
         pair=pair_data(record),
-        detail_labels=NUMERIC_FIELDS,
+        detail_labels=DETAIL_LABELS,
         detail=detail_data(record),
         json=record_json(record),
+        factor=factor_from_record(record),
     )
 
 

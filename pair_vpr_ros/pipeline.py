@@ -1,39 +1,51 @@
 """`LoopClosurePipeline`: the one object that turns camera frames into loop-closure records.
 
-The ROS node (`node.py`) feeds it frame by frame from a worker thread; the bag replay feeds it
+The ROS node (`ros/node.py`) feeds it frame by frame; the bag replay and the map builder feed it
 batches (`process_many`). Both give the same records for the same frames: frame-rate limiting
 depends only on stamps, so batching the encoder changes nothing but speed.
+
+Concurrency: a pipeline is NOT thread-safe and has no lock. One thread at a time drives it: the
+replay, `build_map` and evaluation use their caller's thread; the node hands every frame and
+every map service (save, load, clear, mode and parameter changes) to the one map thread of
+`ros.maps.MapControl`, so a map operation falls between two frames, never inside one, and other
+threads read only what that thread copied out (`MapControl.state`). A pipeline may move to
+another thread between calls (the place map's SQLite connection is opened for that). The model
+is only read, so two pipelines on two threads may share one (the node's background map build).
 """
 
 from __future__ import annotations
 
-import threading
 import time
-from collections import Counter
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from .detector import Candidate, DetectorConfig, LoopDetector, LoopRecord
-from .errors import ConfigError, MapFingerprintError
-from .geometry import Features, extract_features, verify_pair
-from .model import PairVPR, preprocess_batch
-from .place_map import KeyframeMeta, PlaceMap
+from pair_vpr_ros.detector import Candidate, DetectorConfig, LoopDetector, LoopRecord
+from pair_vpr_ros.errors import ConfigError, MapFingerprintError
+from pair_vpr_ros.geometry.camera import CameraModel
+from pair_vpr_ros.geometry.features import Features
+from pair_vpr_ros.geometry.keyframes import GeometryConfig, KeyframeGeometry
+from pair_vpr_ros.model import PairVPRModel, preprocess_batch
+from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
+from pair_vpr_ros.types import Pose
 
 
 @dataclass
 class Frame:
     """One camera frame: RGB uint8 [H,W,3], header stamp in seconds, optional pose
-    (x, y, z, qx, qy, qz, qw)."""
+    (x, y, z, qx, qy, qz, qw), optional aligned depth [H,W] float32 metres (NaN / 0: none) and
+    the camera's intrinsics (needed for a relative pose)."""
 
     stamp: float
     rgb: np.ndarray
     frame_id: str = ""
-    pose: tuple[float, ...] | None = None
+    pose: Pose | None = None
     source: str = ""
+    depth: np.ndarray | None = None
+    camera: CameraModel | None = None
 
 
 @dataclass
@@ -48,36 +60,55 @@ class FrameOutcome:
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
+@dataclass
+class PipelineCounts:
+    """What a pipeline did with its frames since it was made. The node's `/diagnostics` and
+    the replay's `summary.json` (`pipeline_counts`) report these names."""
+
+    rate_limited: int = 0  # skipped unencoded: closer than min_frame_interval to the last one
+    encoded: int = 0
+    similar_to_keyframe: int = 0  # encoded, but too similar to the last keyframe
+    keyframes: int = 0
+    loops: int = 0  # accepted loop closures
+    rejected: int = 0  # keyframes whose best candidate was not accepted
+    pose_metric: int = 0  # accepted loops with a metric relative pose
+    pose_scale_free: int = 0  # ... with a rotation and a translation direction only
+    pose_none: int = 0  # ... without a pose (the record's pose_reason says why)
+    depth_wrong_size: int = 0  # keyframes whose depth image did not fit (dropped)
+    intrinsics_wrong_size: int = 0  # keyframes whose intrinsics were for another size
+    features_damaged: int = 0  # stored features that could not be unpacked
+
+    def to_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+
 class LoopClosurePipeline:
     """Frames -> encoder -> keyframe selection -> map query -> pair re-ranking -> LoopRecords.
 
-    Thread-safe: the node's worker thread processes frames while service callbacks save, load,
-    clear or switch mode.
+    Not thread-safe: one thread at a time (see the module docstring).
     """
 
     def __init__(
         self,
-        model: PairVPR,
+        model: PairVPRModel,
         config: DetectorConfig | None = None,
         place_map: PlaceMap | None = None,
         index: str = "flat",
         rerank_chunk: int | None = None,
+        geometry: GeometryConfig | None = None,
     ) -> None:
-        self.model = model.eval()
+        self.model = model
         self.detector = LoopDetector(config or DetectorConfig())
         self.index_kind = index
         self.rerank_chunk = rerank_chunk
-        self._lock = threading.RLock()
         self._place_map = place_map if place_map is not None else self._new_map()
         self._check_fingerprint(self._place_map)
-        # ORB features for geometric verification, for keyframes added in this process only.
-        self._features: dict[int, Features] = {}
         self._stamps: list[float] = []  # keyframe stamps by id, for recent-frame exclusion
         self._last_encoded: float | None = None
         self._last_desc: np.ndarray | None = None
         self._reset_tracking()
-        self.counts: Counter[str] = Counter()
-        self.timing_totals: Counter[str] = Counter()
+        self.counts = PipelineCounts()
+        self.geometry = KeyframeGeometry(geometry, self.counts)
 
     # ---- state -----------------------------------------------------------------------------
     @property
@@ -89,18 +120,17 @@ class LoopClosurePipeline:
         return self._place_map
 
     def set_config(self, config: DetectorConfig) -> None:
-        with self._lock:
-            self.detector.set_config(config)
+        self.detector.set_config(config)
 
     def set_mode(self, mode: str) -> None:
         """ "mapping" (query, then add each keyframe) or "localization" (query only)."""
         self.set_config(self.config.updated(mode=mode))
 
     def _new_map(self) -> PlaceMap:
-        cfg = self.model.config
+        desc_dim, dense_shape = self._new_map_shapes()
         return PlaceMap(
-            desc_dim=cfg.desc_dim,
-            dense_shape=(self.model.num_patches, cfg.embed_dim),
+            desc_dim=desc_dim,
+            dense_shape=dense_shape,
             fingerprint=self.model.fingerprint,
             index=self.index_kind,
         )
@@ -111,45 +141,56 @@ class LoopClosurePipeline:
                 f"the map was built with model {place_map.fingerprint!r} but this pipeline runs "
                 f"{self.model.fingerprint!r}: use the same weights and image size, or rebuild it"
             )
+        want = self._new_map_shapes()
+        if (place_map.desc_dim, place_map.dense_shape) != want:
+            raise MapFingerprintError(
+                f"the map holds descriptors of {place_map.desc_dim} and dense tokens of "
+                f"{list(place_map.dense_shape)}, this model makes {want[0]} and {list(want[1])} "
+                "(its manifest was edited?): rebuild the map with this model"
+            )
+
+    def _new_map_shapes(self) -> tuple[int, tuple[int, int]]:
+        cfg = self.model.config
+        return cfg.desc_dim, (self.model.num_patches, cfg.embed_dim)
 
     def _reset_tracking(self) -> None:
         self._stamps = [m.stamp for m in self._place_map.all_meta()]
-        self._features.clear()
         self._last_encoded = None
         self._last_desc = None
         self.detector.reset()
 
     def save_map(self, directory: str | Path) -> Path:
-        with self._lock:
-            return self._place_map.save(directory)
+        return self._place_map.save(directory)
 
     def load_map(self, directory: str | Path) -> int:
         """Replace the map by a saved one (same model required); returns its keyframe count.
 
         Reloading the folder the current map was saved to discards its unsaved keyframes (the
         folder is locked by the current map, so that one is closed first)."""
-        with self._lock:
-            current = self._place_map
-            same = current.directory is not None and current.directory == Path(directory).resolve()
-            if same:
-                current.close()
-            try:
-                loaded = PlaceMap.load(directory, expected_fingerprint=self.model.fingerprint)
-            except Exception:
-                if same:  # the old map is gone: continue on an empty one rather than none
-                    self._place_map = self._new_map()
-                    self._reset_tracking()
-                raise
-            self._place_map = loaded
-            self._reset_tracking()
+        current = self._place_map
+        same = current.directory is not None and current.directory == Path(directory).resolve()
+        if same:
+            current.close()
+        loaded = None
+        try:
+            loaded = PlaceMap.load(directory, expected_fingerprint=self.model.fingerprint)
+            self._check_fingerprint(loaded)
+        except Exception:
+            if loaded is not None:
+                loaded.close()
+            if same:  # the old map is gone: continue on an empty one rather than none
+                self._place_map = self._new_map()
+                self._reset_tracking()
+            raise
+        self._place_map = loaded
+        self._reset_tracking()
         if not same:
             current.close()
         return len(loaded)
 
     def clear_map(self) -> None:
-        with self._lock:
-            self._place_map.clear()
-            self._reset_tracking()
+        self._place_map.clear()
+        self._reset_tracking()
 
     def close(self) -> None:
         self._place_map.close()
@@ -165,67 +206,81 @@ class LoopClosurePipeline:
         return next(self.process_many([frame], batch_size=1))
 
     def process_many(self, frames: Iterable[Frame], batch_size: int = 8) -> Iterator[FrameOutcome]:
-        """Frames in time order -> one outcome each; the encoder runs on batches of due frames."""
+        """Frames in time order -> one outcome each, in the same order; the encoder runs on
+        batches of up to `batch_size` due frames. A rate-limited frame that follows frames still
+        waiting for the encoder waits with them, so outcome i always belongs to frame i."""
         if batch_size < 1:
             raise ConfigError(f"batch size must be >= 1, got {batch_size}")
-        batch: list[Frame] = []
+        queue: list[Frame | FrameOutcome] = []  # frame order; a Frame waits for the encoder
+        waiting = 0
         for frame in frames:
-            with self._lock:
-                if not self.due(frame.stamp):
-                    self.counts["rate_limited"] += 1
-                    yield FrameOutcome(frame.stamp, skipped="rate limited")
-                    continue
+            if self.due(frame.stamp):
                 self._last_encoded = frame.stamp
-            batch.append(frame)
-            if len(batch) >= batch_size:
-                yield from self._run_batch(batch)
-                batch = []
-        if batch:
-            yield from self._run_batch(batch)
+                queue.append(frame)
+                waiting += 1
+            else:
+                self.counts.rate_limited += 1
+                queue.append(FrameOutcome(frame.stamp, skipped="rate limited"))
+            if waiting >= batch_size or waiting == 0:
+                yield from self._run_batch(queue)
+                queue, waiting = [], 0
+        if queue:
+            yield from self._run_batch(queue)
 
     def encode(self, images: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """RGB uint8 images -> dense float16 [B,N,D], descriptors float32 [B,desc_dim]."""
-        x = preprocess_batch(images, self.model.config.image_size).to(self.model.device)
-        with torch.inference_mode():
-            dense, desc = self.model.encode(x)
-        return dense.to(torch.float16).cpu().numpy(), desc.float().cpu().numpy()
+        return encode_for_map(self.model, preprocess_batch(images, self.model.config.image_size))
 
-    def _run_batch(self, batch: list[Frame]) -> Iterator[FrameOutcome]:
-        t0 = time.perf_counter()
-        dense, desc = self.encode([f.rgb for f in batch])
-        encode_ms = (time.perf_counter() - t0) * 1e3 / len(batch)
-        for i, frame in enumerate(batch):
-            with self._lock:
-                outcome = self._decide(frame, dense[i], desc[i])
+    def _run_batch(self, queue: list[Frame | FrameOutcome]) -> Iterator[FrameOutcome]:
+        """Encode the frames of `queue` in one batch; yield every entry's outcome in order."""
+        batch = [f for f in queue if isinstance(f, Frame)]
+        if batch:
+            t0 = time.perf_counter()
+            dense, desc = self.encode([f.rgb for f in batch])
+            encode_ms = (time.perf_counter() - t0) * 1e3 / len(batch)
+        i = 0
+        for entry in queue:
+            if isinstance(entry, FrameOutcome):  # decided already (rate limited)
+                yield entry
+                continue
+            outcome = self._decide(entry, dense[i], desc[i])
+            i += 1
             outcome.timings_ms["encode"] = encode_ms
-            self.counts["encoded"] += 1
-            for key, ms in outcome.timings_ms.items():
-                self.timing_totals[key] += ms
+            self.counts.encoded += 1
             yield outcome
 
     def _decide(self, frame: Frame, dense: np.ndarray, desc: np.ndarray) -> FrameOutcome:
         outcome = FrameOutcome(frame.stamp)
         last = self._last_desc
         if not self.detector.is_new_keyframe(None if last is None else float(desc @ last)):
-            self.counts["similar_to_keyframe"] += 1
+            self.counts.similar_to_keyframe += 1
             outcome.skipped = "similar to previous keyframe"
             return outcome
-        features = extract_features(frame.rgb) if self.config.geometric_verification else None
+        features = None
+        if self.geometry.wanted(self.config.geometric_verification):
+            t0 = time.perf_counter()
+            features = self.geometry.extract(frame.rgb, frame.depth, frame.camera)
+            outcome.timings_ms["features"] = (time.perf_counter() - t0) * 1e3
         outcome.loop = self._query(frame, dense, desc, outcome, features)
+        loop = outcome.loop
+        if loop is not None and loop.accepted and self.geometry.config.relative_pose:
+            match = self._stored_features(loop.match_id)
+            outcome.timings_ms["pose"] = self.geometry.pose(loop, features, match)
         if self.config.mode == "mapping":
             meta = KeyframeMeta(
                 stamp=frame.stamp, frame_id=frame.frame_id, pose=frame.pose, source=frame.source
             )
-            outcome.keyframe_id = self._place_map.add(desc, dense, meta)
+            packed = self.geometry.pack(features)
+            outcome.keyframe_id = self._place_map.add(desc, dense, meta, packed)
             self._stamps.append(frame.stamp)
-            if features is not None:
-                self._features[outcome.keyframe_id] = features
             if outcome.loop is not None:
                 outcome.loop.query_id = outcome.keyframe_id
         self._last_desc = desc
-        self.counts["keyframes"] += 1
-        if outcome.loop is not None:
-            self.counts["loops" if outcome.loop.accepted else "rejected"] += 1
+        self.counts.keyframes += 1
+        if outcome.loop is not None and outcome.loop.accepted:
+            self.counts.loops += 1
+        elif outcome.loop is not None:
+            self.counts.rejected += 1
         return outcome
 
     def _query(self, frame: Frame, dense, desc, outcome: FrameOutcome, features: Features | None):
@@ -247,12 +302,12 @@ class LoopClosurePipeline:
             return scores
 
         def verify(match_id: int) -> tuple[int, float]:
-            stored = self._features.get(match_id)
-            if features is None or stored is None:
-                return -1, float("nan")  # keyframe loaded from disk: nothing to verify against
-            return verify_pair(features, stored)
+            return self.geometry.verify(features, self._stored_features(match_id))
 
         return self.detector.decide(frame.stamp, frame.frame_id, candidates, rerank, verify)
+
+    def _stored_features(self, kf_id: int) -> Features | None:
+        return self.geometry.unpack(self._place_map.features(kf_id))
 
     def _candidate(self, kf_id: int, sim: float, rank: int) -> Candidate:
         meta = self._place_map.meta(kf_id)
@@ -260,9 +315,29 @@ class LoopClosurePipeline:
 
     def pair_scores(self, dense: np.ndarray, ids: list[int]) -> np.ndarray:
         """Query dense [N,D] against map keyframes `ids` -> bidirectional scores [K]."""
-        device = self.model.device
-        dtype = self.model.decoder_embed.weight.dtype
-        q = torch.from_numpy(np.asarray(dense)).to(device=device, dtype=dtype)
-        c = torch.from_numpy(self._place_map.get_dense(ids)).to(device=device, dtype=dtype)
-        with torch.inference_mode():
-            return self.model.pair_scores(q, c, chunk=self.rerank_chunk).float().cpu().numpy()
+        return map_pair_scores(self.model, self._place_map, dense, ids, self.rerank_chunk)
+
+
+def encode_for_map(model: PairVPRModel, images: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Preprocessed images [B,3,S,S] -> what the map stores: dense tokens float16 [B,N,D] and
+    descriptors float32 [B,desc_dim]. Queries are rounded to float16 too, so a query scores
+    exactly like the same image stored in the map."""
+    with torch.inference_mode():
+        dense, desc = model.encode(images.to(model.device, non_blocking=True))
+    return dense.to(torch.float16).cpu().numpy(), desc.float().cpu().numpy()
+
+
+def map_pair_scores(
+    model: PairVPRModel,
+    place_map: PlaceMap,
+    dense: np.ndarray,
+    ids: list[int],
+    chunk: int | None = None,
+) -> np.ndarray:
+    """Query dense [N,D] against the dense tokens of map keyframes ``ids`` -> bidirectional
+    pair scores float32 [K] (the node's re-ranking, and ``pairvpr-eval``'s)."""
+    device, dtype = model.device, model.dense_dtype
+    q = torch.from_numpy(np.asarray(dense)).to(device=device, dtype=dtype)
+    c = torch.from_numpy(place_map.get_dense(ids)).to(device=device, dtype=dtype)
+    with torch.inference_mode():
+        return model.pair_scores(q, c, chunk=chunk).float().cpu().numpy()

@@ -30,16 +30,16 @@ done
 
 # A stage whose final weights exist is not run again (delete OUT/<stage> to redo it).
 [ -f "$OUT/pretrain/stage2_final.pt" ] ||
-"$PY" -m pair_vpr_ros.train.stage2 "${data[@]}" "${COMMON[@]}" --out "$OUT/pretrain" \
+"$PY" -m pair_vpr_ros.learn.train.stage2 "${data[@]}" "${COMMON[@]}" --out "$OUT/pretrain" \
     --train-blocks 4 --max-steps "$PRETRAIN_STEPS" --places-per-batch 32 --lr 1e-3 \
     --warmup-steps 50 --pair-weight 0 --no-augment --save-every 200
 "$PY" scripts/export_encoder.py "$OUT/pretrain/stage2_final.pt" "$OUT/pretrain/encoder_reg4.pth"
 [ -f "$OUT/stage1/stage1_final.pt" ] ||
-"$PY" -m pair_vpr_ros.train.stage1 "${data[@]}" "${COMMON[@]}" --out "$OUT/stage1" \
+"$PY" -m pair_vpr_ros.learn.train.stage1 "${data[@]}" "${COMMON[@]}" --out "$OUT/stage1" \
     --dinov2 "$OUT/pretrain/encoder_reg4.pth" --train-blocks 2 --max-steps "$STAGE1_STEPS" \
     --places-per-batch 32 --lr 5e-4 --warmup-steps 30
 [ -f "$OUT/stage2/stage2_final.pt" ] ||
-"$PY" -m pair_vpr_ros.train.stage2 "${data[@]}" "${COMMON[@]}" --out "$OUT/stage2" \
+"$PY" -m pair_vpr_ros.learn.train.stage2 "${data[@]}" "${COMMON[@]}" --out "$OUT/stage2" \
     --init "$OUT/stage1/stage1_final.pt" --train-blocks 2 --max-steps "$STAGE2_STEPS" \
     --places-per-batch 32 --lr 5e-4 --warmup-steps 20 --no-augment --save-every 100
 "$PY" scripts/export_demo_model.py "$OUT" pair_vpr_ros/demo/assets/demo-small.pth

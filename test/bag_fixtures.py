@@ -30,6 +30,19 @@ def synthetic_images(n: int, size: int = 16, seed: int = 0) -> list[np.ndarray]:
     return [rng.integers(0, 256, (size, size, 3), dtype=np.uint8) for _ in range(n)]
 
 
+def revisit_world() -> tuple[list, list]:
+    """(images, poses) of a small loop: 10 places at 1 Hz, 20 m apart; revisits of places 0-4
+    at t = 100..104 s; two new places at t = 105, 106 s far away. 32 px images."""
+    imgs = synthetic_images(12, size=32)
+    images = [(float(i), imgs[i]) for i in range(10)]
+    poses = [(float(i), (20.0 * i, 0.0, 0.0)) for i in range(10)]
+    images += [(100.0 + i, imgs[i]) for i in range(5)]
+    poses += [(100.0 + i, (20.0 * i, 0.0, 0.0)) for i in range(5)]
+    images += [(105.0, imgs[10]), (106.0, imgs[11])]
+    poses += [(105.0, (500.0, 500.0, 0.0)), (106.0, (600.0, 500.0, 0.0))]
+    return images, poses
+
+
 def _ns(stamp: float) -> int:
     return int(round(stamp * 1e9))
 
@@ -155,6 +168,17 @@ def write_foxglove(
         ):
             writer.write_message(name, schemas[name], _plain(msg), log_time=_ns(stamp))
         writer.finish()
+    return path
+
+
+def corrupt_foxglove(path: Path, images: list) -> Path:
+    """An uncompressed-image .mcap (small chunks) with 64 bytes flipped in its middle: readers
+    fail part-way with a chunk checksum error, after the first frames."""
+    write_foxglove(path, images, compressed=False, chunk_size=3000)
+    data = bytearray(path.read_bytes())
+    for k in range(len(data) // 2, len(data) // 2 + 64):
+        data[k] ^= 0xFF
+    path.write_bytes(bytes(data))
     return path
 
 

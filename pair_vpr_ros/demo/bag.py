@@ -1,4 +1,14 @@
-"""Write the demo drive as a rosbag2 (MCAP storage): camera images plus ground-truth odometry."""
+"""Write the demo drive as a rosbag2 (MCAP storage), the topics a robot would record:
+
+``/camera/image_raw`` (or ``/compressed``), ``/camera/camera_info`` (pinhole, no distortion),
+``/camera/depth/image_raw``: depth aligned with the colour pixels (16UC1 millimetres, 0 = none;
+``demo.depth``), unless ``depth=False``,
+``/odom``: drifting odometry of ``base_link`` in ``odom`` (see ``demo.odometry``), and
+``/ground_truth``: the true pose of ``base_link`` in ``map``, both ``nav_msgs/Odometry``. The
+camera sits ``Camera.height_m`` above ``base_link``, looking along its x axis
+(``camera.CAMERA_TO_BASE``); the image frame ``camera`` is an optical frame (x right, y down,
+z forward).
+"""
 
 from __future__ import annotations
 
@@ -13,16 +23,24 @@ from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
 from rosbags.typesys import Stores, get_typestore
 from tqdm import tqdm
 
+from pair_vpr_ros.demo.camera import Camera
+from pair_vpr_ros.demo.depth import depth_to_mm, render_depth
+from pair_vpr_ros.demo.odometry import OdometryNoise, drifting_odometry
 from pair_vpr_ros.demo.render import render_frame
 from pair_vpr_ros.demo.world import World, WorldConfig, generate_world
 from pair_vpr_ros.errors import BagError
 
 IMAGE_TOPIC = "/camera/image_raw"
 COMPRESSED_TOPIC = "/camera/image_raw/compressed"
+CAMERA_INFO_TOPIC = "/camera/camera_info"
+DEPTH_TOPIC = "/camera/depth/image_raw"
 ODOM_TOPIC = "/odom"
+GROUND_TRUTH_TOPIC = "/ground_truth"
 CAMERA_FRAME = "camera"
 MAP_FRAME = "map"
+ODOM_FRAME = "odom"
 BASE_FRAME = "base_link"
+ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
 JPEG_QUALITY = 90
 
 
@@ -33,10 +51,14 @@ def write_demo_bag(
     compressed: bool = False,
     size: tuple[int, int] = (320, 240),
     force: bool = False,
+    odometry: OdometryNoise | None = None,
+    depth: bool = True,
 ) -> Path:
     """Generate the world for `seed`; write its drive to `path` (`.mcap` file or bag folder)."""
     world = generate_world(seed, frames=frames, width=size[0], height=size[1])
-    return write_world_bag(world, path, compressed=compressed, force=force)
+    return write_world_bag(
+        world, path, compressed=compressed, force=force, odometry=odometry, depth=depth
+    )
 
 
 def write_world_bag(
@@ -45,21 +67,26 @@ def write_world_bag(
     compressed: bool = False,
     force: bool = False,
     progress: bool = False,
+    odometry: OdometryNoise | None = None,
+    depth: bool = True,
 ) -> Path:
     """Write every frame of `world` to `path` and return it.
 
     A path ending in `.mcap` becomes one MCAP file; any other path becomes a rosbag2 folder
     (metadata.yaml plus `<name>.mcap`). Both read back with `rosbags.highlevel.AnyReader`. The bag
     is written next to `path` first and moved into place, so a failure leaves no partial bag.
-    `progress` shows a tqdm bar.
+    `progress` shows a tqdm bar; `odometry` sets how `/odom` drifts (default `OdometryNoise()`);
+    `depth=False` leaves out the depth topic (40 ms a frame to render, 150 KB at 320x240).
     """
     path = Path(path)
+    odometry = odometry or OdometryNoise()
+    odometry.validate()
     _check_room(path, force)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     try:
         folder = tmp / (path.stem if _is_file(path) else path.name)
-        _write(world, folder, compressed, progress)
+        _write(world, folder, compressed, progress, odometry, depth)
         _remove(path)  # only now: a failed write keeps the old output
         (folder / f"{folder.name}.mcap" if _is_file(path) else folder).replace(path)
     except (OSError, WriterError) as err:
@@ -96,26 +123,86 @@ def _remove(path: Path) -> None:
         path.unlink()
 
 
-def _write(world: World, folder: Path, compressed: bool, progress: bool) -> None:
-    """Serialise images and odometry of every frame with identical header stamps and log times."""
+def _write(
+    world: World,
+    folder: Path,
+    compressed: bool,
+    progress: bool,
+    noise: OdometryNoise,
+    depth: bool,
+) -> None:
+    """Serialise every frame's messages with identical header stamps and log times."""
     ts = get_typestore(Stores.ROS2_JAZZY)
     t = ts.types
     image_type = "sensor_msgs/msg/CompressedImage" if compressed else "sensor_msgs/msg/Image"
+    info_type = "sensor_msgs/msg/CameraInfo"
+    odometry = drifting_odometry(world.poses, world.config.rate_hz, world.seed, noise)
+    cam = Camera(world.config.width, world.config.height)
     with Writer(folder, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        image_conn = writer.add_connection(
-            COMPRESSED_TOPIC if compressed else IMAGE_TOPIC, image_type, typestore=ts
-        )
-        odom_conn = writer.add_connection(ODOM_TOPIC, "nav_msgs/msg/Odometry", typestore=ts)
+        image_topic = COMPRESSED_TOPIC if compressed else IMAGE_TOPIC
+        conns = {
+            image_topic: writer.add_connection(image_topic, image_type, typestore=ts),
+            CAMERA_INFO_TOPIC: writer.add_connection(CAMERA_INFO_TOPIC, info_type, typestore=ts),
+            ODOM_TOPIC: writer.add_connection(ODOM_TOPIC, ODOMETRY_TYPE, typestore=ts),
+            GROUND_TRUTH_TOPIC: writer.add_connection(
+                GROUND_TRUTH_TOPIC, ODOMETRY_TYPE, typestore=ts
+            ),
+        }
+        if depth:
+            conns[DEPTH_TOPIC] = writer.add_connection(
+                DEPTH_TOPIC, "sensor_msgs/msg/Image", typestore=ts
+            )
+        rate = world.config.rate_hz
         for i in tqdm(range(world.num_frames), desc="frames", unit="frame", disable=not progress):
             stamp_ns = int(world.stamps_ns[i])
             stamp = t["builtin_interfaces/msg/Time"](
                 sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000
             )
-            rgb = render_frame(world, i)
-            image = _image_msg(t, stamp, rgb, compressed)
-            writer.write(image_conn, stamp_ns, ts.serialize_cdr(image, image_type))
-            odom = _odom_msg(t, stamp, world, i)
-            writer.write(odom_conn, stamp_ns, ts.serialize_cdr(odom, "nav_msgs/msg/Odometry"))
+            messages = (
+                (image_topic, _image_msg(t, stamp, render_frame(world, i), compressed)),
+                (CAMERA_INFO_TOPIC, _camera_info_msg(t, stamp, cam)),
+                (ODOM_TOPIC, _odom_msg(t, stamp, odometry, i, rate, ODOM_FRAME)),
+                (GROUND_TRUTH_TOPIC, _odom_msg(t, stamp, world.poses, i, rate, MAP_FRAME)),
+            )
+            if depth:
+                metres = render_depth(world.layout, world.poses[i], cam, world.occluders_of(i))
+                messages += ((DEPTH_TOPIC, _depth_msg(t, stamp, depth_to_mm(metres))),)
+            for topic, msg in messages:
+                writer.write(conns[topic], stamp_ns, ts.serialize_cdr(msg, msg.__msgtype__))
+
+
+def _depth_msg(t: dict, stamp: object, mm: np.ndarray) -> object:
+    """sensor_msgs Image, 16UC1 millimetres [H, W] uint16, little-endian."""
+    h, w = mm.shape
+    return t["sensor_msgs/msg/Image"](
+        header=t["std_msgs/msg/Header"](stamp=stamp, frame_id=CAMERA_FRAME),
+        height=h,
+        width=w,
+        encoding="16UC1",
+        is_bigendian=0,
+        step=2 * w,
+        data=np.ascontiguousarray(mm, dtype="<u2").view(np.uint8).reshape(-1),
+    )
+
+
+def _camera_info_msg(t: dict, stamp: object, cam: Camera) -> object:
+    """sensor_msgs CameraInfo of the demo camera: pinhole, square pixels, no distortion."""
+    f, cx, cy = cam.f, cam.cx, cam.cy
+    return t["sensor_msgs/msg/CameraInfo"](
+        header=t["std_msgs/msg/Header"](stamp=stamp, frame_id=CAMERA_FRAME),
+        height=cam.height,
+        width=cam.width,
+        distortion_model="plumb_bob",
+        d=np.zeros(5),
+        k=np.array([f, 0.0, cx, 0.0, f, cy, 0.0, 0.0, 1.0]),
+        r=np.eye(3).reshape(-1),
+        p=np.array([f, 0.0, cx, 0.0, 0.0, f, cy, 0.0, 0.0, 0.0, 1.0, 0.0]),
+        binning_x=0,
+        binning_y=0,
+        roi=t["sensor_msgs/msg/RegionOfInterest"](
+            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+        ),
+    )
 
 
 def _image_msg(t: dict, stamp: object, rgb: np.ndarray, compressed: bool) -> object:
@@ -137,15 +224,17 @@ def _image_msg(t: dict, stamp: object, rgb: np.ndarray, compressed: bool) -> obj
     )
 
 
-def _odom_msg(t: dict, stamp: object, world: World, i: int) -> object:
-    """nav_msgs Odometry: ground-truth pose (yaw as quaternion), velocity in base_link."""
-    x, y, yaw = (float(v) for v in world.poses[i])
-    # Finite differences over the step after frame i (the step before it for the last frame).
-    j = min(i + 1, world.num_frames - 1)
+def _odom_msg(
+    t: dict, stamp: object, poses: np.ndarray, i: int, rate_hz: float, frame_id: str
+) -> object:
+    """nav_msgs Odometry of `base_link` at planar pose `poses[i]` (x, y, yaw) in `frame_id`,
+    with the velocity (in base_link) of the step after frame i (before it, for the last)."""
+    x, y, yaw = (float(v) for v in poses[i])
+    j = min(i + 1, len(poses) - 1)
     k = max(j - 1, 0)
-    dt = max(j - k, 1) / world.config.rate_hz
-    vx, vy = (world.poses[j, :2] - world.poses[k, :2]) / dt
-    yaw_rate = math.remainder(float(world.poses[j, 2] - world.poses[k, 2]), math.tau) / dt
+    dt = max(j - k, 1) / rate_hz
+    vx, vy = (poses[j, :2] - poses[k, :2]) / dt
+    yaw_rate = math.remainder(float(poses[j, 2] - poses[k, 2]), math.tau) / dt
     c, s = math.cos(yaw), math.sin(yaw)
     pose = t["geometry_msgs/msg/Pose"](
         position=t["geometry_msgs/msg/Point"](x=x, y=y, z=0.0),
@@ -159,7 +248,7 @@ def _odom_msg(t: dict, stamp: object, world: World, i: int) -> object:
         angular=vec(x=0.0, y=0.0, z=yaw_rate),
     )
     return t["nav_msgs/msg/Odometry"](
-        header=t["std_msgs/msg/Header"](stamp=stamp, frame_id=MAP_FRAME),
+        header=t["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id),
         child_frame_id=BASE_FRAME,
         pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
         twist=t["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),

@@ -87,3 +87,10 @@ def fill_polygon(
     px = project(pc, cam) - (0.0, y0)
     px = np.clip(px, -1e5, 1e5)
     cv2.fillPoly(img, [np.round(px * (1 << SHIFT)).astype(np.int32)], colour, cv2.LINE_8, SHIFT)
+
+
+def camera_to_base(cam: Camera) -> tuple[float, ...]:
+    """Pose of the camera's optical frame (x right, y down, z forward) in ``base_link`` (x forward,
+    y left, z up) as ``(x, y, z, qx, qy, qz, qw)``: ``cam.height_m`` straight above the base."""
+    half = 0.5  # the rotation [[0, 0, 1], [-1, 0, 0], [0, -1, 0]] as a quaternion
+    return (0.0, 0.0, float(cam.height_m), -half, half, -half, half)

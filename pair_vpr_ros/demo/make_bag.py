@@ -8,10 +8,20 @@ import sys
 import time
 from pathlib import Path
 
-from pair_vpr_ros.demo.bag import COMPRESSED_TOPIC, IMAGE_TOPIC, ODOM_TOPIC, write_world_bag
+from pair_vpr_ros.cli import run_cli
+from pair_vpr_ros.demo.bag import (
+    CAMERA_INFO_TOPIC,
+    COMPRESSED_TOPIC,
+    DEPTH_TOPIC,
+    GROUND_TRUTH_TOPIC,
+    IMAGE_TOPIC,
+    ODOM_TOPIC,
+    write_world_bag,
+)
 from pair_vpr_ros.demo.dataset import write_place_dataset
+from pair_vpr_ros.demo.odometry import OdometryNoise
 from pair_vpr_ros.demo.world import WorldConfig, generate_world
-from pair_vpr_ros.errors import PairVPRError
+from pair_vpr_ros.errors import UsageError
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -30,8 +40,10 @@ def build_parser() -> argparse.ArgumentParser:
         description=(
             "Render the synthetic loop world (a seeded street grid driven in several laps: "
             "revisits with lateral and heading offsets, day/dusk/overcast light, other parked "
-            f"cars) to a rosbag2 MCAP with {IMAGE_TOPIC} (or {COMPRESSED_TOPIC}) and ground-truth "
-            f"{ODOM_TOPIC}; optionally also write a place-recognition training dataset "
+            f"cars) to a rosbag2 MCAP with {IMAGE_TOPIC} (or {COMPRESSED_TOPIC}), "
+            f"{CAMERA_INFO_TOPIC}, aligned depth on {DEPTH_TOPIC} (16UC1 mm), drifting "
+            f"odometry on {ODOM_TOPIC} and the true poses on {GROUND_TRUTH_TOPIC}; optionally "
+            "also write a place-recognition training dataset "
             "(DIR/<place>/<k>.png)."
         ),
     )
@@ -59,6 +71,24 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help=f"write JPEG CompressedImage on {COMPRESSED_TOPIC}",
     )
+    noise = OdometryNoise()
+    parser.add_argument(
+        "--odom-scale-error",
+        type=float,
+        default=noise.scale_error,
+        metavar="F",
+        help=f"{ODOM_TOPIC} reads distances (1 + F) times too long (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--odom-yaw-bias",
+        type=float,
+        default=noise.yaw_rate_bias_deg_s,
+        metavar="DEG_S",
+        help=f"{ODOM_TOPIC}'s yaw-rate bias in deg/s (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--no-depth", action="store_true", help=f"leave out {DEPTH_TOPIC} (smaller, faster bag)"
+    )
     parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
     parser.add_argument("--dataset", type=Path, help="also write a place dataset to this folder")
     parser.add_argument(
@@ -70,55 +100,54 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    try:
-        args = build_parser().parse_args(argv)
-    except SystemExit as exc:  # argparse has printed usage and "error: ..." (or --help)
-        return int(exc.code or 0)
+    """Exit codes: `pair_vpr_ros.cli` (0 done, 1 error, 2 usage, 130 Ctrl-C)."""
+    return run_cli(build_parser(), _run, argv)
+
+
+def _run(args: argparse.Namespace) -> None:
     if args.out is None and args.dataset is None:
-        print("error: give an output bag path (OUT) and/or --dataset DIR", file=sys.stderr)
-        return 2
-    try:
-        if args.out is not None:
-            start = time.perf_counter()
-            world = generate_world(
-                args.seed,
-                frames=args.frames,
-                laps=args.laps,
-                width=args.size[0],
-                height=args.size[1],
-            )
-            path = write_world_bag(
-                world,
-                args.out,
-                compressed=args.compressed,
-                force=args.force,
-                progress=args.progress,
-            )
-            print(
-                f"wrote {path}: {world.num_frames} frames {args.size[0]}x{args.size[1]} "
-                f"({'jpeg' if args.compressed else 'rgb8'}), {world.config.laps} laps = "
-                f"{world.loops} loops, {len(world.revisit_pairs())} revisit frames, "
-                f"seed {args.seed}, {time.perf_counter() - start:.1f} s"
-            )
-        if args.dataset is not None:
-            start = time.perf_counter()
-            root = write_place_dataset(
-                args.dataset,
-                seed=args.seed,
-                places=args.places,
-                views_per_place=args.views,
-                size=args.size,
-                force=args.force,
-                progress=args.progress,
-            )
-            print(
-                f"wrote {root}: {args.places} places x {args.views} views {args.size[0]}x"
-                f"{args.size[1]}, seed {args.seed}, {time.perf_counter() - start:.1f} s"
-            )
-    except PairVPRError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    return 0
+        raise UsageError("give an output bag path (OUT) and/or --dataset DIR")
+    if args.out is not None:
+        start = time.perf_counter()
+        world = generate_world(
+            args.seed,
+            frames=args.frames,
+            laps=args.laps,
+            width=args.size[0],
+            height=args.size[1],
+        )
+        path = write_world_bag(
+            world,
+            args.out,
+            compressed=args.compressed,
+            force=args.force,
+            progress=args.progress,
+            depth=not args.no_depth,
+            odometry=OdometryNoise(
+                scale_error=args.odom_scale_error, yaw_rate_bias_deg_s=args.odom_yaw_bias
+            ),
+        )
+        print(
+            f"wrote {path}: {world.num_frames} frames {args.size[0]}x{args.size[1]} "
+            f"({'jpeg' if args.compressed else 'rgb8'}), {world.config.laps} laps = "
+            f"{world.loops} loops, {len(world.revisit_pairs())} revisit frames, "
+            f"seed {args.seed}, {time.perf_counter() - start:.1f} s"
+        )
+    if args.dataset is not None:
+        start = time.perf_counter()
+        root = write_place_dataset(
+            args.dataset,
+            seed=args.seed,
+            places=args.places,
+            views_per_place=args.views,
+            size=args.size,
+            force=args.force,
+            progress=args.progress,
+        )
+        print(
+            f"wrote {root}: {args.places} places x {args.views} views {args.size[0]}x"
+            f"{args.size[1]}, seed {args.seed}, {time.perf_counter() - start:.1f} s"
+        )
 
 
 if __name__ == "__main__":

@@ -8,7 +8,6 @@ Files are always read with `weights_only=True`: a checkpoint can never run code.
 
 from __future__ import annotations
 
-import hashlib
 import os
 import tempfile
 from dataclasses import replace
@@ -17,9 +16,10 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..errors import CheckpointError
-from .config import ModelConfig
-from .network import PairVPR, build_pairvpr
+from pair_vpr_ros.errors import CheckpointError, ConfigError
+from pair_vpr_ros.hashing import sha256_file
+from pair_vpr_ros.model.config import ModelConfig, shape_fields
+from pair_vpr_ros.model.network import PairVPR, build_pairvpr
 
 FORMAT = "pair_vpr_ros/1"
 STAGE1_ONLY = ("mask_token", "prediction_head.weight", "prediction_head.bias")
@@ -38,10 +38,11 @@ def read_checkpoint(path: str | os.PathLike) -> tuple[dict[str, Tensor], dict | 
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # torch raises many types for truncated or foreign files
+        first = (str(err).splitlines() or ["no details"])[0][:200]  # EOFError('') when empty
         raise CheckpointError(
             f"checkpoint {path} could not be read as a PyTorch weights file "
-            f"({type(err).__name__}: {str(err).splitlines()[0][:200]}); it may be truncated or "
-            "not a torch file: download it again"
+            f"({type(err).__name__}: {first}); it may be empty, truncated or not a torch file "
+            "(or it holds Python objects, which are never loaded): download it again"
         ) from err
     arch = None
     while isinstance(obj, dict) and isinstance(obj.get("model"), dict):
@@ -67,14 +68,6 @@ def _strip_module(key: str) -> str:
     return key
 
 
-def file_sha256(path: str | os.PathLike, chunk: int = 1 << 22) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(chunk):
-            h.update(block)
-    return h.hexdigest()
-
-
 def config_for(sd: dict[str, Tensor], arch: dict | None, path: Path, image_size: int | None):
     """The architecture of a state_dict: the stored one, else read off the shapes."""
     if "encoder.model.cls_token" not in sd:
@@ -87,16 +80,38 @@ def config_for(sd: dict[str, Tensor], arch: dict | None, path: Path, image_size:
             f"checkpoint {path} is not a Pair-VPR checkpoint: expected key "
             f"'encoder.model.cls_token', found keys like {sorted(sd)[:4]}{hint}"
         )
-    if arch is not None:
-        cfg = ModelConfig.from_dict(arch)
-        return cfg if image_size is None else replace(cfg, image_size=image_size)
     try:
-        return ModelConfig.from_state_dict(sd, image_size=image_size or 322)
+        seen = shape_fields(sd, image_size or 322)
+        if arch is None:
+            return ModelConfig.from_state_dict(sd, image_size=image_size or 322)
     except (KeyError, IndexError) as err:
         raise CheckpointError(
             f"checkpoint {path} lacks Pair-VPR parameter {err}: expected the encoder, "
             "`decoder_embed`, `dec_blocks.*` and `globalizer.0`"
         ) from err
+    except (CheckpointError, ConfigError) as err:
+        raise CheckpointError(f"checkpoint {path}: {err}") from err
+    try:
+        cfg = ModelConfig.from_dict(arch)
+    except CheckpointError as err:
+        raise CheckpointError(
+            f"checkpoint {path}: {err}; its 'arch' entry is damaged or not from pair_vpr_ros"
+        ) from err
+    # The stored config says what shapes cannot (head counts); what shapes do say must agree,
+    # or the loader would build a network (of any size) that cannot take these tensors.
+    sources = {"dec_pos_grid": "dec_pos_embed", "desc_dim": "globalizer.0.weight"}
+    sources["cls_hidden"] = "classvprmodule.0.weight"
+    wrong = [
+        f"{name}={getattr(cfg, name)} (tensors: {value})"
+        for name, value in seen.items()
+        if getattr(cfg, name) != value and sources.get(name, "encoder.model.cls_token") in sd
+    ]
+    if wrong:
+        raise CheckpointError(
+            f"checkpoint {path}: its stored architecture disagrees with its tensors: "
+            f"{', '.join(wrong)}; the file is damaged"
+        )
+    return cfg if image_size is None else replace(cfg, image_size=image_size)
 
 
 def load_pairvpr(
@@ -128,7 +143,8 @@ def load_pairvpr(
     if not cfg.with_stage1_head:
         sd = {k: v for k, v in sd.items() if k not in STAGE1_ONLY}
     _load_strict(model, sd, path, allow_missing)
-    model.weights_id = f"sha256:{file_sha256(path)[:16]}"
+    _check_finite(sd, path)
+    model.weights_id = f"sha256:{sha256_file(path)[:16]}"
     return model.to(device).eval()
 
 
@@ -155,6 +171,18 @@ def _load_strict(model: PairVPR, sd: dict, path: Path, allow_missing: tuple[str,
             + ". Is it a complete Pair-VPR checkpoint (pairvpr-vitB/L/G.pth or one of ours)?"
         )
     model.load_state_dict(sd, strict=not allow_missing)
+
+
+def _check_finite(sd: dict[str, Tensor], path: Path) -> None:
+    """NaN/inf weights (a diverged run, a damaged file) would only show up as non-finite
+    descriptors at the first frame: refuse them when loading instead."""
+    bad = [k for k, v in sd.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        raise CheckpointError(
+            f"checkpoint {path} holds NaN or infinite values in {len(bad)} of {len(sd)} "
+            f"tensors (e.g. {bad[:3]}): it is damaged or comes from a training run that "
+            "diverged; use another checkpoint (for training: an earlier one)"
+        )
 
 
 def load_dinov2_encoder(model: PairVPR, path: str | os.PathLike) -> list[str]:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import re
 from dataclasses import asdict, dataclass, fields, replace
 
-from ..errors import CheckpointError, ConfigError
+from pair_vpr_ros.errors import CheckpointError, ConfigError
 
 PATCH = 14
 HEAD_DIM = 64
@@ -82,50 +82,73 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> ModelConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
+        """A stored config (`to_dict`); CheckpointError for unknown fields or wrong types."""
+        if not isinstance(data, dict):
+            raise CheckpointError(
+                f"stored model config is a {type(data).__name__}, not a dict of ModelConfig fields"
+            )
+        types = {f.name: type(f.default) for f in fields(cls)}
+        unknown = sorted(str(k) for k in set(data) - set(types))
         if unknown:
             raise CheckpointError(f"stored model config has unknown fields {unknown}")
-        return cls(**data)
+        for name, value in data.items():
+            kind = types[name]
+            if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+                raise CheckpointError(
+                    f"stored model config field {name}={value!r} is not {kind.__name__}"
+                )
+        try:
+            return cls(**data)
+        except ConfigError as err:
+            raise CheckpointError(f"stored model config is invalid: {err}") from err
 
     @classmethod
     def from_state_dict(cls, sd: dict, image_size: int = 322) -> ModelConfig:
         """Read the architecture off a released checkpoint's tensor shapes ([see module doc])."""
-        d = sd["encoder.model.cls_token"].shape[-1]
-        depth = _count_prefix(sd, r"encoder\.model\.blocks\.(\d+)\.")
-        swiglu = "encoder.model.blocks.0.mlp.w12.weight" in sd
-        hidden = (
+        seen = shape_fields(sd, image_size)
+        d, dec_dim = seen["embed_dim"], seen["dec_dim"]
+        return cls(
+            arch={384: "S", 768: "B", 1024: "L", 1536: "G"}.get(d, f"custom-{d}"),
+            num_heads=d // HEAD_DIM,
+            dec_heads=dec_dim // HEAD_DIM,
+            image_size=image_size,
+            **seen,
+        )
+
+
+def shape_fields(sd: dict, image_size: int = 322) -> dict:
+    """The ModelConfig fields a state_dict's shapes show (all but arch, heads, image size).
+
+    KeyError names a missing tensor. desc_dim, cls_hidden and dec_pos_grid fall back to the
+    released values (or `image_size`) when their tensor is absent (stage-one checkpoints).
+    """
+    swiglu = "encoder.model.blocks.0.mlp.w12.weight" in sd
+    dec_tokens = sd["dec_pos_embed"].shape[0] if "dec_pos_embed" in sd else None
+    return dict(
+        embed_dim=sd["encoder.model.cls_token"].shape[-1],
+        depth=_count_prefix(sd, r"encoder\.model\.blocks\.(\d+)\."),
+        mlp_hidden=(
             sd["encoder.model.blocks.0.mlp.w3.weight"].shape[1]
             if swiglu
             else sd["encoder.model.blocks.0.mlp.fc1.weight"].shape[0]
-        )
-        pos_tokens = sd["encoder.model.pos_embed"].shape[1] - 1
-        dec_dim = sd["decoder_embed.weight"].shape[0]
-        dec_tokens = sd["dec_pos_embed"].shape[0] if "dec_pos_embed" in sd else None
-        arch = {384: "S", 768: "B", 1024: "L", 1536: "G"}.get(d, f"custom-{d}")
-        return cls(
-            arch=arch,
-            embed_dim=d,
-            depth=depth,
-            num_heads=d // HEAD_DIM,
-            mlp_hidden=hidden,
-            swiglu=swiglu,
-            num_registers=sd["encoder.model.register_tokens"].shape[1],
-            pos_grid=_square_side(pos_tokens, "encoder.model.pos_embed"),
-            dec_dim=dec_dim,
-            dec_depth=_count_prefix(sd, r"dec_blocks\.(\d+)\."),
-            dec_heads=dec_dim // HEAD_DIM,
-            dec_mlp_hidden=sd["dec_blocks.0.mlp.fc1.weight"].shape[0],
-            dec_qkv_bias="dec_blocks.0.cross_attn.projq.bias" in sd,
-            dec_pos_grid=(
-                _square_side(dec_tokens, "dec_pos_embed") if dec_tokens else image_size // PATCH
-            ),
-            desc_dim=sd["globalizer.0.weight"].shape[0] if "globalizer.0.weight" in sd else 512,
-            cls_hidden=(
-                sd["classvprmodule.0.weight"].shape[0] if "classvprmodule.0.weight" in sd else 512
-            ),
-            image_size=image_size,
-        )
+        ),
+        swiglu=swiglu,
+        num_registers=sd["encoder.model.register_tokens"].shape[1],
+        pos_grid=_square_side(
+            sd["encoder.model.pos_embed"].shape[1] - 1, "encoder.model.pos_embed"
+        ),
+        dec_dim=sd["decoder_embed.weight"].shape[0],
+        dec_depth=_count_prefix(sd, r"dec_blocks\.(\d+)\."),
+        dec_mlp_hidden=sd["dec_blocks.0.mlp.fc1.weight"].shape[0],
+        dec_qkv_bias="dec_blocks.0.cross_attn.projq.bias" in sd,
+        dec_pos_grid=(
+            _square_side(dec_tokens, "dec_pos_embed") if dec_tokens else image_size // PATCH
+        ),
+        desc_dim=sd["globalizer.0.weight"].shape[0] if "globalizer.0.weight" in sd else 512,
+        cls_hidden=(
+            sd["classvprmodule.0.weight"].shape[0] if "classvprmodule.0.weight" in sd else 512
+        ),
+    )
 
 
 _ENC = {
@@ -169,10 +192,18 @@ _PRESETS: dict[str, dict] = {
 
 
 def _count_prefix(sd: dict, pattern: str) -> int:
+    """Number of blocks matching `pattern` (numbered 0..n-1; a gap is an error, so a stray key
+    like `blocks.99999.x` cannot make the loader build 100000 blocks)."""
     rx = re.compile(pattern)
     idx = {int(m.group(1)) for k in sd if (m := rx.match(k))}
     if not idx:
         raise CheckpointError(f"no parameters match {pattern!r}")
+    if len(idx) != max(idx) + 1:
+        missing = sorted(set(range(max(idx) + 1)) - idx)
+        raise CheckpointError(
+            f"blocks matching {pattern!r} are numbered up to {max(idx)} but {len(missing)} are "
+            f"missing (e.g. {missing[:3]})"
+        )
     return max(idx) + 1
 
 

@@ -2,8 +2,10 @@
 same place. Its parameters sit at the top level of the checkpoint (`decoder_embed`, `dec_blocks.N`,
 `dec_norm`, `classvprmodule`, ...), so `PairClassifier` is a base class of `PairVPR`, not a child.
 
-Two paths compute the same numbers:
-- `pair_logits(..., fast=False)`: plain, one pair at a time, explicit attention (the reference);
+The block's arithmetic is written once (`DecoderBlock`: `self_attend`, `memory`,
+`attend_memory`) and one loop runs the blocks (`PairClassifier._decode`). Two paths drive it and
+compute the same numbers:
+- `pair_scores_reference`: one pair and one direction at a time, explicit attention;
 - `pair_scores`: both directions of all K candidates batched; each image's decoder input computed
   once; in the reverse direction the query is every pair's cross-attention memory, so its keys and
   values are computed once per block; block 0's self-attention of the query (identical for all K)
@@ -13,13 +15,14 @@ Two paths compute the same numbers:
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .config import ModelConfig
-from .layers import (
+from pair_vpr_ros.model.config import ModelConfig
+from pair_vpr_ros.model.layers import (
     Mlp,
     SelfAttention,
     attend,
@@ -29,6 +32,8 @@ from .layers import (
     split_heads,
     tensor_version,
 )
+
+Memory = tuple[Tensor, Tensor]  # one batch of cross-attention keys and values, [b,H,T,d] each
 
 
 class CrossAttention(nn.Module):
@@ -40,17 +45,29 @@ class CrossAttention(nn.Module):
         self.projv = nn.Linear(dim, dim, bias=bias)
         self.proj = nn.Linear(dim, dim)
 
-    def memory(self, y: Tensor) -> tuple[Tensor, Tensor]:
+    def memory(self, y: Tensor) -> Memory:
         """Normalised memory tokens [B,T,C] -> keys, values [B,H,T,d]."""
         return split_heads(self.projk(y), self.heads), split_heads(self.projv(y), self.heads)
 
-    def forward(self, x: Tensor, k: Tensor, v: Tensor, fast: bool = True) -> Tensor:
-        """x [B,Tq,C] attends to k/v [B,H,T,d] -> [B,Tq,C]."""
-        return self.proj(merge_heads(attend(split_heads(self.projq(x), self.heads), k, v, fast)))
+    def forward(self, x: Tensor, memories: Sequence[Memory], fast: bool = True) -> Tensor:
+        """x [B,Tq,C] -> [B,Tq,C]. `memories` cut x's batch in consecutive parts: the rows of
+        x attend to the keys/values of their part (batch sizes add up to B), so a batch can mix
+        pairs whose memories are shared (expanded views) with pairs of their own."""
+        q = split_heads(self.projq(x), self.heads)
+        parts, start = [], 0
+        for k, v in memories:
+            parts.append(attend(q[start : start + k.shape[0]], k, v, fast))
+            start += k.shape[0]
+        assert start == x.shape[0], "cross-attention memories must cover the batch"
+        return self.proj(merge_heads(parts[0] if len(parts) == 1 else torch.cat(parts)))
 
 
 class DecoderBlock(nn.Module):
-    """x += attn(norm1 x); x += cross(norm2 x, norm_y y); x += mlp(norm3 x). y passes unchanged."""
+    """x += attn(norm1 x); x += cross(norm2 x, norm_y y); x += mlp(norm3 x). y passes unchanged.
+
+    The one definition of the block's arithmetic, in two steps that both paths use:
+    `self_attend` and `attend_memory` (cross-attention + MLP); `memory` turns y into the
+    cross-attention keys/values, which the fast path computes once for a shared query."""
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
@@ -63,11 +80,23 @@ class DecoderBlock(nn.Module):
         self.norm3 = layer_norm(c)
         self.mlp = Mlp(c, cfg.dec_mlp_hidden)
 
-    def forward(self, x: Tensor, y: Tensor, fast: bool = True) -> Tensor:
-        x = x + self.attn(self.norm1(x), fast)
-        k, v = self.cross_attn.memory(self.norm_y(y))
-        x = x + self.cross_attn(self.norm2(x), k, v, fast)
+    def self_attend(self, x: Tensor, fast: bool = True, first_row_only: bool = False) -> Tensor:
+        """x [B,T,C] -> x + attn(norm1 x) [B,T,C], or its first (class-token) row [B,1,C]:
+        later rows never reach row 0 after the last block's self-attention."""
+        delta = self.attn(self.norm1(x), fast, first_row_only=first_row_only)
+        return (x[:, :1] if first_row_only else x) + delta
+
+    def memory(self, y: Tensor) -> Memory:
+        """The second image's tokens y [B,T,C] -> this block's keys, values [B,H,T,d]."""
+        return self.cross_attn.memory(self.norm_y(y))
+
+    def attend_memory(self, x: Tensor, memories: Sequence[Memory], fast: bool = True) -> Tensor:
+        """x [B,T,C] -> x + cross(norm2 x, memories), then + mlp(norm3 x): row by row."""
+        x = x + self.cross_attn(self.norm2(x), memories, fast)
         return x + self.mlp(self.norm3(x))
+
+    def forward(self, x: Tensor, y: Tensor, fast: bool = True) -> Tensor:
+        return self.attend_memory(self.self_attend(x, fast), [self.memory(y)], fast)
 
 
 def sincos_table(grid: int, dim: int) -> Tensor:
@@ -105,11 +134,6 @@ class PairClassifier(nn.Module):
             module.apply(init_weights)
         nn.init.normal_(self.decoder_clstoken, std=1e-6)
 
-    @property
-    def decoder(self) -> PairClassifier:
-        """The decoder view (`model.decoder.forward_tokens`); its parameters are top-level."""
-        return self
-
     # ---- inputs ----------------------------------------------------------------------------
     def dec_positions(self, n: int) -> tuple[Tensor, Tensor]:
         """(table with a zero cls row [1+n, C], patch table [n, C]) for n tokens on a square grid,
@@ -139,21 +163,42 @@ class PairClassifier(nn.Module):
     def second_input(self, embedded: Tensor) -> Tensor:
         return embedded + self.dec_positions(embedded.shape[1])[1]
 
-    # ---- plain path ---------------------------------------------------------------------
-    def forward_tokens(
+    # ---- the decoder ------------------------------------------------------------------------
+    def _decode(
+        self,
+        x: Tensor,
+        memories: Iterable[Sequence[Memory]],
+        *,
+        fast: bool = True,
+        first_self_attended: bool = False,
+        cls_only: bool = False,
+    ) -> Tensor:
+        """The first image's stream x [B,T,C] through every block, block i attending to
+        `memories[i]`, then `dec_norm` -> [B,T,C], or [B,1,C] with `cls_only` (the last block
+        computes the class-token row alone). `first_self_attended`: block 0's self-attention
+        was applied to x already (the fast path shares the query's)."""
+        last = len(self.dec_blocks) - 1
+        for i, (block, memory) in enumerate(zip(self.dec_blocks, memories, strict=True)):
+            row_only = cls_only and i == last
+            if i > 0 or not first_self_attended:
+                x = block.self_attend(x, fast, first_row_only=row_only)
+            elif row_only:
+                x = x[:, :1]
+            x = block.attend_memory(x, memory, fast)
+        return self.dec_norm(x)
+
+    def decode(
         self, first: Tensor, second: Tensor, use_cls: bool = True, fast: bool = True
     ) -> Tensor:
         """Encoder tokens first/second [B,N,D] -> decoded first-image tokens after `dec_norm`,
         [B,1+N,C] with the class token first (use_cls) or [B,N,C] (stage-one training)."""
         x = self.first_input(self.decoder_embed(first), use_cls)
         y = self.second_input(self.decoder_embed(second))
-        for block in self.dec_blocks:
-            x = block(x, y, fast)
-        return self.dec_norm(x)
+        return self._decode(x, ([block.memory(y)] for block in self.dec_blocks), fast=fast)
 
     def pair_logits(self, first: Tensor, second: Tensor, fast: bool = True) -> Tensor:
         """One direction: first [B,N,D] with the class token, second [B,N,D] as memory -> [B]."""
-        cls = self.forward_tokens(first, second, use_cls=True, fast=fast)[:, 0]
+        cls = self.decode(first, second, use_cls=True, fast=fast)[:, 0]
         return self.classvprmodule(cls).squeeze(-1)
 
     def pair_scores_reference(self, query: Tensor, cands: Tensor) -> Tensor:
@@ -176,47 +221,28 @@ class PairClassifier(nn.Module):
         if chunk is None:
             chunk = 32 if query.is_cuda else 2
         eq = self.decoder_embed(query.unsqueeze(0))  # computed once for every candidate
-        x_query = self.first_input(eq)
-        x_query = x_query + self.dec_blocks[0].attn(self.dec_blocks[0].norm1(x_query))
-        memory_query = self._query_memory(self.second_input(eq))
+        x_query = self.dec_blocks[0].self_attend(self.first_input(eq))
+        y_query = self.second_input(eq)
+        memory_query = [block.memory(y_query) for block in self.dec_blocks]  # [1,H,N,d] each
         out = [
             self._score_chunk(x_query, memory_query, cands[i : i + chunk])
             for i in range(0, cands.shape[0], chunk)
         ]
         return torch.cat(out)
 
-    def _query_memory(self, y: Tensor) -> list[tuple[Tensor, Tensor]]:
-        """Keys/values of the query as cross-attention memory, once per block ([1,H,N,d] each)."""
-        return [blk.cross_attn.memory(blk.norm_y(y)) for blk in self.dec_blocks]
-
-    def _score_chunk(
-        self, x_query: Tensor, memory_query: list[tuple[Tensor, Tensor]], cands: Tensor
-    ) -> Tensor:
+    def _score_chunk(self, x_query: Tensor, memory_query: list[Memory], cands: Tensor) -> Tensor:
+        """Both directions of k candidates [k,N,D] as one batch of 2k streams: rows :k are the
+        query (first) against each candidate's memory, rows k: each candidate (first) against
+        the query's memory, shared as an expanded view -> scores [k]."""
         k = cands.shape[0]
         ec = self.decoder_embed(cands)
-        y_cands = self.second_input(ec)  # memory of direction 1 (query first)
-        x_cands = self.first_input(ec)  # stream of direction 2 (candidate first)
-        blk0 = self.dec_blocks[0]
-        x_cands = x_cands + blk0.attn(blk0.norm1(x_cands))
-        x = torch.cat([x_query.expand(k, -1, -1), x_cands])  # [2K, 1+N, C]
-        last = len(self.dec_blocks) - 1
-        for i, blk in enumerate(self.dec_blocks):
-            if i > 0:  # block 0's self-attention ran above
-                delta = blk.attn(blk.norm1(x), first_row_only=i == last)
-                x = (x[:, :1] if i == last else x) + delta
-            elif i == last:
-                x = x[:, :1]
-            heads = blk.cross_attn.heads
-            q = split_heads(blk.cross_attn.projq(blk.norm2(x)), heads)
-            k1, v1 = blk.cross_attn.memory(blk.norm_y(y_cands))
-            k2, v2 = memory_query[i]
-            attended = torch.cat(
-                [
-                    attend(q[:k], k1, v1),
-                    attend(q[k:], k2.expand(k, -1, -1, -1), v2.expand(k, -1, -1, -1)),
-                ]
-            )
-            x = x + blk.cross_attn.proj(merge_heads(attended))
-            x = x + blk.mlp(blk.norm3(x))
-        logits = self.classvprmodule(self.dec_norm(x[:, 0])).squeeze(-1)
+        y_cands = self.second_input(ec)
+        x_cands = self.dec_blocks[0].self_attend(self.first_input(ec))
+        x = torch.cat([x_query.expand(k, -1, -1), x_cands])  # [2k, 1+N, C]
+        memories = (
+            [block.memory(y_cands), (kq.expand(k, -1, -1, -1), vq.expand(k, -1, -1, -1))]
+            for block, (kq, vq) in zip(self.dec_blocks, memory_query, strict=True)
+        )
+        cls = self._decode(x, memories, first_self_attended=True, cls_only=True)[:, 0]
+        logits = self.classvprmodule(cls).squeeze(-1)
         return logits[:k] + logits[k:]

@@ -10,9 +10,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..errors import ConfigError
-from .config import PATCH, ModelConfig
-from .layers import (
+from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.model.config import PATCH, ModelConfig
+from pair_vpr_ros.model.layers import (
     LayerScale,
     Mlp,
     SelfAttention,

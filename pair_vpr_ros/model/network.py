@@ -6,10 +6,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .config import PATCH, ModelConfig
-from .decoder import PairClassifier
-from .encoder import Encoder
-from .layers import init_weights
+from pair_vpr_ros.model.config import PATCH, ModelConfig
+from pair_vpr_ros.model.decoder import PairClassifier
+from pair_vpr_ros.model.encoder import Encoder
+from pair_vpr_ros.model.layers import init_weights
 
 
 class PairVPR(PairClassifier):
@@ -39,6 +39,11 @@ class PairVPR(PairClassifier):
     @property
     def device(self) -> torch.device:
         return self.decoder_embed.weight.device
+
+    @property
+    def dense_dtype(self) -> torch.dtype:
+        """The dtype `pair_scores` takes dense tokens in: the decoder's (int8 keeps it fp32)."""
+        return self.decoder_embed.weight.dtype
 
     @property
     def fingerprint(self) -> str:

@@ -14,7 +14,7 @@ import warnings
 import torch
 from torch import nn
 
-from .network import PairVPR
+from pair_vpr_ros.model.network import PairVPR
 
 
 def quantize_int8(model: PairVPR) -> PairVPR:

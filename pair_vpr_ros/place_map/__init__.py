@@ -15,7 +15,11 @@ possibly longer: bytes past `count` are an unsaved tail) and `map.lock` (writer 
 
 Detected on load (MapError naming the file): missing directory/manifest/files, bad JSON, unknown
 format version, missing or invalid fields, any change to the index/metadata/CRC files (sha256),
-unreadable FAISS index or SQLite file, counts that disagree, a dense file shorter than `count`.
+unreadable FAISS index (array sizes beyond the file's are refused before anything is allocated),
+a SQLite file of another schema or with values of the wrong type, counts that disagree, a dense
+file shorter than `count` or whose first/last entry fails its CRC32 (an edited `dense_shape`).
+A load never writes to the saved files (the dense file is never shrunk) and a failed save
+deletes what it wrote (also its `*.tmp` files), so a full disk does not stay full.
 Detected on read: a damaged dense entry (CRC32, unless verify_dense_reads=False); `load(...,
 verify_dense=True)` checks them all up front. Not detected: damage to a dense entry that is only
 read while verification is off or that already sits in the in-memory LRU, and memory errors.
@@ -25,8 +29,8 @@ A PlaceMap is not thread-safe: callers serialise add/search/save (the pipeline o
 
 from __future__ import annotations
 
-from .index import IndexConfig
-from .metadata import KeyframeMeta
-from .place_map import PlaceMap
+from pair_vpr_ros.place_map.index import IndexConfig
+from pair_vpr_ros.place_map.metadata import KeyframeMeta
+from pair_vpr_ros.place_map.place_map import PlaceMap
 
 __all__ = ["IndexConfig", "KeyframeMeta", "PlaceMap"]

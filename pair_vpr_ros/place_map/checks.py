@@ -6,8 +6,8 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from ..errors import MapError
-from .dense_store import DTYPE
+from pair_vpr_ros.errors import MapError
+from pair_vpr_ros.place_map.dense_store import DTYPE
 
 
 def unit_descriptor(desc: np.ndarray, dim: int) -> np.ndarray:

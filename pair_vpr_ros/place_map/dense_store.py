@@ -19,10 +19,15 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ..errors import MapError
-from .files import copy_prefix
+from pair_vpr_ros.errors import MapError
+from pair_vpr_ros.place_map.files import copy_prefix
 
 DTYPE = np.float16
+
+
+def entry_bytes(shape: tuple[int, int]) -> int:
+    """Bytes of one keyframe's dense tokens [N, D] as stored."""
+    return int(shape[0]) * int(shape[1]) * np.dtype(DTYPE).itemsize
 
 
 class DenseStore:
@@ -48,7 +53,7 @@ class DenseStore:
     ) -> None:
         self.path = Path(path)
         self.shape = (int(shape[0]), int(shape[1]))
-        self.entry_bytes = self.shape[0] * self.shape[1] * np.dtype(DTYPE).itemsize
+        self.entry_bytes = entry_bytes(self.shape)
         self.crcs = crcs if crcs is not None else array("I")
         self.count = len(self.crcs)
         self.writable, self.cache_size, self.verify_reads = writable, cache_size, verify_reads
@@ -69,8 +74,24 @@ class DenseStore:
                 f"{size // self.entry_bytes} keyframes, the manifest lists {self.count}; the map "
                 "is damaged (truncated copy?): restore it from a backup or rebuild it"
             )
-        if writable and size > self.count * self.entry_bytes:
-            os.ftruncate(self._fd, self.count * self.entry_bytes)  # torn or unsaved appends
+        # Bytes past `count` (unsaved or torn appends) are left alone: later appends overwrite
+        # them. Never shrinking the file means a manifest that disagrees with it (a hand-edited
+        # dense_shape) can not destroy saved tokens; the spot check below reports it instead.
+        self._spot_check()
+
+    def _spot_check(self) -> None:
+        """The first and last valid entries match their CRC32: the file holds `count` entries
+        of `shape` (a wrong shape puts the entry boundaries elsewhere)."""
+        for i in sorted({0, self.count - 1} if self.count else set()):
+            data = os.pread(self._fd, self.entry_bytes, i * self.entry_bytes)
+            if zlib.crc32(data) != self.crcs[i]:
+                self.close()
+                raise MapError(
+                    f"dense token file {self.path} does not match its manifest: keyframe {i} "
+                    f"fails its CRC32 check when read as [{self.shape[0]}, {self.shape[1]}] "
+                    "float16 tokens (dense_shape edited, or the file damaged or from another "
+                    "map); nothing was changed: restore the map from a backup or rebuild it"
+                )
 
     def append(self, dense: np.ndarray) -> int:
         """dense [N, D] float16 C-contiguous (validated by the caller) -> its entry index."""
@@ -152,9 +173,6 @@ class DenseStore:
     def copy_to(self, dst: Path) -> None:
         """Write the valid entries to a new file `dst` (fsynced)."""
         copy_prefix(self._fd, dst, self.count * self.entry_bytes)
-
-    def clear_cache(self) -> None:
-        self._cache.clear()
 
     def close(self) -> None:
         self._cache.clear()

@@ -1,4 +1,4 @@
-"""Durable file operations for map directories: fsync, atomic publish, checksums, a writer lock.
+"""Durable file operations for map directories: fsync, atomic publish, a writer lock.
 
 A save is crash-safe only if every new file is on disk before the manifest that names it, and the
 manifest switch itself is one `os.replace`; these helpers give those guarantees on POSIX.
@@ -8,12 +8,11 @@ from __future__ import annotations
 
 import errno
 import fcntl
-import hashlib
 import os
 from collections.abc import Callable
 from pathlib import Path
 
-from ..errors import MapError
+from pair_vpr_ros.errors import MapError
 
 LOCK_NAME = "map.lock"
 TMP_SUFFIX = ".tmp"
@@ -32,26 +31,35 @@ def fsync_path(path: Path) -> None:
 def publish(directory: Path, name: str, write: Callable[[Path], None]) -> Path:
     """Write `directory/name` via `write(tmp_path)`, fsync it, then rename it into place.
 
-    A crash leaves at most a stray `*.tmp` file, never a half-written `name`.
+    A failure removes the `*.tmp` file again; a crash leaves at most a stray one (removed by
+    the next save), never a half-written `name`.
     """
     final = directory / name
     tmp = directory / (name + TMP_SUFFIX)
-    write(tmp)
-    fsync_path(tmp)
-    os.replace(tmp, final)
+    try:
+        write(tmp)
+        fsync_path(tmp)
+        os.replace(tmp, final)
+    except BaseException:
+        remove_quietly(tmp)  # a failed write (disk full) must not keep its space
+        raise
     return final
 
 
+def remove_quietly(path: Path) -> None:
+    """Delete `path` if it exists; a failure to do so is not worth reporting over the caller's."""
+    try:
+        os.remove(path)
+    except OSError:
+        pass
+
+
 def write_bytes_durably(path: Path, data: bytes) -> None:
+    """Write `data` to `path` and fsync it (a partial file is left on failure)."""
     with open(path, "wb") as fh:
         fh.write(data)
         fh.flush()
         os.fsync(fh.fileno())
-
-
-def sha256_file(path: Path) -> str:
-    with open(path, "rb") as fh:
-        return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
 def copy_prefix(src_fd: int, dst: Path, nbytes: int) -> None:

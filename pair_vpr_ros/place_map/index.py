@@ -12,7 +12,7 @@ from pathlib import Path
 import faiss
 import numpy as np
 
-from ..errors import ConfigError, MapError
+from pair_vpr_ros.errors import ConfigError, MapError
 
 INDEX_KINDS = ("flat", "hnsw")
 
@@ -141,13 +141,7 @@ class DescriptorIndex:
     @classmethod
     def read(cls, path: Path, dim: int, config: IndexConfig) -> DescriptorIndex:
         """Load a file written by `write`; the stored kind must be `config.kind`."""
-        try:
-            index = faiss.read_index(str(path))
-        except RuntimeError as err:
-            raise MapError(
-                f"FAISS index {path} could not be read ({str(err).splitlines()[-1][:200]}); "
-                "the map is damaged: restore it from a backup or rebuild it"
-            ) from err
+        index = _read_bounded(path)
         want = faiss.IndexFlatIP if config.kind == "flat" else faiss.IndexHNSWFlat
         if not isinstance(index, want) or index.d != dim:
             raise MapError(
@@ -162,3 +156,28 @@ class DescriptorIndex:
             index.hnsw.efConstruction = config.ef_construction
             index.hnsw.efSearch = config.ef_search
         return obj
+
+
+def _read_bounded(path: Path) -> faiss.Index:
+    """faiss.read_index, but no array it allocates may be larger than the file itself: a damaged
+    size field then fails at once instead of asking for terabytes (MemoryError) or zero-filling
+    gigabytes. The limit is process-wide in FAISS, so it is restored afterwards."""
+    try:
+        size = path.stat().st_size
+    except OSError as err:
+        raise MapError(f"FAISS index {path} cannot be read: {err.strerror}") from err
+    previous = faiss.get_deserialization_vector_byte_limit()
+    # FAISS compares element counts against limit / (4 * itemsize) for some arrays.
+    faiss.set_deserialization_vector_byte_limit(min(previous, 4 * (size + 1)))
+    try:
+        return faiss.read_index(str(path))
+    except (RuntimeError, MemoryError) as err:
+        reason = str(err).splitlines()[-1][:200] if str(err) else type(err).__name__
+        if "deserialization_vector_byte_limit" in str(err):
+            reason = "an array size field exceeds the file size"
+        raise MapError(
+            f"FAISS index {path} could not be read ({reason}); the map is damaged: restore it "
+            "from a backup or rebuild it"
+        ) from err
+    finally:
+        faiss.set_deserialization_vector_byte_limit(previous)

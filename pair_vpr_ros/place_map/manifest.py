@@ -13,8 +13,9 @@ import re
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from ..errors import MapError
-from .files import TMP_SUFFIX, sha256_file, write_bytes_durably
+from pair_vpr_ros.errors import MapError
+from pair_vpr_ros.hashing import sha256_file
+from pair_vpr_ros.place_map.files import TMP_SUFFIX, remove_quietly, write_bytes_durably
 
 MANIFEST_NAME = "manifest.json"
 FORMAT_NAME = "pair_vpr_ros.place_map"
@@ -67,8 +68,12 @@ def write_manifest(directory: Path, manifest: Manifest) -> None:
     tmp = directory / (MANIFEST_NAME + TMP_SUFFIX)
     data = asdict(manifest)
     data = {"format": data.pop("format"), "format_version": data.pop("format_version"), **data}
-    write_bytes_durably(tmp, (json.dumps(data, indent=2) + "\n").encode())
-    os.replace(tmp, directory / MANIFEST_NAME)
+    try:
+        write_bytes_durably(tmp, (json.dumps(data, indent=2) + "\n").encode())
+        os.replace(tmp, directory / MANIFEST_NAME)
+    except BaseException:
+        remove_quietly(tmp)
+        raise
 
 
 def read_manifest(directory: Path) -> Manifest:
@@ -154,7 +159,12 @@ def remove_stale(directory: Path, keep: set[str]) -> None:
     for name in os.listdir(directory):
         stale = MAP_FILE_RE.match(name) or name.startswith(MANIFEST_NAME + TMP_SUFFIX)
         if stale and name not in keep:
-            try:
-                os.remove(directory / name)
-            except OSError:
-                pass  # harmless leftover; the next save tries again
+            remove_quietly(directory / name)  # a leftover is harmless: the next save retries
+
+
+def remove_generation(directory: Path, generation: int, keep: set[str]) -> None:
+    """Delete the files (and temporaries) a failed save of `generation` left, except `keep`."""
+    pattern = re.compile(rf"^(index|meta|dense)-{generation}\.(faiss|sqlite|f16|crc)")
+    for name in os.listdir(directory):
+        if pattern.match(name) and name not in keep:
+            remove_quietly(directory / name)

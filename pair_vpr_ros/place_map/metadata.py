@@ -1,4 +1,8 @@
-"""Keyframe metadata (stamp, frame, optional pose, source) in SQLite.
+"""Keyframe metadata (stamp, frame, optional pose, source) and features in SQLite.
+
+Features (keypoints, descriptors, depth at keypoints, intrinsics: opaque bytes packed by
+`geometry.features.pack_features`) live in a second table, one row per keyframe that has them,
+with a CRC32 checked on every read. Maps saved before this table existed load with none.
 
 The live map writes to a private working database (no fsync: durability comes from `save`, which
 copies it with SQLite's backup API); a saved database is opened read-only and copied in on load.
@@ -8,20 +12,36 @@ from __future__ import annotations
 
 import math
 import sqlite3
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import quote
 
-from ..errors import MapError
-
-Pose = tuple[float, float, float, float, float, float, float]
+from pair_vpr_ros.errors import MapError
+from pair_vpr_ros.types import Pose
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS keyframes (
     id INTEGER PRIMARY KEY, stamp REAL NOT NULL, frame_id TEXT NOT NULL, source TEXT NOT NULL,
     x REAL, y REAL, z REAL, qx REAL, qy REAL, qz REAL, qw REAL
 )"""
+_FEATURES_SCHEMA = """
+CREATE TABLE IF NOT EXISTS features (id INTEGER PRIMARY KEY, crc INTEGER NOT NULL, data BLOB)"""
 _COLUMNS = "id, stamp, frame_id, source, x, y, z, qx, qy, qz, qw"
+# Feature rows that belong to no keyframe or are not (integer crc, blob data).
+_CHECK_FEATURES = """SELECT COUNT(*) FROM features WHERE id < 0 OR id >= ?
+    OR typeof(id) != 'integer' OR typeof(crc) != 'integer' OR typeof(data) != 'blob'"""
+_NUMBER = "IN ('real', 'integer')"
+# Row count, id range and rows whose values a KeyframeMeta cannot hold (SQLite does not enforce
+# column types); fails on a table without these columns.
+_CHECK = f"""SELECT COUNT(*), MIN(id), MAX(id), SUM(
+    typeof(id) != 'integer' OR typeof(stamp) NOT {_NUMBER} OR typeof(frame_id) != 'text'
+    OR typeof(source) != 'text' OR NOT (
+        (x IS NULL AND y IS NULL AND z IS NULL AND qx IS NULL AND qy IS NULL AND qz IS NULL
+         AND qw IS NULL) OR (typeof(x) {_NUMBER} AND typeof(y) {_NUMBER} AND typeof(z) {_NUMBER}
+         AND typeof(qx) {_NUMBER} AND typeof(qy) {_NUMBER} AND typeof(qz) {_NUMBER}
+         AND typeof(qw) {_NUMBER}))
+) FROM keyframes"""
 
 
 @dataclass(frozen=True)
@@ -70,10 +90,12 @@ class MetadataStore:
         self._conn.execute("PRAGMA journal_mode=OFF")
         self._conn.execute("PRAGMA synchronous=OFF")
         self._conn.execute(_SCHEMA)
+        self._conn.execute(_FEATURES_SCHEMA)
 
     @classmethod
     def from_saved(cls, saved: Path, work: Path, count: int) -> MetadataStore:
         """Copy the saved database `saved` to `work`; it must hold exactly ids 0..count-1."""
+        store = None
         try:
             src = sqlite3.connect(f"file:{quote(str(saved))}?mode=ro&immutable=1", uri=True)
             try:
@@ -83,29 +105,76 @@ class MetadataStore:
             finally:
                 src.close()
             store = cls(work)
-            n, lo, hi = store._conn.execute(
-                "SELECT COUNT(*), MIN(id), MAX(id) FROM keyframes"
-            ).fetchone()
-        except sqlite3.DatabaseError as err:
+            store._check_saved(saved, count)
+        except BaseException as err:
+            if store is not None:
+                store.close()
+            if isinstance(err, sqlite3.Error):
+                raise MapError(
+                    f"keyframe metadata {saved} is not a readable SQLite database ({err}); the "
+                    "map is damaged: restore it from a backup or rebuild it"
+                ) from err
+            raise
+        return store
+
+    def _check_saved(self, saved: Path, count: int) -> None:
+        """The copied table has our columns, value types and exactly ids 0..count-1."""
+        columns = [r[1] for r in self._conn.execute("PRAGMA table_info(keyframes)")]
+        bad = None
+        if columns == _COLUMNS.split(", "):
+            n, lo, hi, bad = self._conn.execute(_CHECK).fetchone()
+        if columns != _COLUMNS.split(", ") or bad:
+            what = f"columns {columns}" if bad is None else f"{bad} rows hold values of wrong type"
             raise MapError(
-                f"keyframe metadata {saved} is not a readable SQLite database ({err}); the map "
-                "is damaged: restore it from a backup or rebuild it"
-            ) from err
+                f"keyframe metadata {saved} is not a place map's keyframe table ({what}; "
+                f"expected columns {_COLUMNS}): the map is damaged or was written by another "
+                "program: restore it from a backup or rebuild it"
+            )
         if (n, lo, hi) != (count, 0 if count else None, count - 1 if count else None):
-            store.close()
             raise MapError(
                 f"keyframe metadata {saved} holds {n} rows (ids {lo}..{hi}), the manifest lists "
                 f"{count} keyframes: the map is damaged, restore it from a backup or rebuild it"
             )
-        return store
+        stray = self._conn.execute(_CHECK_FEATURES, (count,)).fetchone()[0]
+        if stray:
+            raise MapError(
+                f"keyframe metadata {saved} holds {stray} feature rows of no keyframe or of the "
+                "wrong type: the map is damaged, restore it from a backup or rebuild it"
+            )
 
-    def add(self, meta: KeyframeMeta) -> None:
-        """meta: validated, with its id set."""
+    def add(self, meta: KeyframeMeta, features: bytes = b"") -> None:
+        """meta: validated, with its id set; features: packed features ("" = none)."""
         pose = meta.pose if meta.pose is not None else (None,) * 7
         self._conn.execute(
             f"INSERT INTO keyframes ({_COLUMNS}) VALUES (?,?,?,?,?,?,?,?,?,?,?)",
             (meta.id, meta.stamp, meta.frame_id, meta.source, *pose),
         )
+        if features:
+            self._conn.execute(
+                "INSERT INTO features (id, crc, data) VALUES (?, ?, ?)",
+                (meta.id, zlib.crc32(features), sqlite3.Binary(features)),
+            )
+
+    def features(self, kf_id: int) -> bytes:
+        """The packed features of keyframe `kf_id` (b"" when it has none); MapError when the
+        stored bytes fail their CRC32."""
+        row = self._conn.execute(
+            "SELECT crc, data FROM features WHERE id = ?", (int(kf_id),)
+        ).fetchone()
+        if row is None:
+            return b""
+        data = bytes(row[1])
+        if zlib.crc32(data) != row[0]:
+            raise MapError(
+                f"the features of keyframe {kf_id} fail their CRC32 check: the map is damaged; "
+                "restore it from a backup or rebuild it"
+            )
+        return data
+
+    def feature_stats(self) -> tuple[int, int]:
+        """(keyframes with features, total bytes of their features)."""
+        n, size = self._conn.execute("SELECT COUNT(*), SUM(LENGTH(data)) FROM features").fetchone()
+        return int(n), int(size or 0)
 
     def get(self, kf_id: int) -> KeyframeMeta | None:
         row = self._conn.execute(
@@ -120,9 +189,11 @@ class MetadataStore:
     def delete_from(self, kf_id: int) -> None:
         """Remove rows with id >= kf_id (undo of a failed add)."""
         self._conn.execute("DELETE FROM keyframes WHERE id >= ?", (int(kf_id),))
+        self._conn.execute("DELETE FROM features WHERE id >= ?", (int(kf_id),))
 
     def clear(self) -> None:
         self._conn.execute("DELETE FROM keyframes")
+        self._conn.execute("DELETE FROM features")
 
     def save_to(self, path: Path) -> None:
         """Write a consistent copy of the database to a new file `path`."""

@@ -14,19 +14,20 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
-from ..errors import ConfigError, MapError, MapFingerprintError
-from .dense_store import DenseStore, read_crcs
-from .files import fsync_path, publish, same_device, write_bytes_durably
-from .index import DescriptorIndex, IndexConfig
-from .manifest import (
+from pair_vpr_ros.errors import ConfigError, MapError, MapFingerprintError
+from pair_vpr_ros.place_map.dense_store import DenseStore, read_crcs
+from pair_vpr_ros.place_map.files import fsync_path, publish, same_device, write_bytes_durably
+from pair_vpr_ros.place_map.index import DescriptorIndex, IndexConfig
+from pair_vpr_ros.place_map.manifest import (
     Manifest,
     check_files,
     describe,
     next_generation,
     read_manifest,
+    remove_generation,
     write_manifest,
 )
-from .metadata import MetadataStore
+from pair_vpr_ros.place_map.metadata import MetadataStore
 
 SAVE_STEPS = ("dense", "dense_crc", "index", "meta", "manifest", "committed", "cleaned")
 _SAVE_HOOK: Callable[[str], None] | None = None  # tests: called with each SAVE_STEPS name
@@ -49,17 +50,33 @@ class MapParts:
     fingerprint: str
 
 
+def save(d: Path, parts: MapParts, dense_in_place: bool) -> tuple[Manifest, Path | None]:
+    """Write a new generation of `d` and commit it -> (its manifest, new dense copy or None).
+
+    On failure (disk full, ...) the files of the new generation are deleted again, except the
+    live dense file when it was moved into `d`, and the previous save stays as it was.
+    """
+    gen = next_generation(d)
+    try:
+        manifest, copied = write_generation(d, gen, parts, dense_in_place)
+        commit(d, manifest)
+    except BaseException:
+        live = parts.dense.path
+        remove_generation(d, gen, keep={live.name} if live.parent == d else set())
+        raise
+    return manifest, copied
+
+
 def write_generation(
-    d: Path, parts: MapParts, dense_in_place: bool
+    d: Path, gen: int, parts: MapParts, dense_in_place: bool
 ) -> tuple[Manifest, Path | None]:
-    """Write every file of a new generation of `d` -> (its manifest, new dense copy or None).
+    """Write every file of generation `gen` of `d` -> (its manifest, new dense copy or None).
 
     Nothing is committed: the caller makes the save visible with `commit`.
 
     dense_in_place: the dense file is already the one `d`'s manifest names (appends since the
     last save went there), so it is only fsynced.
     """
-    gen = next_generation(d)
     dense_name, copied = _place_dense(d, gen, parts.dense, dense_in_place)
     reached("dense")
     names = {"dense_crc": f"dense-{gen}.crc", "index": f"index-{gen}.faiss"}

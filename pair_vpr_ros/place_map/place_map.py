@@ -20,14 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError, MapError
-from . import persist
-from .checks import dense_tokens, keyframe_ids, unit_descriptor
-from .dense_store import DenseStore
-from .files import LOCK_NAME, DirLock, fsync_path
-from .index import DescriptorIndex, IndexConfig
-from .manifest import MANIFEST_NAME, Manifest, read_manifest, remove_stale
-from .metadata import KeyframeMeta, MetadataStore, validate_meta
+from pair_vpr_ros.errors import ConfigError, MapError
+from pair_vpr_ros.place_map import persist
+from pair_vpr_ros.place_map.checks import dense_tokens, keyframe_ids, unit_descriptor
+from pair_vpr_ros.place_map.dense_store import DenseStore, entry_bytes
+from pair_vpr_ros.place_map.files import LOCK_NAME, DirLock, fsync_path
+from pair_vpr_ros.place_map.index import DescriptorIndex, IndexConfig
+from pair_vpr_ros.place_map.manifest import MANIFEST_NAME, Manifest, read_manifest, remove_stale
+from pair_vpr_ros.place_map.metadata import KeyframeMeta, MetadataStore, validate_meta
 
 
 class PlaceMap:
@@ -93,8 +93,11 @@ class PlaceMap:
 
     # ----------------------------------------------------------------- mapping and queries
 
-    def add(self, desc: np.ndarray, dense: np.ndarray, meta: KeyframeMeta) -> int:
-        """desc [desc_dim] (normalised here), dense [N, D] float (stored float16) -> new id."""
+    def add(
+        self, desc: np.ndarray, dense: np.ndarray, meta: KeyframeMeta, features: bytes = b""
+    ) -> int:
+        """desc [desc_dim] (normalised here), dense [N, D] float (stored float16), packed
+        features (b"": none) -> new id."""
         self._check_writable("add to")
         query = unit_descriptor(desc, self.desc_dim)
         tokens = dense_tokens(dense, self.dense_shape)
@@ -102,7 +105,7 @@ class PlaceMap:
         kf_id = len(self)
         self._dense.append(tokens)
         try:
-            self._meta.add(replace(meta, id=kf_id))
+            self._meta.add(replace(meta, id=kf_id), bytes(features))
             self._index.add(query[None])
         except BaseException as err:
             self._meta.delete_from(kf_id)
@@ -138,6 +141,17 @@ class PlaceMap:
             raise MapError(f"keyframe {kf_id} is not in the map (ids 0..{len(self) - 1})")
         return found
 
+    def features(self, kf_id: int) -> bytes:
+        """Packed features of a keyframe (b"": none, e.g. a map saved before features were
+        kept); MapError for an unknown id or damaged bytes."""
+        self.meta(kf_id)
+        return self._meta.features(kf_id)
+
+    def feature_stats(self) -> tuple[int, int]:
+        """(keyframes with features, bytes of all their features)."""
+        self._check_open()
+        return self._meta.feature_stats()
+
     def all_meta(self) -> list[KeyframeMeta]:
         """Every keyframe's metadata, by id (for plots and markers)."""
         self._check_open()
@@ -161,6 +175,11 @@ class PlaceMap:
         return self._index.config
 
     @property
+    def bytes_per_keyframe(self) -> int:
+        """Stored bytes of one keyframe: dense tokens + float32 descriptor (metadata aside)."""
+        return entry_bytes(self.dense_shape) + 4 * self.desc_dim
+
+    @property
     def directory(self) -> Path | None:
         """The map directory last loaded from or saved to (None for a never-saved map)."""
         return self._home
@@ -182,8 +201,7 @@ class PlaceMap:
         new_lock = DirLock(target) if target != self._home else None
         in_place = self._dense_committed and target == self._home
         try:
-            manifest, copied = persist.write_generation(target, self._parts(), in_place)
-            persist.commit(target, manifest)
+            manifest, copied = persist.save(target, self._parts(), in_place)
         except BaseException as err:
             if new_lock is not None:
                 new_lock.release()

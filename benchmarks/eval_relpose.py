@@ -1,0 +1,96 @@
+"""Accuracy of the relative poses of a replay's accepted loops against the demo world's truth.
+
+    python benchmarks/eval_relpose.py OUT/loops.json --seed 7 --frames 600
+
+Each record's stamps give the two frames of the demo world (`generate_world(seed, frames=...)`);
+the true T_match_query comes from their camera poses. A loop is true when the two cameras are
+within --gt-radius metres (the replay report's rule). Prints, for accepted true loops: how many
+got a metric / scale-free pose or none (with the reasons), median and 90th-percentile rotation
+error (deg), translation error (m, metric poses) and translation direction error (deg).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from pair_vpr_ros.demo import generate_world
+from pair_vpr_ros.demo.camera import Camera
+from pair_vpr_ros.demo.views import pose_errors, true_relative_pose
+from pair_vpr_ros.loop_factor import factor_from_record
+
+
+def evaluate(records: list[dict], seed: int, frames: int, gt_radius: float) -> dict:
+    """loops.json records -> figures (see the module docstring)."""
+    world = generate_world(seed, frames=frames)
+    cam = Camera(width=world.config.width, height=world.config.height)
+    index = {int(ns): i for i, ns in enumerate(world.stamps_ns)}
+
+    def frame(stamp: float) -> int:
+        return index[int(round(stamp * 1e9 / 1e6)) * 1_000_000]  # stamps are whole ms here
+
+    status, reasons, errors = Counter(), Counter(), {"metric": [], "scale-free": []}
+    accepted = [r for r in records if r["accepted"]]
+    true = 0
+    for r in accepted:
+        q, m = frame(r["query_stamp"]), frame(r["match_stamp"])
+        if math.dist(world.poses[q, :2], world.poses[m, :2]) > gt_radius:
+            continue
+        true += 1
+        status[r["pose_status"] or "none"] += 1
+        factor = factor_from_record(r)
+        if factor is None:
+            reasons[re.sub(r"\d+(\.\d+)?", "N", r["pose_reason"])] += 1
+            continue
+        truth = true_relative_pose(world.poses[m], world.poses[q], cam)
+        errors[r["pose_status"]].append(pose_errors(factor.matrix(), truth))
+    out = {"accepted": len(accepted), "accepted_true": true, "status": dict(status),
+           "no_pose_reasons": dict(reasons)}  # fmt: skip
+    for name, errs in errors.items():
+        e = np.asarray(errs).reshape(-1, 3)
+        if len(e):
+            out[name] = {
+                "n": len(e),
+                "rotation_deg": _stats(e[:, 0]),
+                "translation_m": _stats(e[:, 1]) if name == "metric" else None,
+                "direction_deg": _stats(e[:, 2]),
+            }
+    with_pose = status["metric"] + status["scale-free"]
+    out["with_pose"] = with_pose / true if true else None
+    out["metric_share"] = status["metric"] / true if true else None
+    return out
+
+
+def _stats(values: np.ndarray) -> dict:
+    return {
+        "median": float(np.median(values)),
+        "p90": float(np.percentile(values, 90)),
+        "max": float(np.max(values)),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("loops", type=Path, help="loops.json of a pairvpr-bag-replay run")
+    p.add_argument("--seed", type=int, required=True, help="demo world seed of the bag")
+    p.add_argument("--frames", type=int, default=480, help="frames of the demo world")
+    p.add_argument("--gt-radius", type=float, default=10.0, help="true-loop radius, m")
+    args = p.parse_args(argv)
+    try:
+        records = json.loads(args.loops.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        print(f"error: cannot read {args.loops}: {err}", file=sys.stderr)
+        return 1
+    print(json.dumps(evaluate(records, args.seed, args.frames, args.gt_radius), indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,87 @@
+"""Two-view geometry without depth: fundamental-matrix verification and the essential matrix.
+
+`verify_pair` is the detector's optional geometric verification (inliers of a fundamental-matrix
+RANSAC on the same matches the pose uses). `essential_pose` gives the rotation and the
+translation direction of T_match_query from ideal (undistorted) pixels.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from pair_vpr_ros.geometry.features import Features, match_features
+
+
+def verify_pair(
+    a: Features, b: Features, ratio: float = 0.8, ransac_px: float = 3.0
+) -> tuple[int, float]:
+    """-> (fundamental-matrix RANSAC inliers, inliers / matches); (0, 0.0) with fewer than 8
+    matches."""
+    if a.kind != b.kind:
+        return 0, 0.0
+    pairs = match_features(a, b, ratio)
+    if len(pairs) < 8:
+        return 0, 0.0
+    pa, pb = a.keypoints[pairs[:, 0]], b.keypoints[pairs[:, 1]]
+    _, mask = cv2.findFundamentalMat(pa, pb, cv2.FM_RANSAC, ransac_px, 0.999)
+    inliers = int(mask.sum()) if mask is not None else 0
+    return inliers, inliers / len(pairs)
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def essential_pose(
+    px_q: np.ndarray, px_m: np.ndarray, k: np.ndarray, threshold_px: float, min_inliers: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
+    """Ideal pixels [N, 2] of matched points in the query and match images (one camera matrix
+    `k`) -> (R, unit t, inlier indices) of T_match_query (X_m = R X_q + t), or why not."""
+    if len(px_q) < max(min_inliers, 5):
+        return f"too few feature matches ({len(px_q)} < {max(min_inliers, 5)})"
+    moved = float(np.median(np.linalg.norm(px_q - px_m, axis=1)))
+    if moved < 0.5:
+        return (f"degenerate motion: matched points moved {moved:.2f} px (the same view): no "
+                "translation direction")  # fmt: skip
+    e, mask = cv2.findEssentialMat(px_q, px_m, k, cv2.USAC_ACCURATE, 0.999, threshold_px)
+    if e is None or e.shape != (3, 3) or mask is None:
+        return "no essential matrix fits the matches"
+    fitted = int(mask.sum())
+    if fitted < min_inliers:
+        return f"too few essential-matrix inliers ({fitted} < {min_inliers})"
+    _, r, t, mask = cv2.recoverPose(e, px_q, px_m, k, mask=mask.copy())
+    idx = np.flatnonzero(mask.ravel())
+    if len(idx) < min_inliers:  # they fit E but lie in front of neither pair of cameras
+        return (f"degenerate motion: {fitted} matches fit, {len(idx)} show parallax (a pure "
+                "rotation or no motion): no translation direction")  # fmt: skip
+    return r, t.ravel() / np.linalg.norm(t), idx
+
+
+def sampson_residuals(px_q: np.ndarray, px_m: np.ndarray, k: np.ndarray):
+    """Residual function of (R, t) for `covariance.jacobian`: signed Sampson distances [N] (px)
+    of the matches under E = [t/|t|]x R (only the direction of t matters)."""
+    kinv = np.linalg.inv(k)
+    xq = np.c_[px_q, np.ones(len(px_q))]
+    xm = np.c_[px_m, np.ones(len(px_m))]
+
+    def residuals(r: np.ndarray, t: np.ndarray) -> np.ndarray:
+        f = kinv.T @ skew(t / np.linalg.norm(t)) @ r @ kinv
+        fq = xq @ f.T  # epipolar lines in the match image
+        fm = xm @ f  # ... in the query image
+        num = np.einsum("ni,ni->n", xm, fq)
+        return num / np.sqrt(fq[:, 0] ** 2 + fq[:, 1] ** 2 + fm[:, 0] ** 2 + fm[:, 1] ** 2)
+
+    return residuals
+
+
+def parallax_deg(rays_q: np.ndarray, rays_m: np.ndarray, r: np.ndarray) -> float:
+    """Median angle (deg) between matched rays once the rotation is removed: near 0 for a pure
+    rotation, where the translation direction is undefined."""
+    a = rays_q @ r.T
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b = rays_m / np.linalg.norm(rays_m, axis=1, keepdims=True)
+    cos = np.clip(np.einsum("ni,ni->n", a, b), -1.0, 1.0)
+    return math.degrees(float(np.median(np.arccos(cos))))

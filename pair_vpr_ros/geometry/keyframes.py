@@ -1,0 +1,97 @@
+"""The pipeline's geometry: features of each keyframe (kept in the place map) and the relative
+pose of each accepted loop, with every problem of the inputs counted rather than raised."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from pair_vpr_ros.errors import ConfigError, GeometryInputError
+from pair_vpr_ros.geometry.camera import CameraModel
+from pair_vpr_ros.geometry.epipolar import verify_pair
+from pair_vpr_ros.geometry.features import (
+    KINDS,
+    Features,
+    extract_features,
+    pack_features,
+    unpack_features,
+)
+from pair_vpr_ros.geometry.relpose import PoseConfig, RelativePose, relative_pose
+
+
+@dataclass(frozen=True)
+class GeometryConfig:
+    """relative_pose: compute T_match_query for accepted loops (features are then extracted
+    for every keyframe and stored in the map); features: "sift" or "orb"."""
+
+    relative_pose: bool = True
+    features: str = "sift"
+    max_features: int = 1000
+    pose: PoseConfig = field(default_factory=PoseConfig)
+
+    def __post_init__(self) -> None:
+        if self.features not in KINDS:
+            raise ConfigError(f"features={self.features!r} must be one of {', '.join(KINDS)}")
+        if not 50 <= self.max_features <= 100_000:
+            raise ConfigError(f"max_features={self.max_features} must be in [50, 100000]")
+
+
+class KeyframeGeometry:
+    """Extracts, packs and unpacks keyframe features; poses loops. `counts`: the pipeline's
+    `PipelineCounts` (input problems and pose outcomes are counted there)."""
+
+    def __init__(self, config: GeometryConfig | None, counts: Any) -> None:
+        self.config = config or GeometryConfig()
+        self.counts = counts
+
+    def wanted(self, verification: bool) -> bool:
+        return self.config.relative_pose or verification
+
+    def extract(
+        self, rgb: np.ndarray, depth: np.ndarray | None, camera: CameraModel | None
+    ) -> Features:
+        """Features of one keyframe; a depth or camera model that does not fit the image is
+        dropped and counted (the keyframe still counts for place recognition)."""
+        h, w = rgb.shape[:2]
+        if depth is not None and depth.shape != (h, w):
+            self.counts.depth_wrong_size += 1
+            depth = None
+        if camera is not None and (camera.width, camera.height) != (w, h):
+            self.counts.intrinsics_wrong_size += 1
+            camera = None
+        c = self.config
+        return extract_features(rgb, c.features, c.max_features, depth=depth, camera=camera)
+
+    @staticmethod
+    def pack(features: Features | None) -> bytes:
+        return b"" if features is None else pack_features(features)
+
+    def unpack(self, data: bytes) -> Features | None:
+        """Stored bytes -> Features (None when there are none or they are damaged)."""
+        if not data:
+            return None
+        try:
+            return unpack_features(data)
+        except GeometryInputError:
+            self.counts.features_damaged += 1
+            return None
+
+    @staticmethod
+    def verify(query: Features | None, match: Features | None) -> tuple[int, float]:
+        """Fundamental-matrix verification; (-1, NaN) when either side has no features."""
+        if query is None or match is None:
+            return -1, float("nan")
+        return verify_pair(query, match)
+
+    def pose(self, record: Any, query: Features | None, match: Features | None) -> float:
+        """Fill the pose fields of an accepted `record`; -> milliseconds spent."""
+        t0 = time.perf_counter()
+        result: RelativePose = relative_pose(query, match, self.config.pose)
+        for name, value in result.record_fields().items():
+            setattr(record, name, value)
+        name = f"pose_{(result.status or 'none').replace('-', '_')}"
+        setattr(self.counts, name, getattr(self.counts, name) + 1)
+        return (time.perf_counter() - t0) * 1e3

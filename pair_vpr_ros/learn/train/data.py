@@ -1,0 +1,174 @@
+"""Place-aware batches for both training stages.
+
+A batch holds P places x k images of each place (stage one: k = 2, a pair; stage two: k = 4).
+`PlaceBatchSampler` shuffles places once per epoch with the same seed on every rank, cuts the
+order into global batches of P x world_size places and hands each rank its own P: no place
+appears twice in a global batch, and every rank runs the same number of equal-sized batches.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset, Sampler
+
+from pair_vpr_ros.errors import DatasetError
+from pair_vpr_ros.learn.datasets import PlaceCollection, read_rgb
+from pair_vpr_ros.learn.train.common import DistContext
+from pair_vpr_ros.learn.train.config import TrainConfig
+from pair_vpr_ros.model import preprocess
+
+
+@dataclass(frozen=True)
+class AugmentConfig:
+    """Light photometric/geometric jitter; ``None`` in the datasets means no augmentation."""
+
+    crop_scale: tuple[float, float] = (0.7, 1.0)  # area fraction of a random crop (aspect kept)
+    brightness: float = 0.2  # +- fraction of the pixel range
+    contrast: float = 0.2  # +- fraction around the image mean
+
+
+def augment_rgb(rgb: np.ndarray, rng: np.random.Generator, aug: AugmentConfig) -> np.ndarray:
+    """[H,W,3] uint8 -> [h,w,3] uint8: random crop, brightness and contrast."""
+    h, w = rgb.shape[:2]
+    side = float(np.sqrt(rng.uniform(*aug.crop_scale)))
+    ch, cw = max(1, round(h * side)), max(1, round(w * side))
+    y, x = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
+    out = rgb[y : y + ch, x : x + cw].astype(np.float32)
+    contrast = 1.0 + rng.uniform(-aug.contrast, aug.contrast)
+    shift = 255.0 * rng.uniform(-aug.brightness, aug.brightness)
+    out = (out - out.mean()) * contrast + out.mean() + shift
+    return np.clip(out, 0, 255).astype(np.uint8)
+
+
+def image_tensor(
+    path: object, size: int, rng: np.random.Generator | None, aug: AugmentConfig | None
+) -> torch.Tensor:
+    """Image file -> normalised [3,size,size] (``pair_vpr_ros.model.preprocess``)."""
+    rgb = read_rgb(path)
+    if aug is not None and rng is not None:
+        rgb = augment_rgb(rgb, rng, aug)
+    return preprocess(np.ascontiguousarray(rgb), size=size)
+
+
+class PlaceImagesDataset(Dataset):
+    """Item = one place: (images [k,3,S,S], labels [k] int64). Places with < k images dropped."""
+
+    def __init__(
+        self,
+        places: PlaceCollection,
+        images_per_place: int,
+        size: int,
+        augment: AugmentConfig | None = None,
+        seed: int = 0,
+    ) -> None:
+        keep = [i for i, p in enumerate(places.places) if len(p) >= images_per_place]
+        if not keep:
+            raise DatasetError(
+                f"no place of {places.name} has >= {images_per_place} images "
+                f"({len(places)} places checked)"
+            )
+        self.places = [places.places[i] for i in keep]
+        self.labels = keep  # labels stay those of the collection
+        self.dropped_places = len(places) - len(keep)
+        self.k, self.size, self.augment, self.seed = images_per_place, size, augment, seed
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return len(self.places)
+
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
+        # Seeded by (seed, epoch, place): identical across worker counts and on resume.
+        rng = np.random.default_rng([self.seed, self.epoch, index])
+        paths = self.places[index]
+        chosen = rng.choice(len(paths), size=self.k, replace=False)
+        images = torch.stack(
+            [image_tensor(paths[i], self.size, rng, self.augment) for i in chosen]
+        )
+        return images, torch.full((self.k,), self.labels[index], dtype=torch.int64)
+
+
+class PlaceBatchSampler(Sampler[list[int]]):
+    """Yields this rank's lists of P place indices; see the module docstring."""
+
+    def __init__(
+        self,
+        num_places: int,
+        places_per_batch: int,
+        rank: int = 0,
+        world_size: int = 1,
+        seed: int = 0,
+        shuffle: bool = True,
+    ) -> None:
+        self.n, self.p, self.rank, self.world = num_places, places_per_batch, rank, world_size
+        self.seed, self.shuffle, self.epoch, self.start_batch = seed, shuffle, 0, 0
+        if len(self) == 0:
+            raise DatasetError(
+                f"{num_places} places cannot fill one batch of {places_per_batch} places on each "
+                f"of {world_size} processes: lower --places-per-batch or add data"
+            )
+
+    def set_epoch(self, epoch: int, start_batch: int = 0) -> None:
+        """Select the epoch's order; ``start_batch`` skips batches already done (resume)."""
+        self.epoch, self.start_batch = epoch, start_batch
+
+    def __len__(self) -> int:
+        return self.n // (self.p * self.world)
+
+    def __iter__(self) -> Iterator[list[int]]:
+        if self.shuffle:
+            order = torch.randperm(
+                self.n, generator=torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
+            ).tolist()
+        else:
+            order = list(range(self.n))
+        span = self.p * self.world
+        for b in range(self.start_batch, len(self)):
+            start = b * span + self.rank * self.p
+            yield order[start : start + self.p]
+
+
+def collate_places(batch: list[tuple[torch.Tensor, torch.Tensor]]) -> tuple[torch.Tensor, ...]:
+    """P items of [k,3,S,S] -> (images [P,k,3,S,S], labels [P,k])."""
+    return torch.stack([b[0] for b in batch]), torch.stack([b[1] for b in batch])
+
+
+@dataclass
+class PlaceData:
+    """One stage's training data on this process: places, this rank's batches, their loader."""
+
+    dataset: PlaceImagesDataset
+    sampler: PlaceBatchSampler
+    loader: DataLoader
+
+
+def place_data(
+    places: PlaceCollection, images_per_place: int, size: int, cfg: TrainConfig, ctx: DistContext
+) -> PlaceData:
+    """Batches of ``cfg.places_per_batch`` places x ``images_per_place`` images of ``size``."""
+    augment = AugmentConfig() if cfg.augment else None
+    dataset = PlaceImagesDataset(places, images_per_place, size, augment, seed=cfg.seed)
+    sampler = PlaceBatchSampler(
+        len(dataset), cfg.places_per_batch, ctx.rank, ctx.world_size, cfg.seed
+    )
+    loader = make_loader(dataset, sampler, cfg.workers, ctx.device.type == "cuda")
+    return PlaceData(dataset, sampler, loader)
+
+
+def make_loader(
+    dataset: PlaceImagesDataset, sampler: PlaceBatchSampler, workers: int, pin: bool
+) -> DataLoader:
+    return DataLoader(
+        dataset,
+        batch_sampler=sampler,
+        num_workers=workers,
+        collate_fn=collate_places,
+        pin_memory=pin,
+        persistent_workers=False,  # the dataset's epoch must reach fresh workers each epoch
+    )

@@ -1,0 +1,246 @@
+"""Stage two: joint training of the global descriptor and the pair classifier.
+
+Batches of P places x 4 images (GSV-Cities). Global loss: multi-similarity (alpha 1, beta 50,
+base 0, dot product) on pairs from the multi-similarity miner (epsilon 0.1), computed over the
+global batch (descriptors all-gathered across processes). Pair loss: for each local anchor the
+hardest positive and hardest negative of the global batch by descriptor similarity; binary
+cross-entropy pushes logit(anchor, positive) to 1 and logit(anchor, negative) to 0. With
+``pair_directions="both"`` (default) each pair is also scored with the other image first
+(logit(positive, anchor) -> 1, logit(negative, anchor) -> 0): inference sums both directions, so
+both are trained. The network spec does not say which of the two the paper used; "first" trains
+the anchor-first direction only. Total = global + 2.0 * pair. AdamW lr 8e-5, weight decay 0.05,
+lr falling linearly to 0.2x; the last half of the encoder blocks train.
+
+Two options beyond the paper, for training from a random init (the demo model): a linear lr
+warm-up, and ``pair_weight=0``, which trains the global descriptor alone without running the
+decoder (an encoder pre-training that can stand in for DINOv2 when no DINOv2 of that size exists).
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.learn.datasets import load_eval_set
+from pair_vpr_ros.learn.evaluate import EvalConfig, evaluate_set
+from pair_vpr_ros.learn.train.common import DistContext, gather_batch, linear_decay, param_groups
+from pair_vpr_ros.learn.train.config import TrainConfig
+from pair_vpr_ros.learn.train.driver import Stage, stage_main, stage_parser, train
+from pair_vpr_ros.learn.train.loop import StepFn
+from pair_vpr_ros.learn.train.losses import MultiSimilarityObjective, batch_hard_indices, pair_bce
+from pair_vpr_ros.learn.train.options import option, redefault
+from pair_vpr_ros.model import PairVPR, load_pairvpr
+from pair_vpr_ros.model.checkpoint import STAGE2_NEW
+
+
+@dataclass
+class Stage2Config(TrainConfig):
+    """Stage-two settings; defaults are the paper's where it gives them. ``arch`` and
+    ``dinov2`` apply only without ``init`` and ``resume``."""
+
+    places_per_batch: int = redefault(TrainConfig, "places_per_batch", 30)
+    lr: float = redefault(TrainConfig, "lr", 8e-5)
+    init: Path | None = option(
+        None, "stage-one checkpoint (stage1_final.pt) or any Pair-VPR weights to start from"
+    )
+    images_per_place: int = option(4, "images of each place per batch (default %(default)s)")
+    end_lr_factor: float = option(
+        0.2, "the lr falls linearly to this fraction of --lr at the end (default %(default)s)"
+    )
+    warmup_steps: int = option(
+        0,
+        "raise the lr linearly from 0 over this many steps first (default %(default)s, as the "
+        "paper); from a random init a warm-up keeps the global descriptor from collapsing early",
+    )
+    pair_weight: float = option(
+        2.0,
+        "weight of the pair loss (default %(default)s); 0 trains the global descriptor alone, "
+        "without running the decoder",
+    )
+    pair_directions: str = option(
+        "both",
+        "train the pair logits in both image orders (default) or anchor-first only",
+        choices=("both", "first"),
+    )
+    val: tuple[Path, ...] = option(
+        (), "validation set root (database/ + queries/), repeatable; Recall@N each epoch"
+    )
+    val_rerank_k: int = option(
+        0, "also report re-ranked validation recall with this K (default 0: global only)"
+    )
+    ms_alpha: float = 1.0  # multi-similarity loss and miner: the paper's values, no flags
+    ms_beta: float = 50.0
+    ms_base: float = 0.0
+    miner_epsilon: float = 0.1
+
+
+class Stage2Objective(nn.Module):
+    """(images [B,3,S,S], labels [B]) -> {"loss", "global", "pair", "mined"} over the global
+    batch. Lives inside DDP so every collective and parameter use happens in one forward."""
+
+    def __init__(self, model: PairVPR, cfg: Stage2Config, ctx: DistContext) -> None:
+        super().__init__()
+        self.model, self.ctx = model, ctx
+        self.pair_weight, self.both = cfg.pair_weight, cfg.pair_directions == "both"
+        self.metric = MultiSimilarityObjective(
+            cfg.ms_alpha, cfg.ms_beta, cfg.ms_base, cfg.miner_epsilon
+        )
+
+    def forward(self, images: Tensor, labels: Tensor) -> dict[str, Tensor]:
+        dense, desc = self.model.encode(images)
+        desc_all = gather_batch(desc.float(), self.ctx)
+        labels_all = gather_batch(labels, self.ctx)
+        with torch.autocast(desc.device.type, enabled=False):  # beta=50 needs float32
+            global_loss, mined = self.metric(desc_all, labels_all)
+        if self.pair_weight == 0:  # global descriptor only: the decoder is frozen and not run
+            return {
+                "loss": global_loss,
+                "global": global_loss.detach(),
+                "pair": global_loss.new_zeros(()),
+                "mined": torch.tensor(float(mined)),
+            }
+        own = self.ctx.rank * labels.shape[0] + torch.arange(labels.shape[0], device=labels.device)
+        with torch.no_grad():
+            sim = desc.detach().float() @ desc_all.detach().T
+            pos, neg, valid = batch_hard_indices(sim, labels, labels_all, own)
+        dense_all = gather_batch(dense, self.ctx)
+        anchor, positive, negative = dense[valid], dense_all[pos[valid]], dense_all[neg[valid]]
+        if self.both:
+            first = torch.cat([anchor, anchor, positive, negative])
+            second = torch.cat([positive, negative, anchor, anchor])
+        else:
+            first, second = torch.cat([anchor, anchor]), torch.cat([positive, negative])
+        # Rows: (anchor, positive), (anchor, negative)[, (positive, anchor), (negative, anchor)].
+        logits = self.model.pair_logits(first, second).view(-1, anchor.shape[0])
+        pos_logits, neg_logits = logits[0::2].flatten(), logits[1::2].flatten()
+        pair_loss = pair_bce(pos_logits, neg_logits)
+        return {
+            "loss": global_loss + self.pair_weight * pair_loss,
+            "global": global_loss.detach(),
+            "pair": pair_loss.detach(),
+            "mined": torch.tensor(float(mined)),
+        }
+
+
+def validate(model: PairVPR, cfg: Stage2Config) -> dict[str, dict[str, float]]:
+    """Recall@1/5/10 on each validation set (global, and re-ranked if val_rerank_k > 0)."""
+    ecfg = EvalConfig(
+        datasets=list(cfg.val),
+        rerank_k=cfg.val_rerank_k,
+        recall_ns=(1, 5, 10),
+        batch_size=32,
+        workers=cfg.workers,
+        progress=False,
+    )
+    out = {}
+    for root in cfg.val:
+        r = evaluate_set(model, load_eval_set(root), ecfg)
+        out[r.dataset] = {f"R@{n}": v for n, v in r.recall_global.items()}
+        out[r.dataset].update({f"rerank R@{n}": v for n, v in r.recall_rerank.items()})
+    model.train()
+    return out
+
+
+class Stage2(Stage):
+    """Global descriptor + pair classifier (see the module docstring)."""
+
+    number = 2
+    config_class = Stage2Config
+    cfg: Stage2Config
+
+    @property
+    def images_per_place(self) -> int:
+        return self.cfg.images_per_place
+
+    @property
+    def trains_decoder(self) -> bool:
+        # pair_weight 0: the decoder never runs, so it stays frozen (DDP must not wait for it)
+        return self.cfg.pair_weight > 0
+
+    def check(self) -> None:
+        cfg = self.cfg
+        if cfg.pair_directions not in ("both", "first"):
+            raise ConfigError(
+                f"pair_directions must be 'both' or 'first', got {cfg.pair_directions!r}"
+            )
+        if cfg.pair_weight < 0:
+            raise ConfigError(f"pair_weight must be >= 0, got {cfg.pair_weight}")
+        if cfg.warmup_steps < 0:
+            raise ConfigError(f"warmup_steps must be >= 0, got {cfg.warmup_steps}")
+        if cfg.images_per_place < 2:
+            raise ConfigError("images_per_place must be >= 2 (positives come from the same place)")
+        super().check()
+
+    def prepare(self, ctx: DistContext) -> None:
+        if self.cfg.places_per_batch * ctx.world_size < 2:
+            raise ConfigError(
+                "a global batch needs >= 2 places (negatives): raise --places-per-batch"
+            )
+        for root in self.cfg.val:  # fail before training, not after the first epoch
+            load_eval_set(root)
+
+    def start_model(self, ctx: DistContext) -> PairVPR:
+        """Init checkpoint > random (+ DINOv2) init. A stage-one init gets fresh stage-two
+        heads: `decoder_clstoken` ~ N(0, 1e-6), new `globalizer` and `classvprmodule`."""
+        cfg = self.cfg
+        if cfg.init is None:
+            return super().start_model(ctx)
+        source = load_pairvpr(
+            cfg.init, image_size=cfg.image_size, allow_missing=STAGE2_NEW, with_stage1_head=True
+        )
+        if not source.config.with_stage1_head:  # a stage-two or released model: fine-tune it
+            return source.to(ctx.device)
+        torch.manual_seed(cfg.seed)  # same fresh heads on every rank
+        model = PairVPR(replace(source.config, with_stage1_head=False))
+        kept = {k: v for k, v in source.state_dict().items() if not k.startswith(STAGE2_NEW)}
+        model.load_state_dict(kept, strict=False)
+        model.weights_id = source.weights_id
+        return model.to(ctx.device)
+
+    def optimizer(self, model: PairVPR) -> torch.optim.Optimizer:
+        return torch.optim.AdamW(param_groups(model, self.cfg.weight_decay), lr=self.cfg.lr)
+
+    def lr_factor(self, step: int, total: int) -> float:
+        return linear_decay(step, total, self.cfg.end_lr_factor, self.cfg.warmup_steps)
+
+    def objective(self, model: PairVPR, ctx: DistContext) -> nn.Module:
+        return Stage2Objective(model, self.cfg, ctx)
+
+    def make_step(self, objective: nn.Module, model: PairVPR, ctx: DistContext) -> StepFn:
+        def step(batch: tuple[Tensor, ...]) -> dict[str, Tensor]:
+            images, labels = (t.to(ctx.device, non_blocking=True) for t in batch)
+            return objective(images.flatten(0, 1), labels.flatten())
+
+        return step
+
+    def after_epoch(self, model: PairVPR) -> Callable[[int], dict] | None:
+        return (lambda epoch: validate(model, self.cfg)) if self.cfg.val else None
+
+
+def train_stage2(cfg: Stage2Config) -> Path:
+    """Train stage two; returns the final weights ``<out>/stage2_final.pt`` (``load_pairvpr``)."""
+    return train(Stage2(cfg))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    return stage_parser(
+        Stage2Config,
+        prog="pairvpr-train-stage2",
+        description="Pair-VPR stage two: global descriptor (multi-similarity) + pair classifier "
+        "(batch-hard BCE). Multi-GPU: "
+        "torchrun --nproc_per_node N -m pair_vpr_ros.learn.train.stage2",
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    return stage_main(Stage2, build_parser(), argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

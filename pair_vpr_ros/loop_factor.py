@@ -1,0 +1,187 @@
+"""One loop closure as a pose-graph between-factor, and its ``nav_msgs/Odometry`` encoding.
+
+No standard message holds two stamps, two frame ids, a transform and a 6x6 covariance, so the
+``loop_closure/factor`` topic uses ``nav_msgs/Odometry`` (a pose of ``child_frame_id`` in
+``header.frame_id`` with a covariance, as the factor is) and puts the second stamp and some
+bookkeeping into the otherwise unused twist:
+
+==============================  ==================================================================
+field                           content
+==============================  ==================================================================
+header.stamp                    query keyframe's image stamp (t_current)
+header.frame_id                 match keyframe's image frame_id (the reference frame)
+child_frame_id                  query keyframe's image frame_id
+pose.pose.position              translation of T_match_query: the query camera's position in the
+                                match camera's optical frame, m (scale-free: a unit vector)
+pose.pose.orientation           rotation of T_match_query (query camera axes in the match frame)
+pose.covariance                 6x6 row-major, order (x, y, z, rx, ry, rz), errors expressed in the
+                                match camera frame (see ``LoopFactor.gtsam_covariance``)
+twist.twist.linear.x / .y       match keyframe's image stamp (t_previous): sec / nanosec
+twist.twist.linear.z            1.0 metric, 2.0 scale-free (translation variance 1e6 m^2)
+twist.twist.angular.x           inliers of the pose fit
+twist.twist.angular.y / .z      query / match keyframe ids in the place map
+twist.covariance                all zeros
+==============================  ==================================================================
+
+A consumer adds ``BetweenFactor(X(match), X(query), T_match_query, covariance)`` after moving it
+from the camera frame to its body frame (camera extrinsics).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from pair_vpr_ros.geometry.covariance import SCALE_FREE_VARIANCE  # noqa: F401 (consumers)
+from pair_vpr_ros.geometry.rotations import quaternion_matrix
+
+FACTOR_TOPIC = "loop_closure/factor"
+FACTOR_TYPE = "nav_msgs/msg/Odometry"
+FACTOR_MSG_TYPES = (  # every message type `factor_msg` constructs
+    "builtin_interfaces/msg/Time",
+    "std_msgs/msg/Header",
+    "geometry_msgs/msg/Point",
+    "geometry_msgs/msg/Quaternion",
+    "geometry_msgs/msg/Pose",
+    "geometry_msgs/msg/PoseWithCovariance",
+    "geometry_msgs/msg/Vector3",
+    "geometry_msgs/msg/Twist",
+    "geometry_msgs/msg/TwistWithCovariance",
+    FACTOR_TYPE,
+)
+STATUS_CODES = {"metric": 1.0, "scale-free": 2.0}
+
+
+@dataclass(frozen=True)
+class LoopFactor:
+    """T_match_query of one loop: the query camera's pose in the match camera's optical frame."""
+
+    query_stamp: float  # s
+    match_stamp: float  # s
+    query_frame_id: str
+    match_frame_id: str
+    translation: tuple[float, float, float]  # m; a unit vector when not metric
+    rotation: tuple[float, float, float, float]  # qx, qy, qz, qw
+    covariance: tuple[float, ...]  # 36, row-major (x, y, z, rx, ry, rz), match camera frame
+    metric: bool
+    inliers: int
+    query_id: int = -1
+    match_id: int = -1
+
+    def matrix(self) -> np.ndarray:
+        """[4, 4] homogeneous T_match_query (maps query-camera points into the match camera)."""
+        out = np.eye(4)
+        out[:3, :3] = quaternion_matrix(self.rotation)
+        out[:3, 3] = self.translation
+        return out
+
+    def covariance_matrix(self) -> np.ndarray:
+        """[6, 6] in (x, y, z, rx, ry, rz) order: T_true = (Exp(d_rot) R, t + d_t), both
+        perturbations along the match camera's axes (ROS convention: the parent frame)."""
+        return np.asarray(self.covariance, np.float64).reshape(6, 6)
+
+    def gtsam_covariance(self) -> np.ndarray:
+        """[6, 6] in GTSAM Pose3 order (rx, ry, rz, x, y, z) for T_true = T * Exp(xi), xi in the
+        query camera frame: xi = (R^T d_rot, R^T d_t) to first order."""
+        rt = quaternion_matrix(self.rotation).T
+        a = np.zeros((6, 6))
+        a[:3, 3:] = rt
+        a[3:, :3] = rt
+        return a @ self.covariance_matrix() @ a.T
+
+
+def _get(record: Any, name: str) -> Any:
+    return record[name] if isinstance(record, Mapping) else getattr(record, name)
+
+
+def factor_from_record(record: Any) -> LoopFactor | None:
+    """The factor of a ``LoopRecord`` (or its ``record_dict`` / JSON object); None when the
+    record has no relative pose (not accepted, or the geometry failed)."""
+    status = _get(record, "pose_status")
+    cov = tuple(_get(record, "covariance") or ())
+    if status not in STATUS_CODES or not _get(record, "accepted") or len(cov) != 36:
+        return None
+    t = tuple(float(_get(record, k)) for k in ("tx", "ty", "tz"))
+    q = tuple(float(_get(record, k)) for k in ("qx", "qy", "qz", "qw"))
+    return LoopFactor(
+        query_stamp=float(_get(record, "query_stamp")),
+        match_stamp=float(_get(record, "match_stamp")),
+        query_frame_id=str(_get(record, "query_frame_id")),
+        match_frame_id=str(_get(record, "match_frame_id")),
+        translation=t,  # type: ignore[arg-type]
+        rotation=q,  # type: ignore[arg-type]
+        covariance=tuple(float(v) for v in cov),
+        metric=status == "metric",
+        inliers=int(_get(record, "pose_inliers")),
+        query_id=int(_get(record, "query_id")),
+        match_id=int(_get(record, "match_id")),
+    )
+
+
+def split_stamp(stamp: float) -> tuple[int, int]:
+    """Seconds -> (sec, nanosec) of the nearest nanosecond."""
+    sec = math.floor(stamp)
+    nsec = round((stamp - sec) * 1e9)
+    return (sec + 1, 0) if nsec >= 1_000_000_000 else (int(sec), int(nsec))
+
+
+def factor_msg(factor: LoopFactor, types: Mapping[str, Callable[..., Any]]) -> Any:
+    """Build the ``nav_msgs/Odometry`` of ``factor`` with the message classes in ``types``
+    (keys: ``FACTOR_MSG_TYPES``; rclpy classes or a rosbags typestore's ``types``)."""
+    vec, quat = types["geometry_msgs/msg/Vector3"], types["geometry_msgs/msg/Quaternion"]
+    q_sec, q_nsec = split_stamp(factor.query_stamp)
+    m_sec, m_nsec = split_stamp(factor.match_stamp)
+    header = types["std_msgs/msg/Header"](
+        stamp=types["builtin_interfaces/msg/Time"](sec=q_sec, nanosec=q_nsec),
+        frame_id=factor.match_frame_id,
+    )
+    x, y, z = (float(v) for v in factor.translation)
+    pose = types["geometry_msgs/msg/Pose"](
+        position=types["geometry_msgs/msg/Point"](x=x, y=y, z=z),
+        orientation=quat(**dict(zip("xyzw", (float(v) for v in factor.rotation), strict=True))),
+    )
+    twist = types["geometry_msgs/msg/Twist"](
+        linear=vec(x=float(m_sec), y=float(m_nsec), z=STATUS_CODES[_status(factor)]),
+        angular=vec(x=float(factor.inliers), y=float(factor.query_id), z=float(factor.match_id)),
+    )
+    return types[FACTOR_TYPE](
+        header=header,
+        child_frame_id=factor.query_frame_id,
+        pose=types["geometry_msgs/msg/PoseWithCovariance"](
+            pose=pose, covariance=np.asarray(factor.covariance, np.float64)
+        ),
+        twist=types["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
+    )
+
+
+def _status(factor: LoopFactor) -> str:
+    return "metric" if factor.metric else "scale-free"
+
+
+def factor_from_msg(msg: Any) -> LoopFactor:
+    """Decode a ``loop_closure/factor`` message (rclpy or rosbags ``nav_msgs/Odometry``)."""
+    stamp, twist = msg.header.stamp, msg.twist.twist
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    cov = tuple(float(v) for v in msg.pose.covariance)
+    if len(cov) != 36 or twist.linear.z not in STATUS_CODES.values():
+        raise ValueError(
+            f"not a loop_closure/factor message: covariance has {len(cov)} values, status code "
+            f"{twist.linear.z} (expected 36 values and 1.0 or 2.0)"
+        )
+    return LoopFactor(
+        query_stamp=stamp.sec + stamp.nanosec * 1e-9,
+        match_stamp=twist.linear.x + twist.linear.y * 1e-9,
+        query_frame_id=msg.child_frame_id,
+        match_frame_id=msg.header.frame_id,
+        translation=(p.x, p.y, p.z),
+        rotation=(q.x, q.y, q.z, q.w),
+        covariance=cov,
+        metric=twist.linear.z == STATUS_CODES["metric"],
+        inliers=int(twist.angular.x),
+        query_id=int(twist.angular.y),
+        match_id=int(twist.angular.z),
+    )

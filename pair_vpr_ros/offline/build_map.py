@@ -1,0 +1,86 @@
+"""Building a place map from a rosbag or an image folder (the node's `~/build_map` service).
+
+ROS-free: the node runs `build_map` in a background thread with a second `LoopClosurePipeline`
+over its own model, then saves the result and loads it into the live pipeline.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pair_vpr_ros.detector import DetectorConfig
+from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.geometry.keyframes import GeometryConfig
+from pair_vpr_ros.imaging import MAX_PIXELS
+from pair_vpr_ros.model import PairVPRModel
+from pair_vpr_ros.offline.sources import FrameCounts, source_frames
+from pair_vpr_ros.pipeline import LoopClosurePipeline
+
+
+@dataclass
+class BuildResult:
+    """What one build read and kept; `counts.first_error` names the first unusable image."""
+
+    source: str
+    counts: FrameCounts = field(default_factory=FrameCounts)  # images read and skipped
+    keyframes: int = 0
+    loops: int = 0  # loop closures found while building
+    seconds: float = 0.0
+    cancelled: bool = False
+
+    @property
+    def frames(self) -> int:
+        return self.counts.frames
+
+    @property
+    def skipped(self) -> int:
+        return self.counts.skipped
+
+    def line(self) -> str:
+        return (
+            f"{self.keyframes} keyframes from {self.frames} images of {self.source} "
+            f"({self.skipped} skipped, {self.loops} loops, {self.seconds:.1f} s)"
+        )
+
+
+def build_map(
+    model: PairVPRModel,
+    config: DetectorConfig,
+    source: str | Path,
+    *,
+    image_topic: str | None = None,
+    image_period: float = 1.0,
+    index: str = "flat",
+    stop: threading.Event | None = None,
+    batch_size: int = 8,
+    max_pixels: int = MAX_PIXELS,
+    geometry: GeometryConfig | None = None,
+) -> tuple[LoopClosurePipeline, BuildResult]:
+    """Map every frame of `source` in mapping mode -> (the pipeline holding the unsaved map,
+    what was read). `stop` cancels between frames (`result.cancelled`). Raises `ConfigError`
+    for a missing source or one without a usable image, `BagError` for an unreadable bag."""
+    result = BuildResult(source=str(source))
+    t0 = time.perf_counter()
+    frames = source_frames(source, result.counts, image_topic, image_period, max_pixels)
+    pipe = LoopClosurePipeline(
+        model, config.updated(mode="mapping"), index=index, geometry=geometry
+    )
+    try:
+        for outcome in pipe.process_many(frames, batch_size=batch_size):
+            result.loops += bool(outcome.loop and outcome.loop.accepted)
+            if stop is not None and stop.is_set():
+                result.cancelled = True
+                break
+        result.keyframes = len(pipe.place_map)
+        if not result.cancelled and result.keyframes == 0:
+            first = result.counts.first_error
+            why = f" (first error: {first})" if first else ""
+            raise ConfigError(f"build_source {source} gave no usable image{why}")
+    except BaseException:
+        pipe.close()
+        raise
+    result.seconds = time.perf_counter() - t0
+    return pipe, result

@@ -1,0 +1,156 @@
+"""Pipeline frames from a rosbag or an image folder, counting what cannot be used.
+
+The replay (``offline.replay``) and the map build (``offline.build_map``, the node's
+``~/build_map``) read frames through here, so both skip and count an unusable image the same way:
+a message that does not deserialise or convert, a file that is not a readable image.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pair_vpr_ros.errors import BagError, ConfigError, ImageConversionError
+from pair_vpr_ros.imaging import IMAGE_SUFFIXES, MAX_PIXELS, file_to_rgb
+from pair_vpr_ros.offline import bag_io
+from pair_vpr_ros.offline.bag_geometry import attach, open_geometry
+from pair_vpr_ros.offline.bag_io import BagFrame
+from pair_vpr_ros.pipeline import Frame
+
+DEPTH_TOLERANCE = 0.02  # s between an image and its depth image when building a map
+
+
+@dataclass
+class FrameCounts:
+    """What a source gave: ``frames`` images read (messages or files), ``skipped`` unusable ones
+    counted by ``reasons``, ``first_error`` the first unusable one and where it was, ``error`` why
+    reading stopped part-way (None when it did not; the frames before it are valid)."""
+
+    frames: int = 0
+    skipped: int = 0
+    reasons: Counter[str] = field(default_factory=Counter)
+    first_error: str = ""
+    error: str | None = None
+    # Usable frames whose stamp is earlier than (backwards) or equal to (repeated) the previous
+    # usable frame's: the detector's time windows assume increasing stamps.
+    backwards: int = 0
+    repeated: int = 0
+    first_backwards: str = ""
+    last_stamp: float | None = None
+    geometry_skips: Counter[str] = field(default_factory=Counter)  # depth / camera_info problems
+
+    def skip(self, reason: str, where: str = "") -> None:
+        self.skipped += 1
+        self.reasons[reason] += 1
+        self.first_error = self.first_error or (f"{where}: {reason}" if where else reason)
+
+    def stamp(self, stamp: float, where: str) -> None:
+        """Note the stamp of the next usable frame (counts stamps that do not increase)."""
+        last, self.last_stamp = self.last_stamp, stamp
+        if last is None or stamp > last:
+            return
+        if stamp == last:
+            self.repeated += 1
+            return
+        self.backwards += 1
+        self.first_backwards = self.first_backwards or f"{where}: {stamp:.3f} s after {last:.3f} s"
+
+    def stamp_warnings(self, topic: str) -> list[str]:
+        """What to tell the user about stamps that do not increase ([] when they all do)."""
+        used = self.frames - self.skipped
+        advice = (
+            "rate limiting and the recent-frame exclusion assume increasing header stamps, so "
+            "loops may be missed or wrong; check the camera driver's stamps"
+        )
+        if used > 1 and self.repeated == used - 1:
+            return [
+                f"all {used} image stamps of {topic} are identical ({self.last_stamp:.3f} s): "
+                + advice
+            ]
+        out = []
+        if self.backwards:
+            out.append(
+                f"{self.backwards} image stamps of {topic} go back in time (first at "
+                f"{self.first_backwards}): " + advice
+            )
+        if self.repeated:
+            out.append(f"{self.repeated} image stamps of {topic} repeat the previous one")
+        return out
+
+
+def bag_frames(
+    frames: Iterable[BagFrame], counts: FrameCounts, source: str
+) -> Iterator[tuple[Frame, BagFrame]]:
+    """The usable frames of ``bag_io.iter_frames`` as pipeline frames (``source#index``), each
+    with the ``BagFrame`` it came from. A ``BagError`` part-way ends the frames quietly, kept in
+    ``counts.error``, so the pipeline still flushes the frames it holds."""
+    try:
+        for bf in frames:
+            counts.frames += 1
+            if bf.rgb is None:
+                counts.skip(bf.error or "unknown", f"message {bf.index}")
+                continue
+            counts.stamp(bf.stamp, f"message {bf.index}")
+            yield Frame(bf.stamp, bf.rgb, bf.frame_id, bf.pose, f"{source}#{bf.index}"), bf
+    except BagError as err:
+        counts.error = str(err)
+
+
+def folder_images(folder: Path) -> list[Path]:
+    """The image files directly in ``folder`` (``imaging.IMAGE_SUFFIXES``), sorted by name."""
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def folder_frames(
+    files: Iterable[Path], counts: FrameCounts, period: float, max_pixels: int = MAX_PIXELS
+) -> Iterator[Frame]:
+    """Image files as frames stamped ``i * period`` s (frame id: the file's stem), decoded by
+    ``imaging.file_to_rgb`` (its size limit ``max_pixels`` and 16-bit scaling)."""
+    for i, path in enumerate(files):
+        counts.frames += 1
+        try:
+            rgb = file_to_rgb(path, max_pixels)
+        except ImageConversionError as err:  # the message names the file
+            counts.skip(str(err))
+            continue
+        yield Frame(stamp=i * period, rgb=rgb, frame_id=path.stem, source=str(path))
+
+
+def _bag_source(
+    path: Path, topic: str | None, counts: FrameCounts, max_pixels: int
+) -> Iterator[Frame]:
+    with bag_io.open_bag(path) as reader:
+        topic = bag_io.choose_image_topic(reader, topic)
+        pose_topic = bag_io.choose_pose_topic(reader)
+        poses = bag_io.read_poses(reader, pose_topic)[0] if pose_topic else None
+        read = bag_io.iter_frames(reader, topic, poses, max_pixels=max_pixels)
+        # Depth and intrinsics when the bag has one topic of each (poses need them later).
+        geometry = open_geometry(reader, None, None, DEPTH_TOLERANCE, counts.geometry_skips)[0]
+        usable = (frame for frame, _ in bag_frames(read, counts, f"{path}:{topic}"))
+        yield from attach(usable, geometry)
+    if counts.error is not None:
+        raise BagError(counts.error)
+
+
+def source_frames(
+    source: str | Path,
+    counts: FrameCounts,
+    image_topic: str | None = None,
+    period: float = 1.0,
+    max_pixels: int = MAX_PIXELS,
+) -> Iterator[Frame]:
+    """Frames of a bag (header stamps; poses when the bag has one pose topic) or of an image
+    folder (stamps ``i * period`` s). Unusable images (also those over ``max_pixels``) are
+    counted in ``counts``; a missing source is a ``ConfigError``, an unreadable bag (also
+    part-way) a ``BagError``."""
+    path = Path(source).expanduser()
+    if not str(source) or not path.exists():
+        raise ConfigError(
+            f"build_source {str(source)!r} does not exist: set it to a rosbag (folder, .mcap, "
+            ".db3 or .bag) or an image folder"
+        )
+    if path.is_dir() and folder_images(path):
+        return folder_frames(folder_images(path), counts, period, max_pixels)
+    return _bag_source(path, image_topic or None, counts, max_pixels)

@@ -1,0 +1,57 @@
+"""Loop closures as the pose graph takes them: ``loop_factor.LoopFactor`` (the record vpr_node and
+the replay publish), checked and moved from the camera frames into the graph's nodes.
+
+A ``LoopFactor`` holds ``T_match_query`` (the query camera's pose in the match camera's frame)
+and its covariance; ``LoopFactor.gtsam_covariance()`` gives it in GTSAM's order and frame
+(rx, ry, rz, x, y, z; right perturbation in the query camera frame), which is what the graph uses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from pair_vpr_ros.loop_factor import LoopFactor
+from pair_vpr_ros.posegraph.transforms import valid_pose7
+
+
+@dataclass
+class LoopEntry:
+    """A loop that made it into the graph: its two nodes, the factor it came from, the measured
+    relative pose between the nodes' base frames and the inverse of its covariance."""
+
+    match_key: int
+    query_key: int
+    factor: LoopFactor
+    measured: gtsam.Pose3
+    information: np.ndarray  # [6, 6], GTSAM order
+
+
+def loop_problem(factor: LoopFactor) -> str | None:
+    """Why the pose graph cannot use ``factor`` (None when it can)."""
+    if not (np.isfinite(factor.query_stamp) and np.isfinite(factor.match_stamp)):
+        return "stamp is not finite"
+    reason = valid_pose7((*factor.translation, *factor.rotation))
+    if reason is not None:
+        return f"transform: {reason}"
+    cov = np.asarray(factor.covariance, dtype=np.float64)
+    if cov.size != 36:
+        return f"covariance needs 36 values (got {cov.size})"
+    cov = cov.reshape(6, 6)
+    if not np.isfinite(cov).all():
+        return "covariance has NaN or infinite values"
+    if not np.allclose(cov, cov.T, rtol=1e-6, atol=1e-12):
+        return "covariance is not symmetric"
+    if np.linalg.eigvalsh(cov).min() <= 0.0:
+        return "covariance is not positive definite"
+    return None
+
+
+def camera_pose(factor: LoopFactor) -> gtsam.Pose3:
+    """``T_match_query`` as a ``gtsam.Pose3``."""
+    qx, qy, qz, qw = (float(v) for v in factor.rotation)
+    norm = float(np.sqrt(qx * qx + qy * qy + qz * qz + qw * qw))
+    rot = gtsam.Rot3.Quaternion(qw / norm, qx / norm, qy / norm, qz / norm)
+    return gtsam.Pose3(rot, np.asarray(factor.translation, dtype=np.float64))

@@ -1,0 +1,116 @@
+"""The node's depth and intrinsics inputs, ROS-free (messages are duck-typed): buffered depth
+images matched to frames by stamp, the latest valid CameraInfo, the parameter fallback.
+
+Depth messages are kept raw (converted only for the frame that uses them). A frame waits up to
+`wait` s in the worker for its depth image (depth drivers often publish after the colour image);
+without one within `tolerance` s it goes on without depth, counted as ``depth_unmatched``.
+"""
+
+from __future__ import annotations
+
+import bisect
+import threading
+import time
+from typing import Any
+
+from pair_vpr_ros.errors import ConfigError, GeometryInputError
+from pair_vpr_ros.geometry.camera import CameraModel, camera_from_info, camera_from_params
+from pair_vpr_ros.geometry.depth import depth_from_msg
+
+
+def stamp_of(msg: Any) -> float:
+    return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+
+
+class GeometryInputs:
+    """Depth buffer + camera model for `vpr_node`; `counts` (the node's `NodeCounts`) collects
+    the input problems."""
+
+    def __init__(
+        self,
+        values: dict,
+        counts: Any,
+        buffer_size: int = 30,
+        wait: float = 0.2,
+    ) -> None:
+        self.enabled_depth = bool(values["depth_topic"])
+        self.tolerance = float(values["depth_tolerance"])
+        self.counts, self.wait, self.size = counts, wait, buffer_size
+        self.values = values
+        self._stamps: list[float] = []
+        self._msgs: list[Any] = []
+        self._cond = threading.Condition()
+        self.camera_info: CameraModel | None = None
+        self.last_problem = ""
+        try:
+            self.camera_for(640, 480)  # the fallback parameters make a valid model
+        except (GeometryInputError, ValueError) as err:
+            raise ConfigError(f"camera_* parameters: {err}") from err
+
+    # ---- callbacks (executor threads) ----------------------------------------------------
+    def on_depth(self, msg: Any) -> None:
+        with self._cond:
+            i = bisect.bisect_right(self._stamps, stamp_of(msg))
+            self._stamps.insert(i, stamp_of(msg))
+            self._msgs.insert(i, msg)
+            if len(self._stamps) > self.size:
+                del self._stamps[0], self._msgs[0]
+            self._cond.notify_all()
+
+    def on_camera_info(self, msg: Any) -> str | None:
+        """Keep the intrinsics of `msg`; -> the problem when it is unusable (counted)."""
+        try:
+            self.camera_info = camera_from_info(msg)
+        except GeometryInputError as err:
+            self.counts.camera_info_invalid += 1
+            self.last_problem = f"camera_info unusable: {err}"
+            return self.last_problem
+        return None
+
+    # ---- worker ---------------------------------------------------------------------------
+    def camera_for(self, width: int, height: int) -> CameraModel | None:
+        """The CameraInfo intrinsics, else the intrinsics parameters (for this image size),
+        else None."""
+        if self.camera_info is not None:
+            return self.camera_info
+        v = self.values
+        if v["camera_fx"] <= 0:
+            return None
+        d = [float(x) for x in v["camera_distortion"].replace(",", " ").split()]
+        cx = v["camera_cx"] if v["camera_cx"] >= 0 else (width - 1) / 2
+        cy = v["camera_cy"] if v["camera_cy"] >= 0 else (height - 1) / 2
+        fy = v["camera_fy"] if v["camera_fy"] > 0 else v["camera_fx"]
+        model = v["camera_distortion_model"]
+        return camera_from_params(width, height, v["camera_fx"], fy, cx, cy, model, d)
+
+    def depth_for(self, stamp: float) -> Any | None:
+        """Depth [H, W] m for a frame at `stamp`, or None (counted when depth is expected)."""
+        if not self.enabled_depth:
+            return None
+        msg = self._nearest(stamp)
+        if msg is None:
+            self.counts.depth_unmatched += 1
+            self.last_problem = f"no depth image within {self.tolerance} s of {stamp:.3f}"
+            return None
+        try:
+            return depth_from_msg(msg)
+        except GeometryInputError as err:
+            self.counts.depth_invalid += 1
+            self.last_problem = str(err)
+            return None
+
+    def _nearest(self, stamp: float) -> Any | None:
+        deadline = time.monotonic() + self.wait
+        with self._cond:
+            # Once a message at or after `stamp` is in, no later one can be nearer.
+            while not (self._stamps and self._stamps[-1] >= stamp):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._cond.wait(left)
+            i = bisect.bisect_left(self._stamps, stamp)
+            near = [j for j in (i - 1, i) if 0 <= j < len(self._stamps)]
+            if not near:
+                return None
+            best = min(near, key=lambda j: abs(self._stamps[j] - stamp))
+            return self._msgs[best] if abs(self._stamps[best] - stamp) <= self.tolerance else None

@@ -1,0 +1,188 @@
+"""`posegraph_node`: a loop-closing back end for any odometry, a thin shell over ``PoseGraph``.
+
+Run next to `vpr_node`::
+
+    ros2 run pair_vpr_ros posegraph_node --ros-args --params-file config/posegraph_node.yaml \\
+        -r odom:=/your/odometry
+
+Inputs: ``odom`` (``nav_msgs/Odometry`` of the robot base) and ``loop_closure/factor`` (vpr_node's
+between-factor topic). Every odometry message goes into the graph (a node each
+``node_spacing_m``); every loop is placed between the nodes at its two stamps and iSAM2 updates.
+
+Outputs: ``corrected_path`` (``nav_msgs/Path`` of the optimised nodes in ``map_frame``, every
+``path_period`` s), ``map_to_odom`` (``geometry_msgs/TransformStamped``, map -> odometry frame,
+after each update: relay it to ``/tf`` to correct everything that lives in the odometry frame) and
+``corrected_odom`` (``nav_msgs/Odometry``: each odometry message moved into ``map_frame``).
+Only rclpy code lives here; the graph is ``posegraph.graph``, its parameters ``posegraph.params``.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import rclpy
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Pose, PoseStamped, TransformStamped
+from nav_msgs.msg import Odometry, Path
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, qos_profile_sensor_data
+
+from pair_vpr_ros.errors import ConfigError, PairVPRError
+from pair_vpr_ros.loop_factor import LoopFactor, factor_from_msg, split_stamp
+from pair_vpr_ros.params import check_value
+from pair_vpr_ros.posegraph import params
+from pair_vpr_ros.posegraph.graph import PoseGraph
+from pair_vpr_ros.posegraph.transforms import pose3, pose7
+from pair_vpr_ros.ros.parameters import descriptor
+from pair_vpr_ros.types import message_pose, message_stamp
+
+
+def _stamp_msg(seconds: float) -> Time:
+    sec, nanosec = split_stamp(seconds)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def _pose_msg(pose: tuple[float, ...]) -> Pose:
+    msg = Pose()
+    p, q = msg.position, msg.orientation
+    p.x, p.y, p.z, q.x, q.y, q.z, q.w = (float(v) for v in pose)
+    return msg
+
+
+class PoseGraphNode(Node):
+    """Odometry + loop closures in, corrected path and map->odom out."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(params.NODE_NAME, **kwargs)
+        for spec in params.PARAMS:
+            self.declare_parameter(spec.name, spec.default, descriptor(spec))
+        v = {spec.name: self.get_parameter(spec.name).value for spec in params.PARAMS}
+        if not isinstance(v["camera_to_base"], tuple):
+            v["camera_to_base"] = tuple(float(x) for x in v["camera_to_base"])
+        reasons = [r for name, value in v.items() if (r := check_value(name, value, params.SPECS))]
+        if reasons:
+            raise ConfigError("invalid parameters: " + "; ".join(reasons))
+        self.values = v
+        self.graph = PoseGraph(params.posegraph_config(v))
+        self._odom_frame = v["odom_frame"]
+        self.loops_received = 0
+        self.loops_undecodable = 0  # what became of the others: graph.counts
+        qos = qos_profile_sensor_data if v["odom_qos"] == "sensor_data" else QoSProfile(depth=50)
+        self.create_subscription(Odometry, v["odom_topic"], self._on_odom, qos)
+        # Reliable and deep: loops are rare and each one matters (vpr_node publishes reliably).
+        self.create_subscription(Odometry, v["loop_topic"], self._on_loop, QoSProfile(depth=100))
+        self.pub_path = self.create_publisher(Path, "corrected_path", 1)
+        self.pub_correction = self.create_publisher(TransformStamped, "map_to_odom", 10)
+        self.pub_odom = self.create_publisher(Odometry, "corrected_odom", 10)
+        self.create_timer(v["path_period"], self.publish_path)
+
+    def _on_loop(self, msg: Odometry) -> None:
+        self.loops_received += 1
+        try:
+            factor = factor_from_msg(msg)
+        except ValueError as err:
+            self.loops_undecodable += 1
+            self.get_logger().warning(f"loop message skipped: {err}", throttle_duration_sec=5.0)
+            return
+        self.add_loop(factor)
+
+    # ---- inputs --------------------------------------------------------------------------------
+    def _on_odom(self, msg: Odometry) -> None:
+        now = self.get_clock().now().nanoseconds * 1e-9  # for a publisher that never stamps
+        stamp, pose = message_stamp(msg, now), message_pose(msg)
+        reason = self.graph.add_odometry(stamp, pose)
+        if reason is not None:
+            self.get_logger().warning(f"odometry at {stamp:.3f} s skipped: {reason}",
+                                      throttle_duration_sec=5.0)  # fmt: skip
+            return
+        self._odom_frame = self._odom_frame or msg.header.frame_id
+        if self.graph.update():
+            self._publish_correction(stamp)
+        corrected = self.graph.map_to_odom().compose(pose3(pose))
+        out = Odometry(header=msg.header, child_frame_id=msg.child_frame_id)
+        out.header.frame_id = self.values["map_frame"]
+        out.pose.pose = _pose_msg(pose7(corrected))
+        out.twist = msg.twist  # in the child frame: unchanged by the correction
+        self.pub_odom.publish(out)
+
+    def add_loop(self, loop: LoopFactor) -> str:
+        """Feed one loop into the graph and update; returns the graph's answer."""
+        result = self.graph.add_loop(loop)
+        if result not in ("added", "pending"):
+            self.get_logger().warning(
+                f"loop {loop.match_stamp:.3f} s -> {loop.query_stamp:.3f} s skipped: {result}",
+                throttle_duration_sec=2.0,
+            )
+        elif self.graph.update():
+            self._publish_correction(loop.query_stamp)
+        return result
+
+    # ---- outputs -------------------------------------------------------------------------------
+    def _publish_correction(self, stamp: float) -> None:
+        msg = TransformStamped()
+        msg.header.stamp = _stamp_msg(stamp)
+        msg.header.frame_id = self.values["map_frame"]
+        msg.child_frame_id = self._odom_frame or "odom"
+        x, y, z, qx, qy, qz, qw = pose7(self.graph.map_to_odom())
+        t, r = msg.transform.translation, msg.transform.rotation
+        t.x, t.y, t.z, r.x, r.y, r.z, r.w = x, y, z, qx, qy, qz, qw
+        self.pub_correction.publish(msg)
+
+    def publish_path(self) -> None:
+        """Publish the optimised nodes as ``corrected_path`` (nothing before the first node); when
+        the odometry has stopped, also go on converging after a loop."""
+        stamps = self.graph.node_stamps()
+        if not len(stamps):
+            return
+        if self.graph.update():
+            self._publish_correction(float(stamps[-1]))
+        poses = self.graph.optimised_poses()
+        path = Path()
+        path.header.frame_id = self.values["map_frame"]
+        path.header.stamp = _stamp_msg(float(stamps[-1]))
+        for stamp, pose in zip(stamps, poses, strict=True):
+            item = PoseStamped(pose=_pose_msg(tuple(pose)))
+            item.header.frame_id = path.header.frame_id
+            item.header.stamp = _stamp_msg(float(stamp))
+            path.poses.append(item)
+        self.pub_path.publish(path)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`posegraph_node` entry point: 0 on a clean stop (Ctrl-C, SIGTERM), 1 if it cannot start."""
+    try:
+        rclpy.init(args=argv)
+    except Exception as err:  # noqa: BLE001 - rcl's argument parser raises its own RCLError
+        print(
+            f"error: {params.NODE_NAME} cannot start: {err} (list parameters need one type: "
+            "write camera_to_base:=[0.0, 0.0, 1.6, -0.5, 0.5, -0.5, 0.5])",
+            file=sys.stderr,
+        )
+        return 1
+    executor = SingleThreadedExecutor()
+    node = None
+    try:
+        try:
+            node = PoseGraphNode()
+        except (PairVPRError, ParameterException) as err:
+            rclpy.logging.get_logger(params.NODE_NAME).error(f"cannot start: {err}")
+            return 1
+        executor.add_node(node)
+        node.get_logger().info(
+            f"ready: odometry {node.values['odom_topic']}, loops {node.values['loop_topic']}"
+        )
+        executor.spin()
+        return 0
+    except (KeyboardInterrupt, ExternalShutdownException):
+        return 0
+    finally:
+        executor.shutdown()
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,42 @@
+"""Helpers of the bad-input matrix (test/*/test_bad_input_*.py): digests that prove nothing
+saved changed, and files that are not what their name says."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+LOCK_NAME = "map.lock"  # holds the pid of the last writer: not part of the saved map
+
+
+def tree_digest(root: Path) -> dict[str, str]:
+    """{relative path: sha256} of every regular file under `root` (map.lock left out)."""
+    out = {}
+    for path in sorted(Path(root).rglob("*")):
+        if path.is_file() and path.name != LOCK_NAME:
+            out[str(path.relative_to(root))] = hashlib.sha256(path.read_bytes()).hexdigest()
+    return out
+
+
+def make_fifo(path: Path) -> Path:
+    """A named pipe at `path`: opening it for reading blocks until a writer comes."""
+    os.mkfifo(path)
+    return path
+
+
+def saved_map_digest(directory: Path) -> dict[str, str]:
+    """sha256 of what a saved map consists of: its manifest, the files it names, and of the
+    dense file only the `count` entries it lists (later bytes are a live map's unsaved appends,
+    which the format allows)."""
+    directory = Path(directory)
+    manifest = json.loads((directory / "manifest.json").read_text())
+    out = {"manifest.json": hashlib.sha256((directory / "manifest.json").read_bytes()).hexdigest()}
+    for role, entry in manifest["files"].items():
+        data = (directory / entry["name"]).read_bytes()
+        if role == "dense":
+            n, d = manifest["dense_shape"]
+            data = data[: manifest["count"] * n * d * 2]
+        out[entry["name"]] = hashlib.sha256(data).hexdigest()
+    return out

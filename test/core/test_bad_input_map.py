@@ -1,0 +1,411 @@
+"""Bad-input matrix, map folders: every file missing, truncated, corrupted, of the wrong schema or
+fingerprint gives a MapError naming it, through PlaceMap.load and LoopClosurePipeline.load_map,
+and no load or failed save changes a byte of the saved map."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import sqlite3
+import struct
+from pathlib import Path
+
+import faiss
+import numpy as np
+import pytest
+import test_place_map_persist as persist_tests
+from bad_input import saved_map_digest, tree_digest
+from test_place_map_persist import DIM, N0, SHAPE, add_range, assert_holds, flip_byte
+
+from pair_vpr_ros.errors import MapError, MapFingerprintError
+from pair_vpr_ros.hashing import sha256_file
+from pair_vpr_ros.pipeline import LoopClosurePipeline
+from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap, dense_store, manifest, persist
+from pair_vpr_ros.place_map.files import LOCK_NAME
+
+
+def _rewrite_manifest(d: Path, edit) -> None:
+    data = json.loads((d / "manifest.json").read_text())
+    edit(data)
+    (d / "manifest.json").write_text(json.dumps(data))
+
+
+def _file(d: Path, role: str) -> Path:
+    return d / json.loads((d / "manifest.json").read_text())["files"][role]["name"]
+
+
+def _replace_checked(d: Path, role: str, content: bytes) -> None:
+    """Overwrite a checksummed file and fix its checksum, to reach the deeper checks."""
+    path = _file(d, role)
+    path.write_bytes(content)
+    size, digest = len(content), sha256_file(path)
+    _rewrite_manifest(d, lambda m: m["files"][role].update(size=size, sha256=digest))
+
+
+def _truncate(d: Path, role: str, keep: float) -> None:
+    path = _file(d, role)
+    os.truncate(path, int(path.stat().st_size * keep))
+
+
+def _sqlite(d: Path, *statements: str) -> None:
+    """Replace the metadata file by a database made of `statements` (checksum fixed)."""
+    tmp = d.parent / "other.sqlite"
+    with sqlite3.connect(tmp) as conn:
+        for sql in statements:
+            conn.execute(sql)
+    conn.close()
+    _replace_checked(d, "meta", tmp.read_bytes())
+
+
+saved = persist_tests.saved  # fixture: a map of N0 keyframes in tmp_path / "map"
+GOOD_TABLE = (
+    "CREATE TABLE keyframes (id INTEGER PRIMARY KEY, stamp REAL NOT NULL, frame_id TEXT NOT "
+    "NULL, source TEXT NOT NULL, x REAL, y REAL, z REAL, qx REAL, qy REAL, qz REAL, qw REAL)"
+)
+
+
+def _rows(count: int, stamp: str = "1.5") -> list[str]:
+    return [
+        f"INSERT INTO keyframes VALUES ({i}, {stamp}, 'cam', 's', NULL, NULL, NULL, NULL, "
+        "NULL, NULL, NULL)"
+        for i in range(count)
+    ]
+
+
+def _faiss_size_field(d: Path, value: int) -> None:
+    """A flat index whose vector-size field (byte 37) claims `value` floats."""
+    data = bytearray(_file(d, "index").read_bytes())
+    data[37:45] = struct.pack("<Q", value)
+    _replace_checked(d, "index", bytes(data))
+
+
+def _faiss(d: Path, index: faiss.Index) -> None:
+    tmp = d.parent / "other.faiss"
+    faiss.write_index(index, str(tmp))
+    _replace_checked(d, "index", tmp.read_bytes())
+
+
+def _flat(dim: int, count: int) -> faiss.Index:
+    index = faiss.IndexFlatIP(dim)
+    index.add(np.eye(max(dim, count), dim, dtype=np.float32)[:count])
+    return index
+
+
+def _crc_values(d: Path) -> None:
+    """CRC32s of other data (size and checksum of the .crc file fixed)."""
+    count = json.loads((d / MANIFEST).read_text())["count"]
+    _replace_checked(d, "dense_crc", np.arange(count, dtype="<u4").tobytes())
+
+
+MANIFEST = "manifest.json"
+CORRUPTIONS = {
+    # ---- manifest
+    "no manifest": (lambda d: (d / MANIFEST).unlink(), r"manifest.json is missing"),
+    "empty manifest": (lambda d: (d / MANIFEST).write_bytes(b""), r"is not valid JSON"),
+    "bad json": (lambda d: (d / MANIFEST).write_text("{oops"), r"is not valid JSON"),
+    "binary manifest": (lambda d: (d / MANIFEST).write_bytes(b"\xff\xfe\x00"), "not valid JSON"),
+    "manifest list": (lambda d: (d / MANIFEST).write_text("[1, 2]"), r"no format field"),
+    "manifest folder": (
+        lambda d: ((d / MANIFEST).unlink(), (d / MANIFEST).mkdir()),
+        r"manifest.json is missing",
+    ),
+    "version": (
+        lambda d: _rewrite_manifest(d, lambda m: m.update(format_version=99)),
+        r"has format_version 99, this version of pair_vpr_ros reads version 1",
+    ),
+    "field": (
+        lambda d: _rewrite_manifest(d, lambda m: m.pop("count")),
+        r"has missing or invalid fields",
+    ),
+    "count text": (
+        lambda d: _rewrite_manifest(d, lambda m: m.update(count="12")),
+        r"invalid fields \(generation/count must be integers >= 0\)",
+    ),
+    "count negative": (
+        lambda d: _rewrite_manifest(d, lambda m: m.update(count=-1)),
+        r"invalid fields \(generation/count must be integers >= 0\)",
+    ),
+    "dense_shape zero": (
+        lambda d: _rewrite_manifest(d, lambda m: m.update(dense_shape=[0, 8])),
+        r"dense_shape entries must be integers > 0",
+    ),
+    "files not a dict": (
+        lambda d: _rewrite_manifest(d, lambda m: m.update(files=[])),
+        r"has missing or invalid fields",
+    ),
+    "file name": (
+        lambda d: _rewrite_manifest(d, lambda m: m["files"]["meta"].update(name="../meta.db")),
+        r"has missing or invalid fields \(bad file name for meta: '../meta.db'\)",
+    ),
+    "index settings": (
+        lambda d: _rewrite_manifest(d, lambda m: m["index"].update(kind="ivf")),
+        r"manifest index settings .* are invalid .*must be one of",
+    ),
+    "more keyframes than stored": (
+        lambda d: _rewrite_manifest(d, lambda m: m.update(count=N0 + 1)),
+        r"index-1.faiss holds 12 vectors, the manifest lists 13",
+    ),
+    # Issue 13 #2: a smaller dense_shape used to truncate the dense file on a writable load.
+    "dense_shape smaller": (
+        lambda d: _rewrite_manifest(d, lambda m: m.update(dense_shape=[2, 8])),
+        r"dense-1.f16 does not match its manifest: keyframe 0 fails its CRC32 check when read "
+        r"as \[2, 8\] float16 tokens .* nothing was changed",
+    ),
+    "dense_shape larger": (
+        lambda d: _rewrite_manifest(d, lambda m: m.update(dense_shape=[8, 8])),
+        r"dense-1.f16 is too short: 768 bytes hold 6 keyframes, the manifest lists 12",
+    ),
+    # ---- every file missing
+    "missing index": (
+        lambda d: _file(d, "index").unlink(),
+        r"index-1.faiss \(index\) listed in .*manifest.json is missing",
+    ),
+    "missing meta": (lambda d: _file(d, "meta").unlink(), r"meta-1.sqlite \(meta\) .* is missing"),
+    "missing crc": (
+        lambda d: _file(d, "dense_crc").unlink(),
+        r"dense-1.crc \(dense_crc\) .* is missing",
+    ),
+    "missing dense": (lambda d: _file(d, "dense").unlink(), r"dense-1.f16 \(dense\) .* missing"),
+    "dense is a folder": (
+        lambda d: (_file(d, "dense").unlink(), _file(d, "dense").mkdir()),
+        r"dense-1.f16 \(dense\) .* is missing",
+    ),
+    # ---- truncated or flipped (checksums)
+    "index truncated": (
+        lambda d: _truncate(d, "index", 0.5),
+        r"index-1.faiss \(index\) does not match its checksum",
+    ),
+    "meta truncated": (
+        lambda d: _truncate(d, "meta", 0.5),
+        r"meta-1.sqlite \(meta\) does not match its checksum",
+    ),
+    "crc truncated": (
+        lambda d: _truncate(d, "dense_crc", 0.5),
+        r"dense-1.crc \(dense_crc\) does not match its checksum",
+    ),
+    "index flipped": (
+        lambda d: flip_byte(d / "index-1.faiss", 40),
+        r"index-1.faiss \(index\) does not match its checksum",
+    ),
+    "meta flipped": (
+        lambda d: flip_byte(d / "meta-1.sqlite", 200),
+        r"meta-1.sqlite \(meta\) does not match its checksum",
+    ),
+    "short dense": (
+        lambda d: os.truncate(d / "dense-1.f16", 11 * 64 + 5),
+        r"dense token file .*dense-1.f16 is too short: 709 bytes hold 11 keyframes",
+    ),
+    "empty dense": (
+        lambda d: os.truncate(d / "dense-1.f16", 0),
+        r"dense-1.f16 is too short: 0 bytes hold 0 keyframes",
+    ),
+    "last dense entry flipped": (
+        lambda d: flip_byte(d / "dense-1.f16", N0 * 64 - 1),
+        r"keyframe 11 fails its CRC32 check when read as \[4, 8\]",
+    ),
+    # ---- checksums fixed: the deeper checks
+    "index garbage": (
+        lambda d: _replace_checked(d, "index", b"garbage" * 10),
+        r"FAISS index .*index-1.faiss could not be read",
+    ),
+    "index empty": (
+        lambda d: _replace_checked(d, "index", b""),
+        r"FAISS index .*index-1.faiss could not be read",
+    ),
+    "faiss absurd size": (
+        lambda d: _faiss_size_field(d, 1 << 35),  # 128 GiB: used to raise MemoryError
+        r"index-1.faiss could not be read \(an array size field exceeds the file size\)",
+    ),
+    "faiss size past file": (
+        lambda d: _faiss_size_field(d, 1 << 20),  # 4 MiB: allocated, then a short read
+        r"index-1.faiss could not be read \(an array size field exceeds the file size\)",
+    ),
+    "faiss other dim": (
+        lambda d: _faiss(d, _flat(DIM + 1, N0)),
+        r"is a IndexFlatIP of dim 9, but the manifest says 'flat' of dim 8",
+    ),
+    "faiss hnsw for flat": (
+        lambda d: _faiss(d, faiss.IndexHNSWFlat(DIM, 4, faiss.METRIC_INNER_PRODUCT)),
+        r"is a IndexHNSWFlat of dim 8, but the manifest says 'flat'",
+    ),
+    "faiss l2": (
+        lambda d: _faiss(d, faiss.IndexFlatL2(DIM)),
+        r"is a IndexFlatL2 of dim 8, but the manifest says 'flat'",
+    ),
+    "faiss fewer vectors": (
+        lambda d: _faiss(d, _flat(DIM, 3)),
+        r"holds 3 vectors, the manifest lists 12",
+    ),
+    "sqlite garbage": (
+        lambda d: _replace_checked(d, "meta", b"not a database" * 100),
+        r"keyframe metadata .*meta-1.sqlite is not a readable SQLite database",
+    ),
+    "sqlite empty file": (
+        lambda d: _replace_checked(d, "meta", b""),
+        r"meta-1.sqlite holds 0 rows \(ids None..None\), the manifest lists 12",
+    ),
+    "sqlite other table": (
+        lambda d: _sqlite(d, "CREATE TABLE notes (t TEXT)"),
+        r"meta-1.sqlite holds 0 rows",
+    ),
+    "sqlite wrong columns": (
+        lambda d: _sqlite(d, "CREATE TABLE keyframes (id INTEGER PRIMARY KEY, stamp REAL)"),
+        r"meta-1.sqlite is not a place map's keyframe table \(columns \['id', 'stamp'\]",
+    ),
+    "sqlite wrong types": (
+        lambda d: _sqlite(d, GOOD_TABLE, *_rows(N0, stamp="'noon'")),
+        r"meta-1.sqlite is not a place map's keyframe table \(12 rows hold values of wrong type",
+    ),
+    "sqlite half a pose": (
+        lambda d: _sqlite(d, GOOD_TABLE, *_rows(N0), "UPDATE keyframes SET x = 1 WHERE id = 3"),
+        r"keyframe table \(1 rows hold values of wrong type",
+    ),
+    "sqlite too many rows": (
+        lambda d: _sqlite(d, GOOD_TABLE, *_rows(N0 + 1)),
+        r"meta-1.sqlite holds 13 rows \(ids 0..12\), the manifest lists 12",
+    ),
+    "sqlite ids with a gap": (
+        lambda d: _sqlite(d, GOOD_TABLE, *_rows(N0), "UPDATE keyframes SET id = 99 WHERE id = 4"),
+        r"holds 12 rows \(ids 0..99\), the manifest lists 12",
+    ),
+    "crc count": (
+        lambda d: _replace_checked(d, "dense_crc", b"\0" * 8),
+        r"dense checksum file .*dense-1.crc holds 2 entries, the manifest lists 12",
+    ),
+    "crc values": (_crc_values, r"dense-1.f16 does not match its manifest: keyframe 0 fails"),
+}
+
+
+@pytest.mark.parametrize("case", list(CORRUPTIONS))
+def test_damaged_map_gives_map_error_and_stays_unchanged(saved: Path, case: str) -> None:
+    damage, message = CORRUPTIONS[case]
+    damage(saved)
+    before = tree_digest(saved)
+    with pytest.raises(MapError, match=message):
+        PlaceMap.load(saved)
+    with pytest.raises(MapError, match=message):  # a failed load released the lock
+        PlaceMap.load(saved, read_only=True)
+    assert tree_digest(saved) == before
+
+
+def test_wrong_fingerprint_is_refused_and_unchanged(saved: Path) -> None:
+    before = tree_digest(saved)
+    with pytest.raises(MapFingerprintError, match="built with model fingerprint 'fp-a'"):
+        PlaceMap.load(saved, expected_fingerprint="fp-b")
+    assert tree_digest(saved) == before
+
+
+def test_unsaved_tail_is_kept_not_truncated(saved: Path) -> None:
+    """A dense file longer than `count` (a session that never saved) is never shrunk."""
+    with PlaceMap.load(saved) as m:
+        add_range(m, N0, N0 + 3)  # appended, never saved
+    size = (saved / "dense-1.f16").stat().st_size
+    assert size == (N0 + 3) * 64
+    with PlaceMap.load(saved) as m:
+        assert (saved / "dense-1.f16").stat().st_size == size
+        assert_holds(m, list(range(N0)))
+        add_range(m, N0, N0 + 1)  # overwrites the first tail entry
+        m.save(saved)
+    with PlaceMap.load(saved, verify_dense=True) as m:
+        assert_holds(m, list(range(N0 + 1)))
+
+
+def _model_map(tiny_model, tmp_path: Path, count: int = 3) -> Path:
+    pipe = LoopClosurePipeline(tiny_model)
+    n, d = tiny_model.num_patches, tiny_model.config.embed_dim
+    rng = np.random.default_rng(0)
+    for i in range(count):
+        pipe.place_map.add(rng.normal(size=512), rng.normal(size=(n, d)), KeyframeMeta(stamp=i))
+    path = pipe.save_map(tmp_path / "map")
+    pipe.close()
+    return path
+
+
+PIPELINE_CASES = {
+    "sqlite wrong columns": "sqlite wrong columns",
+    "faiss absurd size": "faiss absurd size",
+    "crc values": "crc values",
+    "missing manifest": "no manifest",
+}
+
+
+@pytest.mark.parametrize("case", list(PIPELINE_CASES))
+def test_pipeline_load_map_gives_map_error_and_keeps_its_map(tiny_model, tmp_path, case) -> None:
+    path = _model_map(tiny_model, tmp_path)
+    damage, message = CORRUPTIONS[PIPELINE_CASES[case]]
+    message = message.replace("12", "3")
+    damage(path)
+    before = tree_digest(path)
+    pipe = LoopClosurePipeline(tiny_model)
+    pipe.place_map.add(
+        np.ones(512), np.ones((tiny_model.num_patches, 32)), KeyframeMeta(stamp=0.0)
+    )
+    with pytest.raises(MapError, match=message):
+        pipe.load_map(path)
+    assert len(pipe.place_map) == 1  # the map it had is still there
+    pipe.close()
+    assert tree_digest(path) == before
+
+
+def test_pipeline_refuses_a_map_of_other_shapes(tiny_model, tmp_path) -> None:
+    path = _model_map(tiny_model, tmp_path, count=0)
+    _rewrite_manifest(path, lambda m: m.update(dense_shape=[16, 8]))
+    pipe = LoopClosurePipeline(tiny_model)
+    with pytest.raises(MapFingerprintError, match=r"dense tokens of \[16, 8\], this model makes"):
+        pipe.load_map(path)
+    assert len(pipe.place_map) == 0
+    pipe.close()
+    PlaceMap.load(path).close()  # the refused map was closed (its lock released)
+
+
+# ---- Issue 13 #7: a failed save (disk full) leaves no temporary or half-written files
+
+
+def _enospc(*_args, **_kw):
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def _partial_then_enospc(path, *_args, **_kw):
+    Path(path).write_bytes(b"\0" * 100)  # what a full disk leaves: a partial file
+    _enospc()
+
+
+def _copy_then_enospc(_src_fd, dst, _nbytes):
+    _partial_then_enospc(dst)
+
+
+FULL_DISK_AT = {
+    "dense copy": lambda m, mp: mp.setattr(dense_store, "copy_prefix", _copy_then_enospc),
+    "crc": lambda m, mp: mp.setattr(persist, "write_bytes_durably", _partial_then_enospc),
+    "index": lambda m, mp: mp.setattr(m._index, "write", _partial_then_enospc),
+    "meta": lambda m, mp: mp.setattr(m._meta, "save_to", _partial_then_enospc),
+    "manifest": lambda m, mp: mp.setattr(manifest, "write_bytes_durably", _partial_then_enospc),
+    "fsync": lambda m, mp: mp.setattr(persist, "fsync_path", _enospc),
+}
+
+
+FULL_DISK_CASES = [("save_as", "dense copy")] + [
+    (mode, step) for mode in ("append", "save_as", "fresh") for step in list(FULL_DISK_AT)[1:]
+]
+
+
+@pytest.mark.parametrize(("mode", "step"), FULL_DISK_CASES)
+def test_full_disk_save_leaves_nothing_behind(saved, tmp_path, monkeypatch, mode, step) -> None:
+    target = tmp_path / "other" if mode == "save_as" else saved
+    m = PlaceMap(DIM, SHAPE, "fp-a") if mode == "fresh" else PlaceMap.load(saved)
+    start = len(m)
+    add_range(m, start, start + 2)
+    listing = sorted(os.listdir(target)) if target.exists() else [LOCK_NAME]
+    before = saved_map_digest(saved)
+    with monkeypatch.context() as mp:
+        FULL_DISK_AT[step](m, mp)
+        with pytest.raises(MapError, match=r"saving the place map to .* failed .*No space left"):
+            m.save(target)
+    assert saved_map_digest(saved) == before
+    live = m._dense.path.name if m._dense.path.parent == target else None  # moved, not copied
+    assert sorted(n for n in os.listdir(target) if n != live) == [n for n in listing if n != live]
+    m.save(target)  # and the save can be retried
+    m.close()
+    with PlaceMap.load(target) as again:
+        assert_holds(again, list(range(start + 2)))

@@ -1,0 +1,75 @@
+"""Bad-input matrix, parameter files: whatever the file holds, `read_params_file` gives a
+ConfigError naming the file and the problem (the replay's --params-file prints it as `error:`)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.params import read_params_file
+
+
+def section(body: str) -> str:
+    return "/**:\n  ros__parameters:\n" + "".join(f"    {line}\n" for line in body.splitlines())
+
+
+LAYOUT = "see config/vpr_node.yaml: '/**:' or 'vpr_node:', then 'ros__parameters:'"
+CASES = {
+    "empty": (b"", f"is empty ({LAYOUT})"),
+    "comments only": (b"# nothing\n", "is empty"),
+    "binary": (b"\x89PNG\r\n\x1a\n\x00\x00\xff", "is not a text (UTF-8) file (invalid start byte"),
+    "utf-16": ("top_k: 3".encode("utf-16"), "is not a text (UTF-8) file"),
+    "top-level list": (b"- 1\n- 2\n", "holds a list at the top level, not a mapping"),
+    "top-level string": (b"hello\n", "holds a str at the top level, not a mapping"),
+    "top-level number": (b"3.5\n", "holds a float at the top level"),
+    "bad yaml": (b"/**: [unclosed\n", "cannot read parameter file"),
+    "tab indent": (b"/**:\n\tros__parameters: {}\n", "cannot read parameter file"),
+    "no section": (b"other_node:\n  ros__parameters: {}\n", "has no '/**:' or 'vpr_node:'"),
+    "section is a number": (b"/**: 3\n", "has no '/**:' or 'vpr_node:' section"),
+    "no ros__parameters": (b"/**:\n  top_k: 3\n", "has no '/**:' or 'vpr_node:' section"),
+    "ros__parameters list": (
+        b"/**:\n  ros__parameters:\n    - top_k\n    - 3\n",
+        "ros__parameters holds a list, not a mapping of parameter names to values",
+    ),
+    "ros__parameters string": (
+        b"vpr_node:\n  ros__parameters: top_k=3\n",
+        "ros__parameters holds a str, not a mapping",
+    ),
+    "unknown name": (section("topk: 3").encode(), "unknown parameter 'topk'"),
+    "number key": (section("3: 4").encode(), "unknown parameter 3"),
+    "string for int": (section('top_k: "3"').encode(), "top_k must be an integer, got '3'"),
+    "bool for int": (section("top_k: true").encode(), "top_k must be an integer, got True"),
+    "float for int": (section("top_k: 3.5").encode(), "top_k must be an integer, got 3.5"),
+    "list value": (section("top_k: [1, 2]").encode(), "top_k must be an integer, got [1, 2]"),
+    "nan": (section("score_threshold: .nan").encode(), "score_threshold must be a finite number"),
+    "inf": (section("exclude_recent_s: .inf").encode(), "exclude_recent_s must be a finite"),
+    "out of range": (section("top_k: -4").encode(), "top_k=-4 is out of range [0, 1000]"),
+    "bad choice": (section("mode: slam").encode(), "mode='slam' must be one of mapping"),
+    "image size": (section("image_size: 300").encode(), "image_size=300 must be 0 or a multiple"),
+    "zero pixel limit": (
+        section("max_image_pixels: 0").encode(),
+        "max_image_pixels=0 is out of range [1, 1073741824]",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_bad_params_file(tmp_path: Path, case: str) -> None:
+    content, message = CASES[case]
+    path = tmp_path / "params.yaml"
+    path.write_bytes(content)
+    with pytest.raises(ConfigError, match=re.escape(message)) as info:
+        read_params_file(path)
+    assert str(path) in str(info.value)
+
+
+@pytest.mark.parametrize("kind", ["missing", "folder"])
+def test_params_file_that_is_not_a_file(tmp_path: Path, kind: str) -> None:
+    path = tmp_path / "params.yaml"
+    if kind == "folder":
+        path.mkdir()
+    with pytest.raises(ConfigError, match=re.escape(f"cannot read parameter file {path}")):
+        read_params_file(path)

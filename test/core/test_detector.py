@@ -1,0 +1,179 @@
+"""Decision logic, with hand-made candidates and scores (no network)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pair_vpr_ros.detector import (
+    Candidate,
+    DetectorConfig,
+    LoopDetector,
+    preset,
+    rank_by_pair_score,
+)
+from pair_vpr_ros.errors import ConfigError
+
+
+def cands(*sims):
+    return [
+        Candidate(
+            id=10 + i, stamp=float(i), frame_id="cam", global_similarity=s, rank_before=i + 1
+        )
+        for i, s in enumerate(sims)
+    ]
+
+
+def scorer(*scores):
+    return lambda cs: np.array(scores[: len(cs)], dtype=np.float32)
+
+
+def test_rerank_picks_best_pair_score_and_keeps_global_rank():
+    det = LoopDetector(DetectorConfig(score_threshold=1.0))
+    rec = det.decide(100.0, "cam", cands(0.9, 0.8, 0.7), scorer(0.5, 3.0, 2.0))
+    fields = rec.to_dict()
+    assert math.isnan(fields.pop("inlier_ratio"))
+    pose = {k: fields.pop(k) for k in ("tx", "ty", "tz", "qx", "qy", "qz", "qw")}
+    assert all(math.isnan(v) for v in pose.values())  # no relative pose from the detector
+    assert fields == dict(
+        query_id=-1,
+        query_stamp=100.0,
+        query_frame_id="cam",
+        match_id=11,
+        match_stamp=1.0,
+        match_frame_id="cam",
+        pair_score=3.0,
+        global_similarity=0.8,
+        rank_before=2,
+        rank_after=1,
+        inliers=-1,
+        accepted=True,
+        reason="",
+        pose_status="",
+        pose_reason="",
+        pose_inliers=-1,
+        covariance=(),
+    )
+
+
+def test_rank_by_pair_score_orders_best_first_and_keeps_global_order_on_ties():
+    ranked = rank_by_pair_score(cands(0.9, 0.8, 0.7, 0.6), np.array([1.0, 2.0, 1.0, 2.0]))
+    assert [(c.id, c.pair_score, c.rank_before) for c in ranked] == [
+        (11, 2.0, 2),
+        (13, 2.0, 4),
+        (10, 1.0, 1),
+        (12, 1.0, 3),
+    ]
+    with pytest.raises(ValueError):
+        rank_by_pair_score(cands(0.9, 0.8), np.array([1.0]))  # one score per candidate
+
+
+def test_below_threshold_is_rejected_with_reason():
+    rec = LoopDetector(DetectorConfig(score_threshold=5.0)).decide(
+        1.0, "cam", cands(0.9, 0.8), scorer(1.0, 4.0)
+    )
+    assert (rec.accepted, rec.reason, rec.match_id, rec.pair_score) == (
+        False,
+        "score below threshold",
+        11,
+        4.0,
+    )
+
+
+def test_global_floor_skips_reranking():
+    def never(_):
+        raise AssertionError("re-ranking must not run below the floor")
+
+    rec = LoopDetector(DetectorConfig(global_floor=0.95)).decide(1.0, "c", cands(0.9), never)
+    assert (rec.accepted, rec.reason, rec.match_id) == (False, "below global floor", 10)
+    assert math.isnan(rec.pair_score)
+
+
+def test_no_candidates_gives_no_record():
+    assert LoopDetector().decide(1.0, "c", [], scorer()) is None
+
+
+def test_temporal_consistency_needs_agreeing_consecutive_queries():
+    det = LoopDetector(DetectorConfig(temporal_consistency=3, temporal_tolerance=2))
+    reasons = []
+    for match in (50, 51, 90, 91, 92, 93):
+        cs = [Candidate(match, 0.0, "c", 0.9, 1)]
+        rec = det.decide(1.0, "c", cs, scorer(1.0))
+        reasons.append(rec.reason or "accepted")
+    assert reasons == [
+        "awaiting temporal consistency (1/3)",
+        "awaiting temporal consistency (2/3)",
+        "awaiting temporal consistency (1/3)",
+        "awaiting temporal consistency (2/3)",
+        "accepted",
+        "accepted",
+    ]
+
+
+def test_geometric_verification_gate():
+    det = LoopDetector(DetectorConfig(geometric_verification=True, min_inliers=20))
+    rec = det.decide(1.0, "c", cands(0.9), scorer(1.0), verify=lambda _id: (12, 0.3))
+    assert (rec.accepted, rec.inliers, rec.reason) == (
+        False,
+        12,
+        "geometric verification failed (12 inliers)",
+    )
+    rec = det.decide(1.0, "c", cands(0.9), scorer(1.0), verify=lambda _id: (40, 0.6))
+    assert (rec.accepted, rec.inliers, rec.inlier_ratio) == (True, 40, 0.6)
+
+
+@pytest.mark.parametrize(
+    "stamps,query,expected",
+    [
+        ([0.0, 1.0, 2.0, 50.0, 51.0], 60.0, 2),  # newest 2 are within 30 s
+        ([0.0, 1.0, 2.0], 10.0, None),  # everything recent
+        ([0.0, 100.0, 101.0, 102.0], 103.0, 0),
+        ([], 5.0, None),
+    ],
+)
+def test_recent_keyframes_are_excluded(stamps, query, expected):
+    det = LoopDetector(DetectorConfig(exclude_recent_s=30.0, exclude_recent_keyframes=0))
+    assert det.eligible_max_id(query, stamps) == expected
+
+
+def test_keyframe_gap_excludes_newest_ids():
+    det = LoopDetector(DetectorConfig(exclude_recent_s=0.0, exclude_recent_keyframes=3))
+    assert det.eligible_max_id(100.0, [0.0, 1.0, 2.0, 3.0, 4.0]) == 1
+
+
+def test_keyframe_selection_by_similarity():
+    det = LoopDetector(DetectorConfig(keyframe_max_similarity=0.9))
+    assert det.is_new_keyframe(None) and det.is_new_keyframe(0.89)
+    assert not det.is_new_keyframe(0.9)
+
+
+@pytest.mark.parametrize(
+    "changes,message",
+    [
+        (dict(top_k=0), "detector top_k=0 must be >= 1"),
+        (dict(mode="slam"), "detector mode='slam' must be one of ('mapping', 'localization')"),
+        (dict(score_threshold=float("nan")), "detector score_threshold=nan must be a finite"),
+        (dict(temporal_consistency=0), "temporal_consistency=0 must be >= 1"),
+    ],
+)
+def test_bad_config_is_refused(changes, message):
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        DetectorConfig(**changes)
+
+
+def test_presets():
+    assert preset("performance").top_k == 100
+    assert preset("speed", top_k=5).top_k == 5
+    with pytest.raises(ConfigError, match="unknown preset 'fast': choose one of speed, perf"):
+        preset("fast")
+
+
+def test_verification_without_features_rejects():
+    det = LoopDetector(DetectorConfig(geometric_verification=True))
+    rec = det.decide(1.0, "c", cands(0.9), scorer(1.0), verify=lambda _id: (-1, float("nan")))
+    assert (rec.accepted, rec.reason) == (
+        False,
+        "geometric verification impossible (no features for the match)",
+    )

@@ -1,0 +1,108 @@
+"""loop_factor: a loop's between-factor and its nav_msgs/Odometry encoding, round trips."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+from rosbags.typesys import Stores, get_typestore
+
+from pair_vpr_ros import loop_factor as lf
+from pair_vpr_ros.detector import LoopRecord
+
+TS = get_typestore(Stores.ROS2_JAZZY)
+COV = tuple(float(v) for v in np.diag([0.01, 0.02, 0.03, 1e-4, 2e-4, 3e-4]).ravel())
+
+
+def posed_record(**over) -> LoopRecord:
+    fields = dict(
+        query_id=40, query_stamp=1700000012.25, query_frame_id="cam_q", match_id=3,
+        match_stamp=1700000001.5, match_frame_id="cam_m", pair_score=2.0, global_similarity=0.9,
+        rank_before=1, rank_after=1, accepted=True, pose_status="metric", pose_inliers=88,
+        tx=0.5, ty=-0.1, tz=2.0, qx=0.0, qy=math.sin(0.2), qz=0.0, qw=math.cos(0.2),
+        covariance=COV,
+    )  # fmt: skip
+    return LoopRecord(**{**fields, **over})
+
+
+def test_factor_from_record_needs_an_accepted_loop_with_a_pose():
+    factor = lf.factor_from_record(posed_record())
+    assert factor is not None and factor.metric and factor.inliers == 88
+    assert (factor.query_id, factor.match_id) == (40, 3)
+    assert factor.translation == (0.5, -0.1, 2.0) and factor.covariance == COV
+    assert lf.factor_from_record(posed_record(accepted=False)) is None
+    assert lf.factor_from_record(posed_record(pose_status="", covariance=())) is None
+    scale_free = lf.factor_from_record(posed_record(pose_status="scale-free"))
+    assert scale_free is not None and not scale_free.metric
+
+
+def test_factor_from_a_json_dict_equals_the_one_from_the_record():
+    from pair_vpr_ros.loop_messages import record_dict
+
+    record = posed_record()
+    assert lf.factor_from_record(record_dict(record)) == lf.factor_from_record(record)
+
+
+@pytest.mark.parametrize("status", ["metric", "scale-free"])
+def test_odometry_message_round_trip_through_cdr(status):
+    factor = lf.factor_from_record(posed_record(pose_status=status))
+    msg = lf.factor_msg(factor, TS.types)
+    assert msg.__msgtype__ == lf.FACTOR_TYPE
+    back = TS.deserialize_cdr(TS.serialize_cdr(msg, lf.FACTOR_TYPE), lf.FACTOR_TYPE)
+    assert (back.header.stamp.sec, back.header.stamp.nanosec) == (1700000012, 250000000)
+    assert (back.twist.twist.linear.x, back.twist.twist.linear.y) == (1700000001.0, 5e8)
+    assert back.header.frame_id == "cam_m" and back.child_frame_id == "cam_q"
+    assert back.twist.twist.linear.z == (1.0 if status == "metric" else 2.0)
+    assert back.twist.covariance.tolist() == [0.0] * 36
+    assert lf.factor_from_msg(back) == factor
+
+
+def test_a_message_that_is_not_a_factor_is_refused():
+    msg = lf.factor_msg(lf.factor_from_record(posed_record()), TS.types)
+    msg.twist.twist.linear.z = 0.0  # e.g. a real odometry message on the wrong topic
+    with pytest.raises(ValueError, match="not a loop_closure/factor message: .* status code 0.0"):
+        lf.factor_from_msg(msg)
+
+
+def test_split_stamp_rounds_to_the_nearest_nanosecond():
+    assert lf.split_stamp(1700000001.5) == (1700000001, 500000000)
+    assert lf.split_stamp(12.9999999999) == (13, 0)
+    assert lf.split_stamp(0.0) == (0, 0)
+
+
+def test_matrix_maps_query_points_into_the_match_frame():
+    factor = lf.factor_from_record(posed_record())
+    t = factor.matrix()
+    expected_r = cv2.Rodrigues(np.array([0.0, 0.4, 0.0]))[0]  # 0.4 rad about y
+    np.testing.assert_allclose(t[:3, :3], expected_r, atol=1e-12)
+    np.testing.assert_allclose(t @ [0, 0, 0, 1], [0.5, -0.1, 2.0, 1.0])
+
+
+def test_gtsam_covariance_is_the_right_perturbation_in_the_query_frame():
+    factor = lf.factor_from_record(posed_record())
+    r, t = factor.matrix()[:3, :3], factor.matrix()[:3, 3]
+    rng = np.random.default_rng(0)
+    a = np.zeros((6, 6))  # numerical Jacobian d xi / d (d_t, d_rot) at 0
+    eps = 1e-6
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = eps
+        r_true = cv2.Rodrigues(d[3:])[0] @ r
+        t_true = t + d[:3]
+        m = r.T @ r_true  # rotation error in the query frame; its Log to first order:
+        omega = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]]) / 2
+        v = r.T @ (t_true - t)
+        a[:, k] = np.r_[omega, v] / eps
+    cov = np.asarray(COV).reshape(6, 6) + 0.001 * np.diag(rng.random(6))
+    factor = lf.LoopFactor(**{**factor.__dict__, "covariance": tuple(cov.ravel())})
+    np.testing.assert_allclose(factor.gtsam_covariance(), a @ cov @ a.T, rtol=1e-5, atol=1e-12)
+
+
+def test_factor_msg_works_on_plain_constructors():
+    """Any classes taking the fields as keywords (rclpy's do) build the same message."""
+    types = {name: SimpleNamespace for name in lf.FACTOR_MSG_TYPES}
+    msg = lf.factor_msg(lf.factor_from_record(posed_record()), types)
+    assert lf.factor_from_msg(msg) == lf.factor_from_record(posed_record())

@@ -1,0 +1,100 @@
+"""loop_messages: the plain-data content of the node's loop-closure messages."""
+
+from __future__ import annotations
+
+import json
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from pair_vpr_ros import loop_messages as lm
+
+
+def _record(**over):
+    fields = dict(
+        query_id=12, query_stamp=1700000123.456789, query_frame_id="cam_front", match_id=3,
+        match_stamp=1700000001.25, match_frame_id="cam_front", pair_score=2.75,
+        global_similarity=0.8125, rank_before=2, rank_after=0, inliers=-1,
+        inlier_ratio=float("nan"), accepted=True, reason="", pose_status="", pose_reason="",
+        pose_inliers=-1, tx=NAN, ty=NAN, tz=NAN, qx=NAN, qy=NAN, qz=NAN, qw=NAN, covariance=(),
+    )  # fmt: skip
+    return SimpleNamespace(**{**fields, **over})
+
+
+NAN = float("nan")
+COV = tuple(float(i) for i in range(36))
+
+
+def _posed(**over):
+    """An accepted record with a metric pose."""
+    pose = dict(
+        pose_status="metric", pose_inliers=57, tx=1.5, ty=-0.25, tz=3.0, qx=0.0, qy=0.6,
+        qz=0.0, qw=0.8, covariance=COV,
+    )  # fmt: skip
+    return _record(**{**pose, **over})
+
+
+def test_pair_is_exactly_two_stamps():
+    assert lm.pair_data(_record()) == [1700000123.456789, 1700000001.25]
+
+
+def test_detail_layout_and_values():
+    assert lm.NUMERIC_FIELDS == (
+        "query_id", "query_stamp", "match_id", "match_stamp", "pair_score", "global_similarity",
+        "rank_before", "rank_after", "inliers", "inlier_ratio", "accepted", "pose_inliers",
+        "tx", "ty", "tz", "qx", "qy", "qz", "qw",
+    )  # fmt: skip
+    assert lm.DETAIL_LABELS[19:22] == ("pose_status", "cov_00", "cov_01")
+    assert lm.DETAIL_LABELS[-1] == "cov_55" and len(lm.DETAIL_LABELS) == 20 + 36
+    data = lm.detail_data(_record(accepted=False, inlier_ratio=0.5))
+    assert data[:12] == [
+        12.0, 1700000123.456789, 3.0, 1700000001.25, 2.75, 0.8125, 2.0, 0.0, -1.0, 0.5, 0.0, -1.0,
+    ]  # fmt: skip
+    assert all(math.isnan(v) for v in data[12:19] + data[20:]) and data[19] == 0.0
+    assert lm.detail_to_dict(lm.DETAIL_LABELS, data)["accepted"] == 0.0
+    posed = lm.detail_to_dict(lm.DETAIL_LABELS, lm.detail_data(_posed()))
+    assert (posed["pose_status"], posed["pose_inliers"], posed["tz"]) == (1.0, 57.0, 3.0)
+    assert (posed["cov_00"], posed["cov_12"], posed["cov_55"]) == (0.0, 8.0, 35.0)
+    scale_free = lm.detail_to_dict(
+        lm.DETAIL_LABELS, lm.detail_data(_posed(pose_status="scale-free"))
+    )
+    assert scale_free["pose_status"] == 2.0
+    with pytest.raises(ValueError, match="detail message has 56 labels but 2 values"):
+        lm.detail_to_dict(lm.DETAIL_LABELS, [1.0, 2.0])
+
+
+def test_json_has_every_field_in_order():
+    record = _record(pair_score=np.float32(2.5), accepted=np.bool_(True), query_id=np.int64(12))
+    decoded = json.loads(lm.record_json(record))
+    assert list(decoded) == list(lm.LOOP_RECORD_FIELDS)
+    assert decoded["query_id"] == 12 and decoded["pair_score"] == 2.5
+    assert decoded["accepted"] is True and decoded["inlier_ratio"] is None
+    assert decoded["query_frame_id"] == "cam_front" and decoded["reason"] == ""
+    assert decoded["covariance"] is None and decoded["tx"] is None
+    posed = json.loads(lm.record_json(_posed()))
+    assert posed["covariance"] == list(COV) and posed["qy"] == 0.6
+    assert posed["pose_status"] == "metric" and posed["pose_inliers"] == 57
+
+
+def test_csv_row_puts_the_covariance_in_one_cell():
+    row = lm.csv_row(_posed())
+    assert len(row) == len(lm.LOOP_RECORD_FIELDS)
+    assert row[-1].split() == [repr(v) for v in COV]
+    assert lm.csv_row(_record())[-1] == ""
+
+
+def test_loop_messages_bundle():
+    msgs = lm.loop_messages(_record())
+    assert msgs.pair == lm.pair_data(_record())
+    assert msgs.detail_labels == lm.DETAIL_LABELS and len(msgs.detail) == 56
+    assert json.loads(msgs.json)["match_id"] == 3
+    assert msgs.factor is None  # no pose, no factor
+    assert lm.loop_messages(_posed()).factor == lm.factor_from_record(_posed())
+
+
+def test_field_order_matches_loop_record():
+    from pair_vpr_ros.detector import LoopRecord
+
+    assert list(lm.LOOP_RECORD_FIELDS) == LoopRecord.field_names()

@@ -1,0 +1,164 @@
+"""The pipeline's relative poses: features stored in the map, poses for accepted loops only,
+counted input problems, maps saved with and without features (tiny random network, exact
+repeats as loops, see exact_match.py)."""
+
+from __future__ import annotations
+
+import sqlite3
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from exact_match import EXACT_MATCH
+
+from pair_vpr_ros.detector import DetectorConfig
+from pair_vpr_ros.geometry.camera import CameraModel
+from pair_vpr_ros.geometry.keyframes import GeometryConfig
+from pair_vpr_ros.hashing import sha256_file
+from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
+from pair_vpr_ros.place_map.manifest import MANIFEST_NAME
+
+H, W = 120, 160
+CAMERA = CameraModel(W, H, 100.0, 100.0, 79.5, 59.5)
+DEPTH = np.full((H, W), 4.0, np.float32)  # a wall 4 m in front of the camera
+
+
+@pytest.fixture
+def model(tiny_model):
+    return tiny_model
+
+
+def textured(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    img = np.full((H, W, 3), 90, np.uint8)
+    for _ in range(80):
+        x, y = (int(v) for v in rng.integers(0, (W, H)))
+        w, h = (int(v) for v in rng.integers(4, 20, 2))
+        cv2.rectangle(img, (x, y), (x + w, y + h), [int(c) for c in rng.integers(0, 256, 3)], -1)
+    return img
+
+
+PLACES = [textured(s) for s in range(4)]
+
+
+def frames(order, **extra) -> list[Frame]:
+    return [Frame(float(t), PLACES[p], "cam", **extra) for t, p in enumerate(order)]
+
+
+def accepted(outcomes):
+    return [o.loop for o in outcomes if o.loop is not None and o.loop.accepted]
+
+
+def pipeline(model, **geometry) -> LoopClosurePipeline:
+    return LoopClosurePipeline(
+        model, DetectorConfig(**EXACT_MATCH), geometry=GeometryConfig(**geometry)
+    )
+
+
+def test_a_revisit_with_depth_gets_a_metric_identity_pose(model):
+    pipe = pipeline(model)
+    out = list(pipe.process_many(frames([0, 1, 2, 3, 0], depth=DEPTH, camera=CAMERA)))
+    (loop,) = accepted(out)
+    assert (loop.query_id, loop.match_id, loop.pose_status, loop.pose_reason) == (
+        4,
+        0,
+        "metric",
+        "",
+    )
+    assert abs(loop.tx) + abs(loop.ty) + abs(loop.tz) < 1e-3 and loop.qw == pytest.approx(1.0)
+    assert loop.pose_inliers >= 30 and len(loop.covariance) == 36
+    assert np.all(np.isfinite(loop.covariance))
+    assert "pose" in out[4].timings_ms and "pose" not in out[3].timings_ms  # accepted loops only
+    assert "features" in out[0].timings_ms
+    assert pipe.counts.pose_metric == 1
+    assert pipe.place_map.feature_stats()[0] == 5  # every keyframe's features are kept
+
+
+@pytest.mark.parametrize(
+    ("extra", "count", "reason"),
+    [
+        (dict(depth=DEPTH), None, "no intrinsics for the query keyframe (no camera_info"),
+        (dict(depth=DEPTH, camera=replace(CAMERA, width=320)), "intrinsics_wrong_size",
+         "no intrinsics for the query keyframe"),
+        (dict(depth=DEPTH[:60], camera=CAMERA), "depth_wrong_size", "degenerate motion: "),
+    ],
+)  # fmt: skip
+def test_bad_inputs_give_reasons_and_counts_not_poses(model, extra, count, reason):
+    pipe = pipeline(model)
+    (loop,) = accepted(pipe.process_many(frames([0, 1, 2, 0], **extra)))
+    assert loop.pose_status == "" and loop.pose_reason.startswith(reason), loop.pose_reason
+    assert loop.covariance == () and np.isnan(loop.tx)
+    if count:
+        assert getattr(pipe.counts, count) == 4
+    assert pipe.counts.pose_none == 1
+
+
+def test_without_depth_a_revisit_from_the_same_spot_is_degenerate(model):
+    # The same image twice: no parallax, so no translation direction (and no made-up one).
+    (loop,) = accepted(pipeline(model).process_many(frames([0, 1, 2, 0], camera=CAMERA)))
+    assert loop.pose_status == "" and loop.pose_reason.startswith("degenerate motion")
+
+
+def test_relative_pose_off_extracts_nothing(model):
+    pipe = pipeline(model, relative_pose=False)
+    out = list(pipe.process_many(frames([0, 1, 2, 0], depth=DEPTH, camera=CAMERA)))
+    (loop,) = accepted(out)
+    assert loop.pose_status == "" and loop.pose_reason == "" and loop.pose_inliers == -1
+    assert all("features" not in o.timings_ms for o in out)
+    assert pipe.place_map.feature_stats() == (0, 0)
+
+
+def test_geometric_verification_uses_the_stored_features(model):
+    config = DetectorConfig(**EXACT_MATCH, geometric_verification=True, min_inliers=20)
+    pipe = LoopClosurePipeline(model, config, geometry=GeometryConfig(relative_pose=False))
+    (loop,) = accepted(pipe.process_many(frames([0, 1, 2, 0])))
+    assert loop.inliers >= 20 and loop.inlier_ratio > 0.9
+
+
+def test_poses_after_save_and_load_come_from_the_features_on_disk(model, tmp_path: Path):
+    first = pipeline(model)
+    list(first.process_many(frames([0, 1, 2], depth=DEPTH, camera=CAMERA)))
+    first.save_map(tmp_path / "map")
+    first.close()
+    second = pipeline(model)
+    second.load_map(tmp_path / "map")
+    later = frames([3, 0], depth=DEPTH, camera=CAMERA)
+    for i, f in enumerate(later):
+        f.stamp = 10.0 + i
+    (loop,) = accepted(second.process_many(later))
+    assert (loop.match_id, loop.pose_status) == (0, "metric")
+    second.close()
+
+
+def strip_features(map_dir: Path) -> None:
+    """Make a saved map look like one saved before features were kept (old format)."""
+    import json
+
+    manifest = json.loads((map_dir / MANIFEST_NAME).read_text())
+    meta = map_dir / manifest["files"]["meta"]["name"]
+    with sqlite3.connect(meta) as conn:
+        conn.execute("DROP TABLE features")
+    conn.close()
+    manifest["files"]["meta"].update(size=meta.stat().st_size, sha256=sha256_file(meta))
+    (map_dir / MANIFEST_NAME).write_text(json.dumps(manifest))
+
+
+def test_an_old_map_without_features_loads_and_poses_come_for_new_keyframes(model, tmp_path):
+    first = pipeline(model)
+    list(first.process_many(frames([0, 1], depth=DEPTH, camera=CAMERA)))
+    first.save_map(tmp_path / "map")
+    first.close()
+    strip_features(tmp_path / "map")
+    pipe = pipeline(model)
+    assert pipe.load_map(tmp_path / "map") == 2
+    assert pipe.place_map.feature_stats() == (0, 0)
+    later = [replace(f, stamp=10.0 + i) for i, f in
+             enumerate(frames([2, 3, 0, 2], depth=DEPTH, camera=CAMERA))]  # fmt: skip
+    old, new = accepted(pipe.process_many(later))
+    assert (old.match_id, old.pose_status) == (0, "")
+    assert old.pose_reason.startswith("match keyframe has no features (kept only for keyframes")
+    assert (new.match_id, new.pose_status) == (2, "metric")  # added after the load
+    pipe.save_map(tmp_path / "map")  # and it saves in the current format
+    pipe.close()

@@ -1,0 +1,138 @@
+"""Relative pose on rendered demo views with known poses, and every bad input's reason."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from pair_vpr_ros.demo import generate_world
+from pair_vpr_ros.demo.camera import Camera
+from pair_vpr_ros.demo.views import camera_model, pose_errors, render_keyframe, true_relative_pose
+from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.geometry import PoseConfig, extract_features, relative_pose
+from pair_vpr_ros.geometry.covariance import SCALE_FREE_VARIANCE
+from pair_vpr_ros.geometry.features import empty_features
+
+CAM = Camera()
+MODEL = camera_model(CAM)
+
+
+@pytest.fixture(scope="module")
+def views():
+    """A revisit (query on lap 1, match on lap 0: other lighting, 1-3 m and 10-25 deg away) and
+    the true T_match_query."""
+    world = generate_world(5)
+    q, m = next((q, m) for q, m in world.revisit_pairs() if q % (world.num_frames // 3) == 60)
+    (rq, dq), (rm, dm) = render_keyframe(world, q), render_keyframe(world, m)
+    truth = true_relative_pose(world.poses[m], world.poses[q], CAM)
+    return rq, dq, rm, dm, truth
+
+
+def as_matrix(pose) -> np.ndarray:
+    t = np.eye(4)
+    t[:3, :3], t[:3, 3] = pose.rotation, pose.translation
+    return t
+
+
+def test_metric_pose_from_the_match_depth(views):
+    rq, _, rm, dm, truth = views
+    assert (
+        np.linalg.norm(truth[:3, 3]) > 1.0
+        and math.degrees(math.acos((np.trace(truth[:3, :3]) - 1) / 2)) > 5
+    )  # a real viewpoint change
+    pose = relative_pose(extract_features(rq, camera=MODEL),
+                         extract_features(rm, depth=dm, camera=MODEL))  # fmt: skip
+    assert (pose.status, pose.reason) == ("metric", "")
+    rot, trans, _ = pose_errors(as_matrix(pose), truth)
+    assert rot < 0.5 and trans < 0.15 and pose.inliers >= 30
+    cov = pose.covariance
+    assert cov.shape == (6, 6) and np.allclose(cov, cov.T) and np.linalg.eigvalsh(cov)[0] > 0
+    assert np.sqrt(cov[0, 0]) < 0.3 and np.degrees(np.sqrt(cov[3, 3])) < 1.0
+    fields = pose.record_fields()
+    assert fields["pose_status"] == "metric" and len(fields["covariance"]) == 36
+    assert math.isclose(sum(fields[k] ** 2 for k in ("qx", "qy", "qz", "qw")), 1.0)
+
+
+def test_metric_pose_from_the_query_depth_when_the_match_has_none(views):
+    rq, dq, rm, _, truth = views
+    pose = relative_pose(extract_features(rq, depth=dq, camera=MODEL),
+                         extract_features(rm, camera=MODEL))  # fmt: skip
+    assert pose.status == "metric"
+    rot, trans, _ = pose_errors(as_matrix(pose), truth)
+    assert rot < 0.5 and trans < 0.15
+
+
+def test_scale_free_pose_without_depth(views):
+    rq, _, rm, _, truth = views
+    pose = relative_pose(extract_features(rq, camera=MODEL), extract_features(rm, camera=MODEL))
+    assert pose.status == "scale-free"
+    assert pose.reason == "no depth image (monocular): the translation is a direction only"
+    rot, _, direction = pose_errors(as_matrix(pose), truth)
+    assert rot < 2.0 and direction < 10.0
+    assert np.linalg.norm(pose.translation) == pytest.approx(1.0)
+    np.testing.assert_array_equal(pose.covariance[:3, :3], np.eye(3) * SCALE_FREE_VARIANCE)
+    assert 0 < pose.covariance[3, 3] < 1e-3 and not pose.covariance[:3, 3:].any()
+
+
+@pytest.mark.parametrize("bad", ["zeros", "nan"])
+def test_depth_without_values_gives_a_scale_free_pose_with_the_reason(views, bad):
+    rq, _, rm, dm, _ = views
+    empty = np.zeros_like(dm) if bad == "zeros" else np.full_like(dm, np.nan)
+    pose = relative_pose(extract_features(rq, camera=MODEL),
+                         extract_features(rm, depth=empty, camera=MODEL))  # fmt: skip
+    assert pose.status == "scale-free"
+    assert pose.reason.startswith("no depth at the keypoints (0 of ")
+
+
+def test_missing_inputs_give_reasons_not_poses(views):
+    rq, _, rm, dm, _ = views
+    q = extract_features(rq, camera=MODEL)
+    m = extract_features(rm, depth=dm, camera=MODEL)
+    cases = [
+        (q, None, "match keyframe has no features (kept only for keyframes added since"),
+        (None, m, "query keyframe has no features"),
+        (replace(q, camera=None), m, "no intrinsics for the query keyframe (no camera_info"),
+        (q, replace(m, camera=None), "no intrinsics for the match keyframe"),
+        (q, extract_features(rm, "orb", camera=MODEL), "feature kinds differ (query sift, match"),
+        (q, replace(empty_features(), camera=MODEL), "the match image has no keypoints"),
+        (
+            q,
+            replace(m, keypoints=m.keypoints[:9], descriptors=m.descriptors[:9], depth=None),
+            "too few feature matches (",
+        ),
+    ]
+    for a, b, reason in cases:
+        pose = relative_pose(a, b)
+        assert pose.status == "" and pose.reason.startswith(reason), pose.reason
+        assert pose.rotation is None and pose.record_fields() == dict(
+            pose_status="", pose_reason=pose.reason, pose_inliers=pose.inliers
+        )
+
+
+def test_unrelated_places_get_no_metric_pose():
+    world = generate_world(6)
+    (ra, _), (rb, db) = render_keyframe(world, 10), render_keyframe(world, 90)
+    pose = relative_pose(extract_features(ra, camera=MODEL),
+                         extract_features(rb, depth=db, camera=MODEL))  # fmt: skip
+    assert pose.status == "" and pose.reason.startswith("too few"), pose.reason
+
+
+def test_orb_features_also_give_a_metric_pose(views):
+    rq, _, rm, dm, truth = views
+    pose = relative_pose(extract_features(rq, "orb", camera=MODEL),
+                         extract_features(rm, "orb", depth=dm, camera=MODEL))  # fmt: skip
+    assert pose.status == "metric"
+    rot, trans, _ = pose_errors(as_matrix(pose), truth)
+    assert rot < 1.0 and trans < 0.3
+
+
+def test_pose_config_checks_its_values():
+    with pytest.raises(ConfigError, match="pose ratio=1.5 must be in"):
+        PoseConfig(ratio=1.5)
+    with pytest.raises(ConfigError, match="pose ransac_px=0 must be > 0"):
+        PoseConfig(ransac_px=0)
+    with pytest.raises(ConfigError, match="min_inliers must be >= 6"):
+        PoseConfig(min_inliers=3)

@@ -1,0 +1,272 @@
+"""Bad-input matrix, `pairvpr-bag-replay` command line: every numeric flag, parameter files,
+output folders (a file, read-only, disk full at each write) and map folders (an existing map,
+another model's, a folder of other files, a map open elsewhere). Each case checks the exit code,
+the `error:` line and that no saved map changed."""
+
+from __future__ import annotations
+
+import errno
+import json
+import re
+import tempfile
+from pathlib import Path
+
+import pytest
+import torch
+from bad_input import tree_digest
+from bag_fixtures import synthetic_images, write_rosbag2
+
+from pair_vpr_ros.model import ModelConfig, build_pairvpr, save_pairvpr
+from pair_vpr_ros.offline import replay
+from pair_vpr_ros.offline.replay import main
+from pair_vpr_ros.place_map import PlaceMap
+
+FRAMES, KEYFRAMES = 4, 1
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    """A 4-frame bag with poses, tiny weights, and the map a first replay saved (random-init
+    descriptors of these images are near-identical: it holds 1 keyframe)."""
+    root = tmp_path_factory.mktemp("replay")
+    torch.manual_seed(0)
+    weights = save_pairvpr(build_pairvpr(ModelConfig.tiny()), root / "tiny.pth")
+    images = [(float(i), rgb) for i, rgb in enumerate(synthetic_images(FRAMES, size=16))]
+    poses = [(float(i), (float(i), 0.0, 0.0)) for i in range(FRAMES)]
+    bag = write_rosbag2(root / "bag", images, poses)
+    assert (
+        main([str(bag), "--weights", str(weights), "--out", str(root / "first"), "--quiet"]) == 0
+    )
+    return bag, weights, root / "first" / "map"
+
+
+def run(setup, tmp_path, *extra: str, out: Path | None = None) -> int:
+    bag, weights, _ = setup
+    out = tmp_path / "out" if out is None else out
+    return main([str(bag), "--weights", str(weights), "--out", str(out), "--quiet", *extra])
+
+
+FLAG_CASES = {
+    "gt-radius negative": (["--gt-radius", "-5"], "argument --gt-radius: must be a finite number"),
+    "gt-radius nan": (["--gt-radius", "nan"], "of metres > 0, got 'nan'"),
+    "gt-radius inf": (["--gt-radius", "inf"], "of metres > 0, got 'inf'"),
+    "gt-radius zero": (["--gt-radius", "0"], "of metres > 0, got '0'"),
+    "gt-radius text": (["--gt-radius", "ten"], "of metres > 0, got 'ten'"),
+    "threshold nan": (["--threshold", "nan"], "argument --threshold: must be a finite number"),
+    "threshold -inf": (["--threshold=-inf"], "must be a finite number, got '-inf'"),
+    "top-k zero": (["--top-k", "0"], "argument --top-k: must be an integer >= 1, got 0"),
+    "top-k negative": (["--top-k", "-3"], "must be an integer >= 1, got -3"),
+    "top-k fraction": (["--top-k", "1.5"], "must be an integer >= 1, got '1.5'"),
+    "batch-size zero": (["--batch-size", "0"], "argument --batch-size: must be an integer >= 1"),
+    "max-frames zero": (["--max-frames", "0"], "argument --max-frames: must be an integer >= 1"),
+    "unknown flag": (["--radius", "3"], "unrecognized arguments: --radius 3"),
+}
+
+
+@pytest.mark.parametrize("case", list(FLAG_CASES))
+def test_bad_flag_is_a_usage_error(setup, tmp_path, capsys, case) -> None:
+    args, message = FLAG_CASES[case]
+    assert run(setup, tmp_path, *args) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()  # nothing started
+
+
+PARAMS_CASES = {
+    "binary": (b"\x89PNG\r\n\x1a\n\xff", "is not a text (UTF-8) file"),
+    "top-level list": (b"- top_k\n- 3\n", "holds a list at the top level"),
+    "top-level string": (b"top_k=3\n", "holds a str at the top level"),
+    "list under ros__parameters": (
+        b"/**:\n  ros__parameters:\n    - top_k: 3\n",
+        "ros__parameters holds a list, not a mapping",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(PARAMS_CASES))
+def test_bad_params_file_is_an_error_line(setup, tmp_path, capsys, case) -> None:
+    content, message = PARAMS_CASES[case]
+    params = tmp_path / "p.yaml"
+    params.write_bytes(content)
+    assert run(setup, tmp_path, "--params-file", str(params)) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: parameter file {params}") and message in err
+    assert err.count("\n") == 1
+
+
+# ---- output folders
+
+
+def test_out_is_a_file(setup, tmp_path, capsys) -> None:
+    (tmp_path / "out").write_text("precious")
+    assert run(setup, tmp_path) == 1
+    assert capsys.readouterr().err == (
+        f"error: output folder {tmp_path / 'out'} is not a folder: give a folder\n"
+    )
+    assert (tmp_path / "out").read_text() == "precious"
+
+
+def test_out_below_a_file(setup, tmp_path, capsys) -> None:
+    (tmp_path / "file").write_text("x")
+    assert run(setup, tmp_path, out=tmp_path / "file" / "out") == 1
+    assert capsys.readouterr().err == (
+        f"error: output folder {tmp_path / 'file' / 'out'} is not a folder ({tmp_path / 'file'} "
+        "is a file): give a folder\n"
+    )
+
+
+def test_read_only_out(setup, tmp_path, capsys, monkeypatch) -> None:
+    def read_only(*_args, **_kwargs):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", read_only)  # tests run as root: simulate
+    assert run(setup, tmp_path) == 1
+    assert capsys.readouterr().err == (
+        f"error: cannot write output folder {tmp_path / 'out'}: {tmp_path} is not writable "
+        "(Read-only file system); pick a writable folder\n"
+    )
+
+
+def _disk_full(*_args, **_kwargs):
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def test_disk_full_writing_the_report(setup, tmp_path, capsys, monkeypatch) -> None:
+    monkeypatch.setattr(replay, "write_report", _disk_full)
+    assert run(setup, tmp_path) == 1
+    err = capsys.readouterr().err
+    assert err.endswith(
+        f"error: writing the report to {tmp_path / 'out'} failed: [Errno 28] No space left on "
+        "device (what was processed before is written)\n"
+    )
+    saved = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert saved["error"].startswith("writing the report") and saved["frames"] == FRAMES
+    with PlaceMap.load(tmp_path / "out" / "map") as m:  # the map was saved before
+        assert len(m) == saved["keyframes"] == KEYFRAMES
+
+
+def test_disk_full_writing_the_summary(setup, tmp_path, capsys, monkeypatch) -> None:
+    real = Path.write_text
+
+    def full(self, *args, **kwargs):
+        if self.name == "summary.json":
+            _disk_full()
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "write_text", full)
+    assert run(setup, tmp_path) == 1
+    assert capsys.readouterr().err == (
+        f"error: cannot write {tmp_path / 'out' / 'summary.json'} (No space left on device); "
+        f"the map is saved in {(tmp_path / 'out' / 'map').resolve()}\n"
+    )
+
+
+def test_disk_full_writing_the_output_bag(setup, tmp_path, capsys, monkeypatch) -> None:
+    from rosbags.rosbag2 import Writer
+
+    calls = []
+
+    def full_after_two(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) > 2:
+            _disk_full()
+
+    monkeypatch.setattr(Writer, "write", full_after_two)
+    assert run(setup, tmp_path, "--write-bag") == 1
+    err = capsys.readouterr().err
+    assert re.search(r"error: stopped after \d image messages: writing the output bag ", err)
+    assert "failed (No space left on device); free disk space or write elsewhere" in err
+    saved = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert re.match(r"stopped after \d image messages", saved["error"])
+
+
+# ---- map folders (issue 13 #3: an existing map used to be replaced silently)
+
+
+def test_existing_map_is_refused_and_unchanged(setup, tmp_path, capsys) -> None:
+    _, _, saved = setup
+    before = tree_digest(saved)
+    assert run(setup, tmp_path, "--map-dir", str(saved)) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(
+        f"error: map folder {saved} holds a saved place map ({KEYFRAMES} keyframes"
+    )
+    assert err.endswith(
+        "that this replay would replace: pass --overwrite to replace it, or --map-dir "
+        "NEW_FOLDER (to add to a map, load it in vpr_node and play the bag)\n"
+    )
+    assert tree_digest(saved) == before and not (tmp_path / "out").exists()
+
+
+def test_existing_map_of_another_model_is_refused(setup, tmp_path, capsys) -> None:
+    bag, _, saved = setup
+    other = save_pairvpr(build_pairvpr(ModelConfig.tiny(), seed=3), tmp_path / "other.pth")
+    before = tree_digest(saved)
+    args = [str(bag), "--weights", str(other), "--out", str(tmp_path / "o"), "--quiet"]
+    assert main([*args, "--map-dir", str(saved)]) == 1
+    assert "holds a saved place map" in capsys.readouterr().err
+    assert tree_digest(saved) == before
+
+
+def test_rerun_into_the_same_out_needs_overwrite(setup, tmp_path, capsys) -> None:
+    assert run(setup, tmp_path) == 0
+    before = tree_digest(tmp_path / "out" / "map")
+    assert run(setup, tmp_path) == 1
+    assert "holds a saved place map" in capsys.readouterr().err
+    assert tree_digest(tmp_path / "out" / "map") == before
+    assert run(setup, tmp_path, "--overwrite") == 0
+    with PlaceMap.load(tmp_path / "out" / "map") as m:
+        assert len(m) == KEYFRAMES
+
+
+def test_map_folder_of_other_files(setup, tmp_path, capsys) -> None:
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    (folder / "holiday.jpg").write_bytes(b"jpeg")
+    assert run(setup, tmp_path, "--map-dir", str(folder)) == 1
+    assert capsys.readouterr().err == (
+        f"error: map folder {folder} holds other files and no saved map: give a new or empty "
+        "folder (or pass --overwrite to save the map beside them)\n"
+    )
+    assert sorted(p.name for p in folder.iterdir()) == ["holiday.jpg"]
+
+
+def test_map_folder_is_a_file(setup, tmp_path, capsys) -> None:
+    (tmp_path / "map").write_text("x")
+    assert run(setup, tmp_path, "--map-dir", str(tmp_path / "map")) == 1
+    assert capsys.readouterr().err == (
+        f"error: map folder {tmp_path / 'map'} is not a folder: give a folder\n"
+    )
+
+
+def test_map_open_for_writing_elsewhere_is_refused_before_the_run(setup, tmp_path, capsys):
+    _, _, saved = setup
+    copy = tmp_path / "copy"
+    with PlaceMap.load(saved) as m:
+        m.save(copy)  # this PlaceMap now holds copy's writer lock
+        before = tree_digest(copy)
+        assert run(setup, tmp_path, "--map-dir", str(copy), "--overwrite") == 1
+        err = capsys.readouterr().err
+    assert err.startswith(f"error: map directory {copy} is open for writing by another PlaceMap")
+    assert tree_digest(copy) == before and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("how", ["flag", "params file"])
+def test_images_over_the_pixel_limit_are_counted_skips(setup, tmp_path, capsys, how) -> None:
+    """Issue 13 #10: the limit is configurable; 16 x 16 images over a 100-pixel limit."""
+    if how == "flag":
+        extra = ["--max-image-pixels", "100"]
+    else:
+        params = tmp_path / "p.yaml"
+        params.write_text("/**:\n  ros__parameters:\n    max_image_pixels: 100\n")
+        extra = ["--params-file", str(params)]
+    assert run(setup, tmp_path, *extra) == 0
+    saved = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert (saved["frames"], saved["skipped"], saved["keyframes"]) == (FRAMES, FRAMES, 0)
+    (reason,) = saved["skip_reasons"]
+    assert reason.endswith(
+        "the image is 16 x 16 = 256 pixels, more than the limit of 100 (max_image_pixels): "
+        "skipped; raise the limit if the camera really sends images this large"
+    )
+    assert (
+        f"warning: no image of /cam/image could be used, e.g.: {reason}" in capsys.readouterr().err
+    )

@@ -1,0 +1,178 @@
+"""`posegraph_node` in-process: drifting odometry and loop_closure/factor messages in, a corrected
+path, map->odom and corrected odometry out."""
+
+from __future__ import annotations
+
+import importlib
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import defaultdict
+
+import drives
+import numpy as np
+import pytest
+import rclpy
+from geometry_msgs.msg import TransformStamped
+from nav_msgs.msg import Odometry, Path
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile
+
+from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.loop_factor import FACTOR_MSG_TYPES, factor_msg
+from pair_vpr_ros.posegraph.simulate import ground_truth_loops
+from pair_vpr_ros.ros.posegraph_node import PoseGraphNode
+
+CLASSES = {
+    name: getattr(importlib.import_module(".".join(name.split("/")[:2])), name.split("/")[2])
+    for name in FACTOR_MSG_TYPES
+}
+
+
+def wait_for(condition, timeout: float = 20.0) -> None:
+    end = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.02)
+
+
+def odom_msg(stamp: float, pose) -> Odometry:
+    msg = Odometry(child_frame_id="base_link")
+    msg.header.frame_id = "odom"
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(round(stamp * 1e9), 10**9)
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    p.x, p.y, p.z, q.x, q.y, q.z, q.w = (float(v) for v in pose)
+    return msg
+
+
+@pytest.fixture
+def ros():
+    rclpy.init()
+    yield
+    rclpy.try_shutdown()
+
+
+class Harness:
+    def __init__(self, **overrides) -> None:
+        values = {"odom_qos": "reliable", "path_period": 0.1, **overrides}
+        self.node = PoseGraphNode(
+            parameter_overrides=[Parameter(k, value=v) for k, v in values.items()]
+        )
+        self.peer = rclpy.create_node("peer")
+        self.got: dict[str, list] = defaultdict(list)
+        for topic, kind in (("corrected_path", Path), ("map_to_odom", TransformStamped),
+                            ("corrected_odom", Odometry)):  # fmt: skip
+            self.peer.create_subscription(kind, topic, self.got[topic].append, 100)
+        self.odom = self.peer.create_publisher(Odometry, "odom", QoSProfile(depth=1000))
+        self.loops = self.peer.create_publisher(Odometry, "loop_closure/factor", 100)
+        self.executor = SingleThreadedExecutor()
+        for node in (self.node, self.peer):
+            self.executor.add_node(node)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+        wait_for(lambda: self.odom.get_subscription_count() >= 1)
+        wait_for(lambda: self.loops.get_subscription_count() >= 1)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.thread.join(5.0)
+        self.node.destroy_node()
+        self.peer.destroy_node()
+
+
+def test_odometry_and_loops_in_corrected_path_out(ros):
+    stamps, truth, odometry, pairs = drives.drive()
+    loops = ground_truth_loops(stamps, truth, pairs, np.random.default_rng(0),
+                               camera_to_base=drives.CAMERA)  # fmt: skip
+    h = Harness(camera_to_base=list(drives.CAMERA))
+    try:
+        k = 0
+        for i, (stamp, pose) in enumerate(zip(stamps, odometry, strict=True)):
+            if i % 25 == 0:  # let the node keep up, as with a real 10 Hz odometry
+                wait_for(lambda i=i: h.node.graph.counts.odometry >= i)
+            h.odom.publish(odom_msg(stamp, pose))
+            while k < len(loops) and loops[k].query_stamp <= stamp:
+                h.loops.publish(factor_msg(loops[k], CLASSES))
+                k += 1
+        wait_for(lambda: h.node.graph.counts.odometry == len(stamps))
+        wait_for(lambda: h.node.graph.counts.loops_added == len(loops))
+        nodes = h.node.graph.counts.nodes
+        wait_for(
+            lambda: h.got["corrected_path"] and len(h.got["corrected_path"][-1].poses) == nodes
+        )
+        wait_for(lambda: len(h.got["corrected_odom"]) == len(stamps))
+    finally:
+        h.close()
+    path = h.got["corrected_path"][-1]
+    assert path.header.frame_id == "map" and path.poses[-1].header.frame_id == "map"
+    xy = np.array([(p.pose.position.x, p.pose.position.y) for p in path.poses])
+    index = np.searchsorted(stamps, h.node.graph.node_stamps())
+    before = np.sqrt(np.mean(np.sum((odometry[index, :2] - truth[index, :2]) ** 2, axis=1)))
+    after = np.sqrt(np.mean(np.sum((xy - truth[index, :2]) ** 2, axis=1)))
+    assert before > 5.0 and after < before / 10, (before, after)
+    correction = h.got["map_to_odom"][-1]
+    assert (correction.header.frame_id, correction.child_frame_id) == ("map", "odom")
+    assert abs(correction.transform.translation.x) + abs(correction.transform.translation.y) > 1.0
+    last = h.got["corrected_odom"][-1]
+    assert (last.header.frame_id, last.child_frame_id) == ("map", "base_link")
+    end = np.array([last.pose.pose.position.x, last.pose.pose.position.y])
+    assert (
+        np.linalg.norm(end - truth[-1, :2]) < np.linalg.norm(odometry[-1, :2] - truth[-1, :2]) / 5
+    )
+
+
+def test_bad_odometry_and_loop_messages_are_counted_not_fatal(ros):
+    h = Harness()
+    try:
+        h.odom.publish(odom_msg(1.0, (0, 0, 0, 0, 0, 0, 1)))
+        h.odom.publish(odom_msg(2.0, (float("nan"), 0, 0, 0, 0, 0, 1)))
+        h.odom.publish(odom_msg(3.0, (1, 0, 0, 0, 0, 0, 1)))
+        junk = Odometry()  # status code 0: not a factor message
+        h.loops.publish(junk)
+        wait_for(lambda: h.node.graph.counts.odometry == 2)
+        wait_for(lambda: h.node.loops_undecodable == 1)
+    finally:
+        h.close()
+    assert h.node.graph.counts.skipped == {"odometry: pose has NaN or infinite values": 1}
+
+
+def test_bad_parameters_refuse_to_start(ros):
+    with pytest.raises(ConfigError, match="camera_to_base must be a list of 7 numbers"):
+        PoseGraphNode(parameter_overrides=[Parameter("camera_to_base", value=[0.0] * 6)])
+    with pytest.raises(ConfigError, match="loop_kernel='l2' must be one of cauchy, huber, none"):
+        PoseGraphNode(parameter_overrides=[Parameter("loop_kernel", value="l2")])
+
+
+@pytest.mark.slow
+def test_process_stops_cleanly_and_refuses_bad_parameters():
+    env = {**os.environ, "RCUTILS_LOGGING_BUFFERED_STREAM": "0", "PYTHONUNBUFFERED": "1"}
+    node = [sys.executable, "-m", "pair_vpr_ros.ros.posegraph_node", "--ros-args"]
+    bad = subprocess.run([*node, "-p", "loop_kernel:=l2"], env=env, capture_output=True,
+                         text=True, timeout=60)  # fmt: skip
+    errors = [line for line in bad.stderr.splitlines() if line.strip()]
+    assert bad.returncode == 1 and len(errors) == 1 and "Traceback" not in bad.stderr
+    assert errors[0].endswith(
+        "[posegraph_node]: cannot start: invalid parameters: loop_kernel='l2' must be one of "
+        "cauchy, huber, none"
+    )
+    mixed = subprocess.run([*node, "-p", "camera_to_base:=[0, 0, 1.6, -0.5, 0.5, -0.5, 0.5]"],
+                           env=env, capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert mixed.returncode == 1 and "Traceback" not in mixed.stderr
+    assert "\nerror: posegraph_node cannot start: failed to initialize rcl" in mixed.stderr
+    assert "write camera_to_base:=[0.0, 0.0, 1.6" in mixed.stderr
+    node += ["-p", "camera_to_base:=[0.0, 0.0, 1.6, -0.5, 0.5, -0.5, 0.5]"]
+    proc = subprocess.Popen(node, env=env, text=True, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT)  # fmt: skip
+    lines = []
+    for line in proc.stdout:
+        lines.append(line)
+        if "ready:" in line:
+            break
+    time.sleep(0.3)
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(30.0) == 0, "".join(lines)
+    assert "ready: odometry odom, loops loop_closure/factor" in "".join(lines)
