@@ -51,7 +51,7 @@ setup(
             "vpr_node = pair_vpr_ros.ros.node:main",
             "posegraph_node = pair_vpr_ros.ros.posegraph_node:main",
             "pairvpr-posegraph = pair_vpr_ros.offline.posegraph:main",
-            "pairvpr-bag-replay = pair_vpr_ros.offline.replay:main",
+            "pairvpr-bag-replay = pair_vpr_ros.offline.replay_cli:main",
             "pairvpr-eval = pair_vpr_ros.learn.evaluate:main",
             "pairvpr-train-stage1 = pair_vpr_ros.learn.train.stage1:main",
             "pairvpr-train-stage2 = pair_vpr_ros.learn.train.stage2:main",

@@ -23,7 +23,7 @@ import torch
 from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.errors import PairVPRError
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, load_pairvpr
-from pair_vpr_ros.offline.replay import replay_bag
+from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -77,9 +77,10 @@ def main(argv: list[str] | None = None) -> int:
             )
             for run in range(args.repeat):
                 s = replay_bag(
-                    bag, Path(tmp) / f"out{run}", model=model, topic=args.topic,
-                    config=config, batch_size=args.batch_size,
-                    save_map=False, progress=False,
+                    bag, Path(tmp) / f"out{run}", ReplayOptions(
+                        topic=args.topic, batch_size=args.batch_size, save_map=False,
+                        progress=False,
+                    ), model=model, config=config,
                 )  # fmt: skip
                 name = args.weights or f"random {args.preset}"
                 print(

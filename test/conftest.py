@@ -3,15 +3,20 @@ keep the user's weights out of the tests."""
 
 from __future__ import annotations
 
+import itertools
 import os
 from pathlib import Path
 
 import pytest
 
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-# Test runs of several checkouts on one machine must not hear each other: with two /vpr_node
-# processes on one domain, both answer every service call. One domain per pytest run (1..100).
-os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
+# Nodes must not hear nodes of another test: with two /vpr_node on one domain, both answer every
+# service call and a graph query by node name may describe the other one. A node stopped by an
+# earlier test (or another checkout's test run) can linger in discovery for the 20 s participant
+# lease when it left without saying goodbye, so every test gets a domain of its own (1..100, a
+# different sequence per pytest process) unless the person running the tests chose one.
+_USER_DOMAIN = os.environ.get("ROS_DOMAIN_ID")
+_DOMAINS = itertools.count(os.getpid() * 37)
 os.environ.setdefault("MPLBACKEND", "Agg")
 # Weights resolution (pair_vpr_ros.weights) reads PAIRVPR_WEIGHTS and the per-user data folder: a
 # checkpoint of the person running the tests must not change what they see (also in the node
@@ -27,3 +32,11 @@ def tiny_model():
     from pair_vpr_ros.model import ModelConfig, build_pairvpr  # torch: only when a test needs it
 
     return build_pairvpr(ModelConfig.tiny(), seed=0)
+
+
+@pytest.fixture(autouse=True)
+def _ros_domain(monkeypatch):
+    """A fresh ROS_DOMAIN_ID for each test, set before any fixture can start rclpy (read by
+    rclpy.init in this process and by the node processes a test starts)."""
+    if _USER_DOMAIN is None:
+        monkeypatch.setenv("ROS_DOMAIN_ID", str(1 + next(_DOMAINS) % 100))

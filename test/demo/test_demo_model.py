@@ -17,7 +17,7 @@ import pair_vpr_ros
 from pair_vpr_ros.demo import write_demo_bag
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
 from pair_vpr_ros.model import load_pairvpr
-from pair_vpr_ros.offline.replay import replay_bag
+from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
 from pair_vpr_ros.params import detector_config, read_params_file
 
 ROOT = Path(pair_vpr_ros.__file__).resolve().parent
@@ -48,10 +48,9 @@ def test_short_demo_replay_finds_true_loops_and_no_false_ones(tmp_path):
     summary = replay_bag(
         bag,
         tmp_path / "out",
+        ReplayOptions(pose_topic="/ground_truth", progress=False),
         weights=ASSET,
         config=config,
-        pose_topic="/ground_truth",
-        progress=False,
         geometry=GeometryConfig(relative_pose=False),  # place recognition only: keep it fast
     )
     assert summary.error is None and summary.frames == 240

@@ -18,7 +18,7 @@ from bag_fixtures import synthetic_images, write_rosbag2
 
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, save_pairvpr
 from pair_vpr_ros.offline import replay
-from pair_vpr_ros.offline.replay import main
+from pair_vpr_ros.offline.replay_cli import main
 from pair_vpr_ros.place_map import PlaceMap
 
 FRAMES, KEYFRAMES = 4, 1

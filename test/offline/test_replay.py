@@ -26,7 +26,8 @@ from rosbags.highlevel import AnyReader
 from pair_vpr_ros import loop_messages
 from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.model import save_pairvpr
-from pair_vpr_ros.offline.replay import main, replay_bag
+from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
+from pair_vpr_ros.offline.replay_cli import main
 from pair_vpr_ros.pipeline import LoopClosurePipeline
 from pair_vpr_ros.place_map import PlaceMap
 
@@ -34,13 +35,16 @@ CONFIG = DetectorConfig(
     top_k=1, score_threshold=-1e9, keyframe_max_similarity=1.0,
     exclude_recent_s=30.0, exclude_recent_keyframes=0,
 )  # fmt: skip
+QUIET = ReplayOptions(progress=False)
 
 
 def test_replay_end_to_end(tmp_path, tiny_model):
     images, poses = revisit_world()
     bag = write_rosbag2(tmp_path / "bag", images, poses)
     out = tmp_path / "out"
-    s = replay_bag(bag, out, model=tiny_model, config=CONFIG, write_bag=True, progress=False)
+    s = replay_bag(
+        bag, out, ReplayOptions(write_bag=True, progress=False), model=tiny_model, config=CONFIG
+    )
     assert s.error is None and s.warnings == []
     assert (s.topic, s.pose_topic) == ("/cam/image", "/odom")
     assert (s.frames, s.keyframes, s.candidates, s.loops, s.skipped) == (17, 17, 7, 7, 0)
@@ -88,7 +92,11 @@ def test_replay_without_poses_and_map(tmp_path, tiny_model):
     bag = write_foxglove(tmp_path / "f.mcap", images[:12])  # CompressedImage, no poses
     out = tmp_path / "out"
     s = replay_bag(
-        bag, out, model=tiny_model, config=CONFIG, save_map=False, max_frames=11, progress=False
+        bag,
+        out,
+        ReplayOptions(save_map=False, max_frames=11, progress=False),
+        model=tiny_model,
+        config=CONFIG,
     )
     assert (s.frames, s.loops, s.pose_topic, s.evaluation, s.map_dir) == (11, 1, None, None, None)
     assert sorted(p.name for p in out.iterdir()) == ["loops.csv", "loops.json", "summary.json"]
@@ -100,7 +108,7 @@ def test_bad_images_are_counted(tmp_path, tiny_model):
     bag = write_rosbag2(
         tmp_path / "bag", [(1.0, a), (3.0, b)], extra=[("/cam/image", IMAGE, bad, 2.0)]
     )
-    s = replay_bag(bag, tmp_path / "out", model=tiny_model, config=CONFIG, progress=False)
+    s = replay_bag(bag, tmp_path / "out", QUIET, model=tiny_model, config=CONFIG)
     assert (s.frames, s.skipped, s.keyframes) == (3, 1, 2)
     (reason,) = s.skip_reasons
     assert "no_such_encoding" in reason and s.skip_reasons[reason] == 1
@@ -111,7 +119,7 @@ def test_non_finite_pose_is_skipped_not_fatal(tmp_path, tiny_model):
     images, poses = revisit_world()
     poses[3] = (3.0, (float("nan"), 0.0, 0.0))
     bag = write_rosbag2(tmp_path / "bag", images, poses)
-    s = replay_bag(bag, tmp_path / "out", model=tiny_model, config=CONFIG, progress=False)
+    s = replay_bag(bag, tmp_path / "out", QUIET, model=tiny_model, config=CONFIG)
     assert s.error is None and s.bad_poses == 1 and s.keyframes == 17
     assert s.warnings == [
         "1 poses of /odom hold NaN or infinite values and were skipped (the first at stamp "
@@ -127,7 +135,7 @@ def test_stamps_going_back_are_warned_about(tmp_path, tiny_model):
     extra = [("/cam/image", IMAGE, image_msg(TS2, t, rgb, False), 10.0 + i)
              for i, (t, rgb) in enumerate(images)]  # fmt: skip
     bag = write_rosbag2(tmp_path / "bag", [], extra=extra)
-    s = replay_bag(bag, tmp_path / "out", model=tiny_model, config=CONFIG, progress=False)
+    s = replay_bag(bag, tmp_path / "out", QUIET, model=tiny_model, config=CONFIG)
     assert (s.stamps_backwards, s.stamps_repeated, s.keyframes) == (1, 1, 4)
     assert [w.split(" (")[0] for w in s.warnings] == [
         "1 image stamps of /cam/image go back in time",
@@ -141,7 +149,7 @@ def _corrupt_bag(tmp_path):
 
 def test_failure_part_way_keeps_what_was_processed(tmp_path, tiny_model):
     out = tmp_path / "out"
-    s = replay_bag(_corrupt_bag(tmp_path), out, model=tiny_model, config=CONFIG, progress=False)
+    s = replay_bag(_corrupt_bag(tmp_path), out, QUIET, model=tiny_model, config=CONFIG)
     assert 0 < s.frames < 17
     assert f"stopped at image message {s.frames} (after stamp " in s.error
     assert "Chunk checksum mismatch" in s.error

@@ -14,7 +14,7 @@ from rosbags.highlevel import AnyReader
 from pair_vpr_ros import loop_messages
 from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.errors import BagError
-from pair_vpr_ros.offline.replay import replay_bag
+from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
 
 CONFIG = DetectorConfig(
     top_k=1, score_threshold=-1e9, keyframe_max_similarity=1.0, exclude_recent_s=3.5,
@@ -77,7 +77,11 @@ def write_bag(path, depth_shift=0.0, depth_shape=(H, W), focal=100.0, depth_topi
 
 def replay(tmp_path, bag, model, **kw):
     return replay_bag(
-        bag, tmp_path / "out", model=model, config=CONFIG, progress=False, overwrite=True, **kw
+        bag,
+        tmp_path / "out",
+        ReplayOptions(progress=False, overwrite=True, **kw),
+        model=model,
+        config=CONFIG,
     )
 
 

@@ -16,7 +16,8 @@ from bag_fixtures import ODOMETRY, POSE_STAMPED, TS2, pose_msg, revisit_world, w
 from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.errors import BagError
 from pair_vpr_ros.model import save_pairvpr
-from pair_vpr_ros.offline.replay import main, replay_bag
+from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
+from pair_vpr_ros.offline.replay_cli import main
 from pair_vpr_ros.place_map import PlaceMap
 
 CONFIG = DetectorConfig(
@@ -43,7 +44,8 @@ def write_bag(path, with_truth=True):
 
 
 def replay(tmp_path, bag, model, **kw):
-    return replay_bag(bag, tmp_path / "out", model=model, config=CONFIG, progress=False, **kw)
+    options = ReplayOptions(progress=False, **kw)
+    return replay_bag(bag, tmp_path / "out", options, model=model, config=CONFIG)
 
 
 def test_gt_topic_judges_loops_while_keyframes_keep_the_odometry(tmp_path, tiny_model):
