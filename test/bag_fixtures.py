@@ -30,6 +30,17 @@ def synthetic_images(n: int, size: int = 16, seed: int = 0) -> list[np.ndarray]:
     return [rng.integers(0, 256, (size, size, 3), dtype=np.uint8) for _ in range(n)]
 
 
+def textured(seed: int, height: int = 120, width: int = 160) -> np.ndarray:
+    """RGB uint8 ``[height, width, 3]``: 80 random rectangles on grey, corners for features."""
+    rng = np.random.default_rng(seed)
+    img = np.full((height, width, 3), 90, np.uint8)
+    for _ in range(80):
+        x, y = (int(v) for v in rng.integers(0, (width, height)))
+        w, h = (int(v) for v in rng.integers(4, 20, 2))
+        cv2.rectangle(img, (x, y), (x + w, y + h), [int(c) for c in rng.integers(0, 256, 3)], -1)
+    return img
+
+
 def revisit_world() -> tuple[list, list]:
     """(images, poses) of a small loop: 10 places at 1 Hz, 20 m apart; revisits of places 0-4
     at t = 100..104 s; two new places at t = 105, 106 s far away. 32 px images."""

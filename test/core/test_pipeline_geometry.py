@@ -8,9 +8,9 @@ import sqlite3
 from dataclasses import replace
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
+from bag_fixtures import textured
 from exact_match import EXACT_MATCH
 
 from pair_vpr_ros.detector import DetectorConfig
@@ -28,16 +28,6 @@ DEPTH = np.full((H, W), 4.0, np.float32)  # a wall 4 m in front of the camera
 @pytest.fixture
 def model(tiny_model):
     return tiny_model
-
-
-def textured(seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    img = np.full((H, W, 3), 90, np.uint8)
-    for _ in range(80):
-        x, y = (int(v) for v in rng.integers(0, (W, H)))
-        w, h = (int(v) for v in rng.integers(4, 20, 2))
-        cv2.rectangle(img, (x, y), (x + w, y + h), [int(c) for c in rng.integers(0, 256, 3)], -1)
-    return img
 
 
 PLACES = [textured(s) for s in range(4)]

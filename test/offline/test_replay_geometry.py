@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import json
 
-import cv2
 import numpy as np
 import pytest
-from bag_fixtures import TS2, _header, write_rosbag2
+from bag_fixtures import TS2, _header, textured, write_rosbag2
 from rosbags.highlevel import AnyReader
 
 from pair_vpr_ros import loop_messages
@@ -28,16 +27,6 @@ DEPTH_TOPIC, INFO_TOPIC = "/cam/depth", "/cam/camera_info"
 @pytest.fixture
 def model(tiny_model):
     return tiny_model
-
-
-def textured(seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    img = np.full((H, W, 3), 90, np.uint8)
-    for _ in range(80):
-        x, y = (int(v) for v in rng.integers(0, (W, H)))
-        w, h = (int(v) for v in rng.integers(4, 20, 2))
-        cv2.rectangle(img, (x, y), (x + w, y + h), [int(c) for c in rng.integers(0, 256, 3)], -1)
-    return img
 
 
 def depth_msg(stamp: float, mm: np.ndarray):

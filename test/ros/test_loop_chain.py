@@ -7,13 +7,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from bag_fixtures import textured
 from nav_msgs.msg import Odometry, Path
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
 from sensor_msgs.msg import CameraInfo, Image
 from test_node import harness as harness  # noqa: F401 - the fixture, shared
 from test_node import image_msg, wait_for
-from test_node_geometry import GEOMETRY, depth_msg, info_msg, textured
+from test_node_geometry import GEOMETRY, depth_msg, info_msg
 from test_posegraph_node import odom_msg
 
 from pair_vpr_ros.demo.odometry import OdometryNoise, drifting_odometry

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import json
 
-import cv2
 import numpy as np
 import pytest
+from bag_fixtures import textured
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
@@ -19,16 +19,6 @@ from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.loop_messages import FACTOR_TOPIC, JSON_TOPIC, factor_from_msg
 
 H, W = 120, 160
-
-
-def textured(seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    img = np.full((H, W, 3), 90, np.uint8)
-    for _ in range(80):
-        x, y = (int(v) for v in rng.integers(0, (W, H)))
-        w, h = (int(v) for v in rng.integers(4, 20, 2))
-        cv2.rectangle(img, (x, y), (x + w, y + h), [int(c) for c in rng.integers(0, 256, 3)], -1)
-    return img
 
 
 def depth_msg(t: float, shape=(H, W), mm: int = 4000) -> Image:
