@@ -9,6 +9,7 @@ verify geometrically). Every decision is a `LoopRecord`, accepted or with the re
 from __future__ import annotations
 
 import math
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields, replace
@@ -40,6 +41,7 @@ class DetectorConfig:
     geometric_verification: bool = False
     min_inliers: int = 15  # with geometric verification
     mode: str = "mapping"  # "mapping": query then add; "localization": query only
+    rerank_budget_ms: float = 0.0  # stop re-ranking once this is spent (0: score all top_k)
 
     def __post_init__(self) -> None:
         checks = [
@@ -54,6 +56,11 @@ class DetectorConfig:
             ("min_inliers", self.min_inliers >= 0, ">= 0"),
             ("mode", self.mode in MODES, f"one of {MODES}"),
             ("score_threshold", math.isfinite(self.score_threshold), "a finite number"),
+            (
+                "rerank_budget_ms",
+                math.isfinite(self.rerank_budget_ms) and self.rerank_budget_ms >= 0,
+                "a finite number >= 0 (0: no budget)",
+            ),
         ]
         for name, ok, rule in checks:
             if not ok:
@@ -89,7 +96,9 @@ class LoopRecord:
     pair_score: float  # NaN when re-ranking was skipped
     global_similarity: float
     rank_before: int  # 1-based rank of the match in the global (FAISS) list
-    rank_after: int  # 1-based rank after re-ranking
+    rank_after: int  # 1-based rank after re-ranking (among the scored candidates)
+    candidates: int = 0  # candidates the map returned for this query (<= top_k)
+    scored: int = 0  # of those, how many got a pair score (< candidates: the budget ran out)
     inliers: int = -1  # -1: not verified
     inlier_ratio: float = float("nan")
     accepted: bool = False
@@ -145,6 +154,7 @@ class LoopDetector:
     """The decision logic; `LoopClosurePipeline` feeds it descriptors and the map."""
 
     config: DetectorConfig = field(default_factory=DetectorConfig)
+    clock: Callable[[], float] = time.perf_counter  # s, for the re-rank budget (tests fake it)
 
     def __post_init__(self) -> None:
         self._recent_matches: deque[int] = deque(maxlen=self.config.temporal_consistency)
@@ -178,8 +188,10 @@ class LoopDetector:
         candidates: list[Candidate],
         rerank: Callable[[list[Candidate]], np.ndarray],
         verify: Verifier | None = None,
+        step: int = 2,
     ) -> LoopRecord | None:
-        """Re-rank `candidates` (global order) and accept or reject the best one."""
+        """Re-rank `candidates` (global order) and accept or reject the best one. `rerank`
+        scores a list of candidates ([k] scores); with a budget it is called `step` at a time."""
         if not candidates:
             self._recent_matches.clear()
             return None
@@ -187,12 +199,17 @@ class LoopDetector:
         best_global = candidates[0]
         if best_global.global_similarity < c.global_floor:
             self._recent_matches.clear()
-            return self._record(query_stamp, query_frame_id, best_global, 1, "below global floor")
-        best = rank_by_pair_score(candidates, rerank(candidates))[0]
-        if not best.pair_score >= c.score_threshold:
+            record = self._record(query_stamp, query_frame_id, best_global, "below global floor")
+            record.candidates = len(candidates)
+            return record
+        scored = self.score(candidates, rerank, step)
+        best = scored[0]
+        reason = "" if best.pair_score >= c.score_threshold else "score below threshold"
+        record = self._record(query_stamp, query_frame_id, best, reason)
+        record.candidates, record.scored = len(candidates), len(scored)
+        if reason:
             self._recent_matches.clear()
-            return self._record(query_stamp, query_frame_id, best, 1, "score below threshold")
-        record = self._record(query_stamp, query_frame_id, best, 1, "")
+            return record
         if not self._temporally_consistent(best.id):
             seen = len(self._recent_matches)
             record.reason = f"awaiting temporal consistency ({seen}/{c.temporal_consistency})"
@@ -208,6 +225,32 @@ class LoopDetector:
         record.accepted = True
         return record
 
+    def score(
+        self,
+        candidates: list[Candidate],
+        rerank: Callable[[list[Candidate]], np.ndarray],
+        step: int,
+    ) -> list[Candidate]:
+        """Pair-score `candidates` (global order, at least one) best-global first; return the
+        scored ones, best pair score first. The rest keep a NaN score.
+
+        No budget (`rerank_budget_ms` 0): all in one `rerank` call. With a budget: the global
+        best alone, then `step` candidates at a time while the time spent so far plus the next
+        step's predicted cost (this query's mean per candidate) stays within the budget. The
+        global best is always scored, so re-ranking takes at most max(budget, one candidate)."""
+        budget_ms = self.config.rerank_budget_ms
+        if budget_ms <= 0:
+            return rank_by_pair_score(candidates, rerank(candidates))
+        start, done, parts = self.clock(), 0, []
+        while done < len(candidates):
+            size = 1 if done == 0 else min(step, len(candidates) - done)
+            spent_ms = (self.clock() - start) * 1e3
+            if done and spent_ms + spent_ms / done * size > budget_ms:
+                break
+            parts.append(np.asarray(rerank(candidates[done : done + size])))
+            done += size
+        return rank_by_pair_score(candidates[:done], np.concatenate(parts))
+
     def _temporally_consistent(self, match_id: int) -> bool:
         recent = self._recent_matches
         if recent and abs(match_id - recent[-1]) > self.config.temporal_tolerance:
@@ -216,7 +259,8 @@ class LoopDetector:
         return len(recent) >= self.config.temporal_consistency
 
     @staticmethod
-    def _record(stamp: float, frame_id: str, cand: Candidate, rank_after: int, reason: str):
+    def _record(stamp: float, frame_id: str, cand: Candidate, reason: str) -> LoopRecord:
+        """The record of `cand` as the best candidate (rank 1 after re-ranking)."""
         return LoopRecord(
             query_id=-1,
             query_stamp=stamp,
@@ -227,6 +271,6 @@ class LoopDetector:
             pair_score=cand.pair_score,
             global_similarity=cand.global_similarity,
             rank_before=cand.rank_before,
-            rank_after=rank_after,
+            rank_after=1,
             reason=reason,
         )

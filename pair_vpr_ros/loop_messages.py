@@ -13,9 +13,9 @@ both publish identical data; the pose-graph tools decode them here too. One acce
 ``loop_closure/detail`` — ``std_msgs/Float64MultiArray``, every numeric field of the record,
     one value per field, labelled: ``DETAIL_LABELS`` = ``NUMERIC_FIELDS`` (query_id,
     query_stamp, match_id, match_stamp, pair_score, global_similarity, rank_before, rank_after,
-    inliers, inlier_ratio, accepted, pose_inliers, tx, ty, tz, qx, qy, qz, qw), then
-    ``pose_status`` (0 no pose, 1 metric, 2 scale-free), then the covariance ``cov_00`` ..
-    ``cov_55`` (row, column in x, y, z, rx, ry, rz order; NaN without a pose).
+    candidates, scored, inliers, inlier_ratio, accepted, pose_inliers, tx, ty, tz, qx, qy, qz,
+    qw), then ``pose_status`` (0 no pose, 1 metric, 2 scale-free), then the covariance
+    ``cov_00`` .. ``cov_55`` (row, column in x, y, z, rx, ry, rz order; NaN without a pose).
     ``layout.dim`` has one ``MultiArrayDimension(label=<name>, size=1, stride=1)`` per value,
     ``layout.data_offset = 0``: look values up by label (``detail_to_dict``).
 
@@ -63,6 +63,8 @@ LOOP_RECORD_FIELDS = (
     "global_similarity",
     "rank_before",
     "rank_after",
+    "candidates",
+    "scored",
     "inliers",
     "inlier_ratio",
     "accepted",

@@ -8,9 +8,10 @@
 
 from __future__ import annotations
 
+import argparse
 import math
 import textwrap
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -119,6 +120,9 @@ PARAMS: tuple[ParamSpec, ...] = (
     _p("preset", "speed", "detector preset (speed: top_k 10, min_frame_interval 0.2; "
        "performance: top_k 100, min_frame_interval 0)", choices=("speed", "performance")),
     _p("top_k", 0, "candidates re-ranked per keyframe (0 = the preset's)", 0, 1000),
+    _p("rerank_budget_ms", 0.0, "latency budget of re-ranking per keyframe, ms: candidates are "
+       "scored best-global first until the next step would overrun it (the global best always "
+       "is); the record's 'scored' says how many. 0 = no budget: all top_k", 0.0, 600000.0),
     _p("score_threshold", 0.0, "accept when logit(q,c) + logit(c,q) >= this", -1.0e6, 1.0e6),
     _p("global_floor", -1.0, "skip re-ranking below this global similarity (-1 = off)",
        -1.0, 1.0),
@@ -139,6 +143,7 @@ DETECTOR_PARAMS = (
     "mode",
     "preset",
     "top_k",
+    "rerank_budget_ms",
     "score_threshold",
     "global_floor",
     "min_frame_interval",
@@ -184,6 +189,34 @@ def check_value(name: str, value: Any, specs: Mapping[str, ParamSpec] | None = N
         except ValueError:
             return f"camera_distortion={value!r} must be comma-separated numbers"
     return None
+
+
+def flag_type(name: str) -> Callable[[str], Value]:
+    """An argparse type for a command-line flag that mirrors number parameter `name` (the
+    replay's --rerank-budget-ms): parsed as the parameter's type and checked by `check_value`,
+    so the flag and a parameter file refuse the same values with the same words."""
+    kind = type(SPECS[name].default)
+
+    def parse(text: str) -> Value:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"{name} must be {TYPE_NAMES[kind]}, got {text!r}"
+            ) from None
+        reason = check_value(name, value)
+        if reason is not None:
+            raise argparse.ArgumentTypeError(reason)
+        return value
+
+    return parse
+
+
+def flag_help(name: str) -> str:
+    """The help text of a flag that mirrors parameter `name`: its description and range."""
+    spec = SPECS[name]
+    bounds = f" [{spec.low:g}, {spec.high:g}]" if spec.low is not None else ""
+    return f"{spec.description}{bounds}".replace("%", "%%")
 
 
 def _check_array(name: str, value: Any, size: int) -> str | None:

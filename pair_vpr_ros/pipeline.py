@@ -29,6 +29,7 @@ from pair_vpr_ros.geometry.camera import CameraModel
 from pair_vpr_ros.geometry.features import Features
 from pair_vpr_ros.geometry.keyframes import GeometryConfig, KeyframeGeometry
 from pair_vpr_ros.model import PairVPRModel, preprocess_batch
+from pair_vpr_ros.model.decoder import default_chunk
 from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
 from pair_vpr_ros.types import Pose
 
@@ -77,6 +78,8 @@ class PipelineCounts:
     depth_wrong_size: int = 0  # keyframes whose depth image did not fit (dropped)
     intrinsics_wrong_size: int = 0  # keyframes whose intrinsics were for another size
     features_damaged: int = 0  # stored features that could not be unpacked
+    candidates_scored: int = 0  # pair scores computed (candidates re-ranked, all keyframes)
+    rerank_budget_cut: int = 0  # keyframes whose re-ranking stopped at rerank_budget_ms
 
     def to_dict(self) -> dict[str, int]:
         return asdict(self)
@@ -295,16 +298,23 @@ class LoopClosurePipeline:
             self._candidate(kf_id, sim, rank) for rank, (kf_id, sim) in enumerate(hits, start=1)
         ]
 
-        def rerank(cands: list[Candidate]) -> np.ndarray:
+        def rerank(cands: list[Candidate]) -> np.ndarray:  # called once per step with a budget
             t1 = time.perf_counter()
             scores = self.pair_scores(dense, [c.id for c in cands])
-            timings["rerank"] = (time.perf_counter() - t1) * 1e3
+            timings["rerank"] = timings.get("rerank", 0.0) + (time.perf_counter() - t1) * 1e3
             return scores
 
         def verify(match_id: int) -> tuple[int, float]:
             return self.geometry.verify(features, self._stored_features(match_id))
 
-        return self.detector.decide(frame.stamp, frame.frame_id, candidates, rerank, verify)
+        step = self.rerank_chunk or default_chunk(torch.device(self.model.device))
+        record = self.detector.decide(
+            frame.stamp, frame.frame_id, candidates, rerank, verify, step=step
+        )
+        if record is not None:
+            self.counts.candidates_scored += record.scored
+            self.counts.rerank_budget_cut += int(0 < record.scored < record.candidates)
+        return record
 
     def _stored_features(self, kf_id: int) -> Features | None:
         return self.geometry.unpack(self._place_map.features(kf_id))

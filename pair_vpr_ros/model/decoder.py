@@ -219,7 +219,7 @@ class PairClassifier(nn.Module):
         if cands.shape[0] == 0:
             return query.new_zeros(0)
         if chunk is None:
-            chunk = 32 if query.is_cuda else 2
+            chunk = default_chunk(query.device)
         eq = self.decoder_embed(query.unsqueeze(0))  # computed once for every candidate
         x_query = self.dec_blocks[0].self_attend(self.first_input(eq))
         y_query = self.second_input(eq)
@@ -246,3 +246,9 @@ class PairClassifier(nn.Module):
         cls = self._decode(x, memories, first_self_attended=True, cls_only=True)[:, 0]
         logits = self.classvprmodule(cls).squeeze(-1)
         return logits[:k] + logits[k:]
+
+
+def default_chunk(device: torch.device) -> int:
+    """Candidates per re-rank chunk when none is given: 2 on a CPU, 32 on a GPU (see
+    `PairClassifier.pair_scores`)."""
+    return 32 if device.type == "cuda" else 2

@@ -25,7 +25,7 @@ from pair_vpr_ros.geometry.features import KINDS
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
 from pair_vpr_ros.imaging import MAX_PIXELS
 from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
-from pair_vpr_ros.params import detector_config, read_params_file
+from pair_vpr_ros.params import detector_config, flag_help, flag_type, read_params_file
 from pair_vpr_ros.weights import resolve_weights
 
 NONE = "none"  # --pose-topic none / --map-dir none
@@ -82,12 +82,19 @@ def build_parser() -> argparse.ArgumentParser:
         "--params-file",
         type=Path,
         help="take the detector settings from a vpr_node parameter file "
-        "(e.g. config/vpr_node.yaml); --threshold and --top-k still override",
+        "(e.g. config/vpr_node.yaml); --threshold, --top-k and --rerank-budget-ms still "
+        "override",
     )
     p.add_argument(
         "--top-k",
         type=positive_int,
         help="candidates re-ranked per keyframe (default: detector's)",
+    )
+    p.add_argument(
+        "--rerank-budget-ms",
+        type=flag_type("rerank_budget_ms"),
+        metavar="MS",
+        help=flag_help("rerank_budget_ms") + " (default: --params-file's, else 0)",
     )
     p.add_argument(
         "--device",
@@ -162,7 +169,11 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    overrides = {"score_threshold": args.threshold, "top_k": args.top_k}
+    overrides = {
+        "score_threshold": args.threshold,
+        "top_k": args.top_k,
+        "rerank_budget_ms": args.rerank_budget_ms,
+    }
     overrides = {k: v for k, v in overrides.items() if v is not None}
     max_pixels = MAX_PIXELS
     if args.params_file is not None:

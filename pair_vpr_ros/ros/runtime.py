@@ -161,6 +161,8 @@ def diagnostic_values(
         "loops_pose_metric": live.counts.pose_metric,
         "loops_pose_scale_free": live.counts.pose_scale_free,
         "loops_pose_none": live.counts.pose_none,
+        "candidates_scored": live.counts.candidates_scored,
+        "rerank_budget_cut": live.counts.rerank_budget_cut,
         "camera_info_invalid": c.camera_info_invalid,
         "frames_without_depth": c.depth_unmatched,
         "depth_invalid": c.depth_invalid,

@@ -49,6 +49,18 @@ CASES = {
     "out of range": (section("top_k: -4").encode(), "top_k=-4 is out of range [0, 1000]"),
     "bad choice": (section("mode: slam").encode(), "mode='slam' must be one of mapping"),
     "image size": (section("image_size: 300").encode(), "image_size=300 must be 0 or a multiple"),
+    "negative budget": (
+        section("rerank_budget_ms: -1.0").encode(),
+        "rerank_budget_ms=-1.0 is out of range [0.0, 600000.0]",
+    ),
+    "nan budget": (
+        section("rerank_budget_ms: .nan").encode(),
+        "rerank_budget_ms must be a finite",
+    ),
+    "string budget": (
+        section('rerank_budget_ms: "250 ms"').encode(),
+        "rerank_budget_ms must be a number, got '250 ms'",
+    ),
     "zero pixel limit": (
         section("max_image_pixels: 0").encode(),
         "max_image_pixels=0 is out of range [1, 1073741824]",

@@ -48,6 +48,8 @@ def test_rerank_picks_best_pair_score_and_keeps_global_rank():
         global_similarity=0.8,
         rank_before=2,
         rank_after=1,
+        candidates=3,
+        scored=3,
         inliers=-1,
         accepted=True,
         reason="",

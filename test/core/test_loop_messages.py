@@ -16,7 +16,7 @@ def _record(**over):
     fields = dict(
         query_id=12, query_stamp=1700000123.456789, query_frame_id="cam_front", match_id=3,
         match_stamp=1700000001.25, match_frame_id="cam_front", pair_score=2.75,
-        global_similarity=0.8125, rank_before=2, rank_after=0, inliers=-1,
+        global_similarity=0.8125, rank_before=2, rank_after=0, candidates=10, scored=3, inliers=-1,
         inlier_ratio=float("nan"), accepted=True, reason="", pose_status="", pose_reason="",
         pose_inliers=-1, tx=NAN, ty=NAN, tz=NAN, qx=NAN, qy=NAN, qz=NAN, qw=NAN, covariance=(),
     )  # fmt: skip
@@ -43,16 +43,18 @@ def test_pair_is_exactly_two_stamps():
 def test_detail_layout_and_values():
     assert lm.NUMERIC_FIELDS == (
         "query_id", "query_stamp", "match_id", "match_stamp", "pair_score", "global_similarity",
-        "rank_before", "rank_after", "inliers", "inlier_ratio", "accepted", "pose_inliers",
+        "rank_before", "rank_after", "candidates", "scored", "inliers", "inlier_ratio",
+        "accepted", "pose_inliers",
         "tx", "ty", "tz", "qx", "qy", "qz", "qw",
     )  # fmt: skip
-    assert lm.DETAIL_LABELS[19:22] == ("pose_status", "cov_00", "cov_01")
-    assert lm.DETAIL_LABELS[-1] == "cov_55" and len(lm.DETAIL_LABELS) == 20 + 36
+    assert lm.DETAIL_LABELS[21:24] == ("pose_status", "cov_00", "cov_01")
+    assert lm.DETAIL_LABELS[-1] == "cov_55" and len(lm.DETAIL_LABELS) == 22 + 36
     data = lm.detail_data(_record(accepted=False, inlier_ratio=0.5))
-    assert data[:12] == [
-        12.0, 1700000123.456789, 3.0, 1700000001.25, 2.75, 0.8125, 2.0, 0.0, -1.0, 0.5, 0.0, -1.0,
+    assert data[:14] == [
+        12.0, 1700000123.456789, 3.0, 1700000001.25, 2.75, 0.8125, 2.0, 0.0, 10.0, 3.0, -1.0,
+        0.5, 0.0, -1.0,
     ]  # fmt: skip
-    assert all(math.isnan(v) for v in data[12:19] + data[20:]) and data[19] == 0.0
+    assert all(math.isnan(v) for v in data[14:21] + data[22:]) and data[21] == 0.0
     assert lm.detail_to_dict(lm.DETAIL_LABELS, data)["accepted"] == 0.0
     posed = lm.detail_to_dict(lm.DETAIL_LABELS, lm.detail_data(_posed()))
     assert (posed["pose_status"], posed["pose_inliers"], posed["tz"]) == (1.0, 57.0, 3.0)
@@ -61,7 +63,7 @@ def test_detail_layout_and_values():
         lm.DETAIL_LABELS, lm.detail_data(_posed(pose_status="scale-free"))
     )
     assert scale_free["pose_status"] == 2.0
-    with pytest.raises(ValueError, match="detail message has 56 labels but 2 values"):
+    with pytest.raises(ValueError, match="detail message has 58 labels but 2 values"):
         lm.detail_to_dict(lm.DETAIL_LABELS, [1.0, 2.0])
 
 
@@ -70,6 +72,7 @@ def test_json_has_every_field_in_order():
     decoded = json.loads(lm.record_json(record))
     assert list(decoded) == list(lm.LOOP_RECORD_FIELDS)
     assert decoded["query_id"] == 12 and decoded["pair_score"] == 2.5
+    assert (decoded["candidates"], decoded["scored"]) == (10, 3)
     assert decoded["accepted"] is True and decoded["inlier_ratio"] is None
     assert decoded["query_frame_id"] == "cam_front" and decoded["reason"] == ""
     assert decoded["covariance"] is None and decoded["tx"] is None
@@ -88,7 +91,7 @@ def test_csv_row_puts_the_covariance_in_one_cell():
 def test_loop_messages_bundle():
     msgs = lm.loop_messages(_record())
     assert msgs.pair == lm.pair_data(_record())
-    assert msgs.detail_labels == lm.DETAIL_LABELS and len(msgs.detail) == 56
+    assert msgs.detail_labels == lm.DETAIL_LABELS and len(msgs.detail) == 58
     assert json.loads(msgs.json)["match_id"] == 3
     assert msgs.factor is None  # no pose, no factor
     assert lm.loop_messages(_posed()).factor == lm.factor_from_record(_posed())

@@ -47,8 +47,14 @@ def test_revisits_found_and_recent_frames_excluded(tiny_model, places):
     rejected = [o.loop.query_id for o in out if o.loop and not o.loop.accepted]
     assert rejected == [3, 4, 5]  # their best candidate is below the global floor
     assert pipe.counts == PipelineCounts(
-        encoded=9, similar_to_keyframe=1, keyframes=8, loops=2, rejected=3, pose_none=2
-    )  # no intrinsics given: the two loops get no relative pose
+        encoded=9,
+        similar_to_keyframe=1,
+        keyframes=8,
+        loops=2,
+        rejected=3,
+        pose_none=2,
+        candidates_scored=2,
+    )  # no intrinsics given: the two loops get no relative pose; the 3 rejected are not scored
 
 
 def test_batching_gives_the_same_records(tiny_model, places):

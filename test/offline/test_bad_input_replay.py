@@ -57,6 +57,16 @@ FLAG_CASES = {
     "top-k zero": (["--top-k", "0"], "argument --top-k: must be an integer >= 1, got 0"),
     "top-k negative": (["--top-k", "-3"], "must be an integer >= 1, got -3"),
     "top-k fraction": (["--top-k", "1.5"], "must be an integer >= 1, got '1.5'"),
+    "budget negative": (
+        ["--rerank-budget-ms=-5"],
+        "argument --rerank-budget-ms: rerank_budget_ms=-5.0 is out of range [0.0, 600000.0]",
+    ),
+    "budget nan": (["--rerank-budget-ms", "nan"], "rerank_budget_ms must be a finite number"),
+    "budget text": (
+        ["--rerank-budget-ms", "fast"],
+        "argument --rerank-budget-ms: rerank_budget_ms must be a number, got 'fast'",
+    ),
+    "budget too large": (["--rerank-budget-ms", "1e9"], "is out of range [0.0, 600000.0]"),
     "batch-size zero": (["--batch-size", "0"], "argument --batch-size: must be an integer >= 1"),
     "max-frames zero": (["--max-frames", "0"], "argument --max-frames: must be an integer >= 1"),
     "unknown flag": (["--radius", "3"], "unrecognized arguments: --radius 3"),

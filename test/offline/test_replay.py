@@ -52,7 +52,7 @@ def test_replay_end_to_end(tmp_path, tiny_model):
     assert s.pipeline_counts == dict(
         rate_limited=0, encoded=17, similar_to_keyframe=0, keyframes=17, loops=7, rejected=0,
         pose_metric=0, pose_scale_free=0, pose_none=7, depth_wrong_size=0,
-        intrinsics_wrong_size=0, features_damaged=0,
+        intrinsics_wrong_size=0, features_damaged=0, candidates_scored=7, rerank_budget_cut=0,
     )  # fmt: skip
     ev = s.evaluation
     assert (ev["positives"], ev["true_accepted"], ev["false_accepted"]) == (5, 5, 2)
@@ -245,13 +245,23 @@ def test_cli_params_file(tmp_path, weights, capsys):
     images, poses = revisit_world()
     bag = write_rosbag2(tmp_path / "bag", images, poses)
     params = tmp_path / "params.yaml"
-    params.write_text("/**:\n  ros__parameters:\n    top_k: 1\n    score_threshold: -900000.0\n")
+    params.write_text(
+        "/**:\n  ros__parameters:\n    top_k: 1\n    score_threshold: -900000.0\n"
+        "    rerank_budget_ms: 40.0\n    exclude_recent_s: 1.0\n    keyframe_max_similarity: 1.0\n"
+    )
     out = tmp_path / "out"
     argv = [str(bag), "--weights", str(weights), "--out", str(out), "--quiet"]
     assert main(argv + ["--params-file", str(params), "--threshold=-5e5"]) == 0
     capsys.readouterr()
     saved = json.loads((out / "summary.json").read_text())
     assert saved["config"]["top_k"] == 1 and saved["config"]["score_threshold"] == -5e5
+    assert saved["config"]["rerank_budget_ms"] == 40.0
+    records = json.loads((out / "loops.json").read_text())
+    scored = sum(r["scored"] for r in records)
+    assert saved["pipeline_counts"]["candidates_scored"] == scored > 0
+    flags = ["--params-file", str(params), "--rerank-budget-ms", "0", "--overwrite"]
+    assert main(argv + flags) == 0
+    assert json.loads((out / "summary.json").read_text())["config"]["rerank_budget_ms"] == 0.0
     params.write_text("/**:\n  ros__parameters:\n    top_k: many\n")
     assert main(argv + ["--params-file", str(params)]) == 1
     assert capsys.readouterr().err == (

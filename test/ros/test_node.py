@@ -337,16 +337,23 @@ def test_build_map_service_from_a_bag(harness, places, tmp_path):
 
 def test_out_of_range_parameters_are_refused_with_a_reason(harness):
     h = harness()
-    results = h.set(top_k=-3), h.set(preset="fast"), h.set(device="cuda")
+    results = (
+        h.set(top_k=-3),
+        h.set(preset="fast"),
+        h.set(device="cuda"),
+        h.set(rerank_budget_ms=-5.0),
+    )
     assert [r[0].reason for r in results] == [
         "Parameter top_k out of range. Min: 0, Max: 1000, value: -3",
         "preset='fast' must be one of speed, performance",
         "Trying to set a read-only parameter: device.",
+        "Parameter rerank_budget_ms out of range Min: 0.0, Max: 600000.0, value: -5.0",
     ]
     assert not any(r[0].successful for r in results)
     assert h.node.pipeline.config.top_k == 1
-    assert h.set(top_k=7, exclude_recent_s=9.0)[0].successful
-    assert (h.node.pipeline.config.top_k, h.node.pipeline.config.exclude_recent_s) == (7, 9.0)
+    assert h.set(top_k=7, exclude_recent_s=9.0, rerank_budget_ms=250.0)[0].successful
+    config = h.node.pipeline.config
+    assert (config.top_k, config.exclude_recent_s, config.rerank_budget_ms) == (7, 9.0, 250.0)
 
 
 def test_config_file_loads_with_every_default(tmp_path):
