@@ -261,7 +261,8 @@ def test_loop_bag_writer_round_trip(tmp_path):
     record = LoopRecord(
         query_id=7, query_stamp=120.25, query_frame_id="cam", match_id=2, match_stamp=101.5,
         match_frame_id="cam", pair_score=3.5, global_similarity=0.875, rank_before=1,
-        rank_after=0, inliers=-1, inlier_ratio=0.0, accepted=True, reason="", **pose,
+        rank_after=0, candidates=6, scored=3, inliers=-1, inlier_ratio=0.0, accepted=True,
+        reason="", **pose,
     )  # fmt: skip
     no_pose = replace(record, query_stamp=121.25, pose_status="", covariance=(), tx=math.nan)
     cdr = bytes(TS2.serialize_cdr(image_msg(TS2, 120.25, synthetic_images(1)[0], False), IMAGE))
@@ -290,8 +291,9 @@ def test_loop_bag_writer_round_trip(tmp_path):
     assert {k: values[k] for k in loop_messages.NUMERIC_FIELDS} == {
         "query_id": 7.0, "query_stamp": 120.25, "match_id": 2.0, "match_stamp": 101.5,
         "pair_score": 3.5, "global_similarity": 0.875, "rank_before": 1.0, "rank_after": 0.0,
-        "inliers": -1.0, "inlier_ratio": 0.0, "accepted": 1.0, "pose_inliers": 40.0, "tx": 1.0,
-        "ty": 0.0, "tz": 0.5, "qx": 0.0, "qy": 0.0, "qz": 0.0, "qw": 1.0,
+        "candidates": 6.0, "scored": 3.0, "inliers": -1.0, "inlier_ratio": 0.0, "accepted": 1.0,
+        "pose_inliers": 40.0, "tx": 1.0, "ty": 0.0, "tz": 0.5, "qx": 0.0, "qy": 0.0, "qz": 0.0,
+        "qw": 1.0,
     }  # fmt: skip
     assert values["pose_status"] == 1.0 and values["cov_33"] == 0.01
     factor_type, _, factor = got["/loop_closure/factor"]

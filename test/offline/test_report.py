@@ -31,7 +31,8 @@ def _record(query_id, match_id, pair_score, global_similarity, accepted, **over)
     fields = dict(
         query_id=query_id, query_stamp=10.0 * query_id, query_frame_id="cam", match_id=match_id,
         match_stamp=10.0 * match_id, match_frame_id="cam", pair_score=pair_score,
-        global_similarity=global_similarity, rank_before=0, rank_after=0, inliers=-1,
+        global_similarity=global_similarity, rank_before=0, rank_after=0, candidates=4,
+        scored=2, inliers=-1,
         inlier_ratio=0.0, accepted=accepted, reason="" if accepted else "below threshold",
     )  # fmt: skip
     fields.update(over)
@@ -173,10 +174,11 @@ def test_no_positives_and_no_accepted_give_none():
 
 CSV_TEXT = (
     "query_id,query_stamp,query_frame_id,match_id,match_stamp,match_frame_id,pair_score,"
-    "global_similarity,rank_before,rank_after,inliers,inlier_ratio,accepted,reason,"
+    "global_similarity,rank_before,rank_after,candidates,scored,inliers,inlier_ratio,accepted,"
+    "reason,"
     "pose_status,pose_reason,pose_inliers,tx,ty,tz,qx,qy,qz,qw,covariance\r\n"
-    "3,30.0,cam,0,0.0,cam,5.0,0.9,0,0,-1,0.0,True,,,,-1,nan,nan,nan,nan,nan,nan,nan,\r\n"
-    "5,50.0,cam,1,10.0,cam,3.0,0.5,0,0,-1,0.0,False,below threshold,,,-1,nan,nan,nan,nan,nan,"
+    "3,30.0,cam,0,0.0,cam,5.0,0.9,0,0,4,2,-1,0.0,True,,,,-1,nan,nan,nan,nan,nan,nan,nan,\r\n"
+    "5,50.0,cam,1,10.0,cam,3.0,0.5,0,0,4,2,-1,0.0,False,below threshold,,,-1,nan,nan,nan,nan,nan,"
     "nan,nan,\r\n"
 )
 NO_POSE = dict(
@@ -203,13 +205,15 @@ def test_csv_and_json_contents(tmp_path):
         {
             "query_id": 3, "query_stamp": 30.0, "query_frame_id": "cam", "match_id": 0,
             "match_stamp": 0.0, "match_frame_id": "cam", "pair_score": 5.0,
-            "global_similarity": 0.9, "rank_before": 0, "rank_after": 0, "inliers": -1,
+            "global_similarity": 0.9, "rank_before": 0, "rank_after": 0, "candidates": 4,
+            "scored": 2, "inliers": -1,
             "inlier_ratio": 0.0, "accepted": True, "reason": "", **NO_POSE,
         },
         {
             "query_id": 5, "query_stamp": 50.0, "query_frame_id": "cam", "match_id": 1,
             "match_stamp": 10.0, "match_frame_id": "cam", "pair_score": 3.0,
-            "global_similarity": 0.5, "rank_before": 0, "rank_after": 0, "inliers": -1,
+            "global_similarity": 0.5, "rank_before": 0, "rank_after": 0, "candidates": 4,
+            "scored": 2, "inliers": -1,
             "inlier_ratio": 0.0, "accepted": False, "reason": "below threshold", **NO_POSE,
         },
     ]  # fmt: skip
