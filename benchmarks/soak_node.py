@@ -1,15 +1,23 @@
 """Soak test of `vpr_node`: synthetic 640x480 frames at 30 Hz into the running node for N minutes.
 
-Starts the node as a subprocess (a checkpoint, or the tiny random network by default), publishes
+Starts the node as a subprocess (a checkpoint, the tiny random network by default, or with
+`--vitb` a random-init ViT-B/322: the released model's size, so its timings are real), publishes
 a camera that tours `--places` synthetic places (each shown for `--frames-per-place` frames) and
-then tours them again, so loops come back every `places * frames_per_place / rate` seconds. It
-prints a row every `--sample` seconds and a summary: frames published / received / processed /
-dropped, loops, loop latency (the frame's publish stamp to the loop message's arrival), the
-node's own processing latency from /diagnostics, and the node's resident memory (VmRSS) against
-the map's size. Memory must grow no faster than the map: the summary checks RSS growth after
-warm-up <= map growth + `--slack-mb`.
+then tours them again, so loops come back every `places * frames_per_place / rate` seconds.
+`--keyframe-interval S` makes every frame S seconds after the last encoded one a keyframe (the
+configured keyframe rate) and `--budget-ms` sets the node's `rerank_budget_ms`.
+
+It prints a row every `--sample` seconds and a summary: every frame accounted for (published =
+lost before the node + received; received = invalid + rate-limited + dropped + processed +
+failed + still queued), the deepest queue seen, keyframe latency over the whole run (the frame's
+stamp to its loop record's arrival, every keyframe with candidates: the node publishes rejected
+records too), candidates scored per keyframe, and the node's resident memory (VmRSS) against the
+map's size. Memory must grow no faster than the map: RSS growth after warm-up <= map growth +
+`--slack-mb`.
 
     python benchmarks/soak_node.py --minutes 2
+    nice -n 19 python benchmarks/soak_node.py --minutes 10 --vitb --precision int8 \
+        --keyframe-interval 4 --budget-ms 1500 --out soak.json --plot docs/soak_rss.png
     python benchmarks/soak_node.py --minutes 10 --weights pairvpr-vitB.pth --device cuda
 """
 
@@ -40,6 +48,20 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--minutes", type=float, default=2.0, help="duration (%(default)s)")
     p.add_argument("--weights", default="random-tiny", help="checkpoint (%(default)s)")
+    p.add_argument(
+        "--vitb", action="store_true",
+        help="random-init ViT-B/322 checkpoint written to the soak's temp folder (overrides "
+        "--weights): the real model size, for timing",
+    )  # fmt: skip
+    p.add_argument("--precision", default="fp32", help="node precision, e.g. int8 (%(default)s)")
+    p.add_argument(
+        "--keyframe-interval", type=float, metavar="S",
+        help="min_frame_interval S and keyframe_max_similarity 1: a keyframe every S seconds "
+        "(default: the node's preset)",
+    )  # fmt: skip
+    p.add_argument("--budget-ms", type=float, default=0.0, help="rerank_budget_ms (%(default)s)")
+    p.add_argument("--top-k", type=int, default=10, help="top_k (%(default)s)")
+    p.add_argument("--queue-size", type=int, default=4, help="node queue_size (%(default)s)")
     p.add_argument("--device", default="cpu", help="node torch device (%(default)s)")
     p.add_argument("--rate", type=float, default=30.0, help="frames per second (%(default)s)")
     p.add_argument("--size", default="640x480", help="frame size WxH (%(default)s)")
@@ -85,10 +107,31 @@ class Camera:
         return cv2.resize(texture, self.size, interpolation=cv2.INTER_NEAREST).tobytes()
 
 
-def start_node(args: argparse.Namespace, log_path: Path) -> subprocess.Popen:
-    values = {"weights": args.weights, "device": args.device, "image_topic": "/soak/image"}
+def vitb_checkpoint(folder: Path) -> Path:
+    """A random-init ViT-B/322 Pair-VPR checkpoint (the released model's shapes) in `folder`."""
+    from pair_vpr_ros.model import ModelConfig, build_pairvpr
+    from pair_vpr_ros.model.checkpoint import save_pairvpr
+
+    return save_pairvpr(build_pairvpr(ModelConfig(), seed=0), folder / "vitb-random.pth")
+
+
+def node_values(args: argparse.Namespace) -> dict[str, object]:
+    """The node's parameters for this soak (before --param extras)."""
+    values: dict[str, object] = {
+        "weights": args.weights, "device": args.device, "image_topic": "/soak/image",
+        "precision": args.precision, "queue_size": args.queue_size, "top_k": args.top_k,
+        "rerank_budget_ms": args.budget_ms, "publish_rejected": True,
+        "relative_pose": False,  # no camera_info: no poses; keeps SIFT out of the timings
+    }  # fmt: skip
     if args.weights == "random-tiny":
         values.update(TINY)
+    if args.keyframe_interval is not None:
+        values.update(min_frame_interval=args.keyframe_interval, keyframe_max_similarity=1.0)
+    return values
+
+
+def start_node(args: argparse.Namespace, log_path: Path) -> subprocess.Popen:
+    values = node_values(args)
     cmd = [sys.executable, "-m", "pair_vpr_ros.ros.node", "--ros-args"]
     for name, value in values.items():
         cmd += ["-p", f"{name}:={value}"]
@@ -115,6 +158,8 @@ class Soak:
         self.pub = self.node.create_publisher(Image, "/soak/image", qos_profile_sensor_data)
         self.diag: dict[str, str] = {}
         self.loop_ms: list[float] = []
+        self.scored: list[tuple[int, int]] = []  # (candidates, scored) per record
+        self.max_queue = 0
         self.node.create_subscription(String, "/loop_closure/json", self._on_loop, 100)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
         self.executor = MultiThreadedExecutor(num_threads=2)
@@ -132,11 +177,13 @@ class Soak:
     def _on_loop(self, msg) -> None:
         record = json.loads(msg.data)
         self.loop_ms.append((self.now() - record["query_stamp"]) * 1e3)
+        self.scored.append((record["candidates"], record["scored"]))
 
     def _on_diag(self, msg) -> None:
         for status in msg.status:
             if status.name.startswith("vpr_node"):
                 self.diag = {kv.key: kv.value for kv in status.values}
+                self.max_queue = max(self.max_queue, int(self.diag.get("queue_depth", 0)))
 
     def publish_forever(self) -> None:
         """Publish at `rate` on a fixed schedule (late frames are sent at once, not skipped)."""
@@ -162,13 +209,17 @@ class Soak:
 def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random(os.getpid()).randint(30, 99)))
-    log_path = Path(tempfile.mkdtemp(prefix="vpr-soak-")) / "node.log"
+    folder = Path(tempfile.mkdtemp(prefix="vpr-soak-"))
+    log_path = folder / "node.log"
+    if args.vitb:
+        args.weights = str(vitb_checkpoint(folder))
+        print(f"random-init ViT-B checkpoint {args.weights}")
     node = start_node(args, log_path)
     soak = Soak(args)
     try:
         started = time.monotonic()
         while not soak.diag:  # the node is up once it publishes diagnostics
-            if node.poll() is not None or time.monotonic() - started > 120:
+            if node.poll() is not None or time.monotonic() - started > 600:
                 print(f"error: the node did not start:\n{log_path.read_text()}", file=sys.stderr)
                 return 1
             time.sleep(0.2)
@@ -188,7 +239,8 @@ def run(args: argparse.Namespace) -> int:
 def soak_loop(args: argparse.Namespace, soak: Soak, node: subprocess.Popen) -> int:
     threading.Thread(target=soak.publish_forever, daemon=True).start()
     t0, samples = time.monotonic(), []
-    keys = ("frames_received", "frames_processed", "frames_dropped", "map_size", "loops")
+    keys = ("frames_received", "frames_processed", "frames_dropped", "map_size", "loops",
+            "queue_depth")  # fmt: skip
     print(f"{'t_s':>6} {'sent':>7} {'recv':>7} {'proc':>7} {'drop':>6} {'map':>6} {'loops':>5} "
           f"{'rss_MiB':>8} {'map_MiB':>8} {'lat_p50':>8} {'lat_p95':>8}")  # fmt: skip
     while (elapsed := time.monotonic() - t0) < args.minutes * 60:
@@ -208,8 +260,38 @@ def soak_loop(args: argparse.Namespace, soak: Soak, node: subprocess.Popen) -> i
               f"{row['loops']:5d} {row['rss_mb']:8.1f} {row['map_mb']:8.2f} "
               f"{row['latency_p50']:8.1f} {row['latency_p95']:8.1f}")  # fmt: skip
     soak.stop.set()
-    time.sleep(2.0)  # let the last frames and diagnostics arrive
+    drain(soak, node)
     return summarise(args, soak, samples)
+
+
+def drain(soak: Soak, node: subprocess.Popen, timeout: float = 120.0) -> None:
+    """After the last frame: wait until the node's queue is empty and its counts stand still, so
+    the summary accounts for every frame."""
+    deadline, last = time.monotonic() + timeout, None
+    while time.monotonic() < deadline and node.poll() is None:
+        time.sleep(2.0)
+        d = soak.diag
+        now = tuple(d.get(k) for k in ("frames_received", "frames_processed", "queue_depth"))
+        if now == last and d.get("queue_depth") == "0":
+            return
+        last = now
+
+
+def accounting(published: int, d: dict[str, str]) -> tuple[dict[str, int], list[str]]:
+    """Every frame's fate from the node's counters, and the identities that must hold."""
+    n = {k: int(d.get(k, 0)) for k in (
+        "frames_received", "frames_invalid", "frames_rate_limited", "frames_dropped",
+        "frames_processed", "frames_failed", "queue_depth", "frames_encoded",
+        "frames_similar_to_keyframe", "map_size")}  # fmt: skip
+    gated = int(d.get("frames_rate_limited_unqueued", 0))  # never queued: counted apart
+    fates = n["frames_invalid"] + gated + n["frames_dropped"] + n["frames_processed"]
+    fates += n["frames_failed"] + n["queue_depth"]
+    problems = []
+    if fates != n["frames_received"]:
+        problems.append(f"received {n['frames_received']} != sum of fates {fates}")
+    if n["frames_received"] > published:
+        problems.append(f"received {n['frames_received']} > published {published}")
+    return {**n, "lost_before_node": published - n["frames_received"], "gated": gated}, problems
 
 
 def summarise(args: argparse.Namespace, soak: Soak, samples: list[dict]) -> int:
@@ -219,33 +301,53 @@ def summarise(args: argparse.Namespace, soak: Soak, samples: list[dict]) -> int:
     rss_growth = last["rss_mb"] - base["rss_mb"]
     map_growth = last["map_mb"] - base["map_mb"]
     bounded = rss_growth <= map_growth + args.slack_mb
+    frames, problems = accounting(soak.published, d)
+    cut = [(c, k) for c, k in soak.scored if k < c]
     summary = {
-        "minutes": args.minutes, "weights": args.weights, "device": args.device,
-        "published": soak.published, **{k: d.get(k) for k in (
-            "frames_received", "frames_processed", "frames_dropped", "frames_invalid",
-            "frames_rate_limited", "frames_similar_to_keyframe", "map_size", "loops",
-            "bytes_per_keyframe", "latency_ms_p50", "latency_ms_p95", "latency_ms_max",
-            "encode_ms_p50", "encode_ms_p95", "rerank_ms_p50", "rerank_ms_p95")},
-        "loop_messages": len(soak.loop_ms), "rss_mb_start": samples[0]["rss_mb"],
-        "rss_mb_baseline": base["rss_mb"], "rss_mb_end": last["rss_mb"],
-        "rss_mb_max": max(s["rss_mb"] for s in samples), "rss_growth_mb": rss_growth,
-        "map_growth_mb": map_growth, "memory_bounded": bounded,
+        "minutes": args.minutes, "weights": args.weights, "vitb": args.vitb,
+        "device": args.device, "precision": args.precision, "rate_hz": args.rate,
+        "keyframe_interval_s": args.keyframe_interval, "budget_ms": args.budget_ms,
+        "top_k": args.top_k, "queue_size": args.queue_size, "published": soak.published,
+        **frames, "accounting_problems": problems, "max_queue_depth": soak.max_queue,
+        **{k: d.get(k) for k in (
+            "loops", "bytes_per_keyframe", "latency_ms_p50", "latency_ms_p95", "latency_ms_max",
+            "encode_ms_p50", "encode_ms_p95", "rerank_ms_p50", "rerank_ms_p95", "rerank_ms_max",
+            "candidates_scored", "rerank_budget_cut")},
+        "records": len(soak.loop_ms), "keyframe_latency_ms": stats(soak.loop_ms),
+        "records_cut_by_budget": len(cut),
+        "scored_per_record": stats([float(k) for _, k in soak.scored]),
+        "rss_mb_start": samples[0]["rss_mb"], "rss_mb_baseline": base["rss_mb"],
+        "rss_mb_end": last["rss_mb"], "rss_mb_max": max(s["rss_mb"] for s in samples),
+        "rss_growth_mb": rss_growth, "map_growth_mb": map_growth, "memory_bounded": bounded,
     }  # fmt: skip
     print("\nsummary")
     print(
-        f"  frames: published {soak.published}, received {d.get('frames_received')}, "
-        f"processed {d.get('frames_processed')}, dropped {d.get('frames_dropped')}, "
-        f"rate-limited {d.get('frames_rate_limited')}, invalid {d.get('frames_invalid')}"
+        f"  frames: published {soak.published} = lost before the node "
+        f"{frames['lost_before_node']} + received {frames['frames_received']}; received = "
+        f"invalid {frames['frames_invalid']} + rate-limited before the queue {frames['gated']} "
+        f"+ dropped (queue full) {frames['frames_dropped']} + processed "
+        f"{frames['frames_processed']} + failed {frames['frames_failed']} + still queued "
+        f"{frames['queue_depth']}: {'; '.join(problems) or 'every frame accounted for'}"
+    )
+    print(
+        f"  encoded {frames['frames_encoded']}, rate-limited in all "
+        f"{frames['frames_rate_limited']}, deepest queue seen {soak.max_queue} of "
+        f"{args.queue_size} (diagnostics every second)"
     )
     print(
         f"  map: {d.get('map_size')} keyframes x {d.get('bytes_per_keyframe')} B, "
-        f"loops {d.get('loops')} ({len(soak.loop_ms)} loop messages received)"
+        f"loops {d.get('loops')}, {len(soak.loop_ms)} loop records received"
     )
-    print(f"  loop latency (publish stamp -> loop message): {percentiles(soak.loop_ms)}")
+    print(f"  keyframe latency (frame stamp -> its loop record): {percentiles(soak.loop_ms)}")
     print(
-        f"  node latency (receipt -> processed, last 300 frames): p50 "
-        f"{d.get('latency_ms_p50')} ms, p95 {d.get('latency_ms_p95')} ms, "
-        f"max {d.get('latency_ms_max')} ms; encode p50 {d.get('encode_ms_p50')} ms"
+        f"  candidates scored per record: {summary['scored_per_record']} (top_k {args.top_k}, "
+        f"budget {args.budget_ms} ms; {len(cut)} records cut by the budget)"
+    )
+    print(
+        f"  node, last 300 frames: latency p50 {d.get('latency_ms_p50')} / p95 "
+        f"{d.get('latency_ms_p95')} / max {d.get('latency_ms_max')} ms; encode p50 "
+        f"{d.get('encode_ms_p50')} ms; re-rank p50 {d.get('rerank_ms_p50')} / max "
+        f"{d.get('rerank_ms_max')} ms"
     )
     print(f"  RSS: start {samples[0]['rss_mb']:.1f} MiB, at {base['t']:.0f} s "
           f"{base['rss_mb']:.1f}, end {last['rss_mb']:.1f}, max {summary['rss_mb_max']:.1f}; "
@@ -255,7 +357,15 @@ def summarise(args: argparse.Namespace, soak: Soak, samples: list[dict]) -> int:
         args.out.write_text(json.dumps({"summary": summary, "samples": samples}, indent=1))
     if args.plot:
         plot(samples, args.plot)
-    return 0 if bounded else 2
+    return 0 if bounded and not problems else 2
+
+
+def stats(values: list[float]) -> dict[str, float] | None:
+    """p50 / p95 / max / n of `values` (None when empty)."""
+    if not values:
+        return None
+    p50, p95 = np.percentile(values, [50, 95])
+    return {"p50": float(p50), "p95": float(p95), "max": float(max(values)), "n": len(values)}
 
 
 def plot(samples: list[dict], path: Path) -> None:

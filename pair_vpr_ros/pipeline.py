@@ -201,8 +201,7 @@ class LoopClosurePipeline:
     # ---- processing ------------------------------------------------------------------------
     def due(self, stamp: float) -> bool:
         """Frame-rate limit: is a frame at `stamp` far enough from the last encoded one?"""
-        last = self._last_encoded
-        return last is None or abs(stamp - last) >= self.config.min_frame_interval
+        return frame_due(stamp, self._last_encoded, self.config.min_frame_interval)
 
     def process(self, frame: Frame) -> FrameOutcome:
         """Run one frame through the whole pipeline."""
@@ -326,6 +325,13 @@ class LoopClosurePipeline:
     def pair_scores(self, dense: np.ndarray, ids: list[int]) -> np.ndarray:
         """Query dense [N,D] against map keyframes `ids` -> bidirectional scores [K]."""
         return map_pair_scores(self.model, self._place_map, dense, ids, self.rerank_chunk)
+
+
+def frame_due(stamp: float, last: float | None, interval: float) -> bool:
+    """The frame-rate limit: is a frame at `stamp` (s) at least `interval` s from the last one
+    let through, at `last` (None: none yet)? The pipeline asks it before encoding; the node
+    asks it before queueing, so frames the pipeline would skip never wait in its queue."""
+    return last is None or abs(stamp - last) >= interval
 
 
 def encode_for_map(model: PairVPRModel, images: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:

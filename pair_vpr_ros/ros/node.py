@@ -65,7 +65,7 @@ from pair_vpr_ros.detector import LoopRecord
 from pair_vpr_ros.devices import check_device
 from pair_vpr_ros.errors import ConfigError, ImageConversionError, PairVPRError
 from pair_vpr_ros.imaging import msg_to_rgb
-from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
+from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline, frame_due
 from pair_vpr_ros.ros.geometry_inputs import GeometryInputs
 from pair_vpr_ros.ros.maps import MapControl
 from pair_vpr_ros.ros.parameters import descriptor
@@ -120,6 +120,10 @@ class VprNode(Node):
             partial(precision_context, device, v["precision"]),
         )
         self.frames = FrameQueue(v["queue_size"])
+        # The frame-rate limit, applied before the queue as well (the image callback's own
+        # state): frames the pipeline would skip never fill the queue while a keyframe runs.
+        self._min_interval = config.min_frame_interval
+        self._last_queued: float | None = None
         self.poses = PoseTrack(maxlen=v["pose_buffer_size"])
         self.stats = NodeStats()
         self.geometry_inputs = GeometryInputs(v, self.stats.counts)
@@ -209,11 +213,17 @@ class VprNode(Node):
     def _after_set_parameters(self, changed: list[Parameter]) -> None:
         self.values = {**self.values, **{p.name: p.value for p in changed}}
         if any(p.name in params.DETECTOR_PARAMS for p in changed):
-            self.maps.set_config(params.detector_config(self.values))
+            config = params.detector_config(self.values)
+            self.maps.set_config(config)
+            self._min_interval = config.min_frame_interval
 
     # ---- inputs ------------------------------------------------------------------------------
     def _on_image(self, topic: str, msg: Image | CompressedImage) -> None:
         self.stats.counts.received += 1
+        stamp = message_stamp(msg, fallback=self.get_clock().now().nanoseconds / 1e9)
+        if not frame_due(stamp, self._last_queued, self._min_interval):
+            self.stats.counts.rate_limited += 1  # the pipeline would skip it: not queued
+            return
         try:
             rgb = msg_to_rgb(msg, max_pixels=self.values["max_image_pixels"])
         except ImageConversionError as err:
@@ -221,7 +231,7 @@ class VprNode(Node):
             text = f"skipping a frame of {topic}: {err}"
             self.get_logger().warning(text, throttle_duration_sec=5.0)
             return
-        stamp = message_stamp(msg, fallback=self.get_clock().now().nanoseconds / 1e9)
+        self._last_queued = stamp
         frame = Frame(stamp=stamp, rgb=rgb, frame_id=msg.header.frame_id, source=topic)
         if self.frames.put((frame, time.monotonic())):
             self.stats.counts.dropped += 1

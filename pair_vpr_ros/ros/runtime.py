@@ -72,6 +72,7 @@ class NodeCounts:
 
     received: int = 0  # image callback
     invalid: int = 0  # image callback: not convertible to RGB
+    rate_limited: int = 0  # image callback: within min_frame_interval of the last queued frame
     dropped: int = 0  # image callback: the full queue dropped its oldest frame
     processed: int = 0  # worker: through the pipeline
     errors: int = 0  # worker: the pipeline raised
@@ -153,7 +154,9 @@ def diagnostic_values(
         "frames_processed": c.processed,
         "frames_dropped": c.dropped,
         "frames_invalid": c.invalid,
-        "frames_rate_limited": live.counts.rate_limited,
+        "frames_rate_limited": c.rate_limited + live.counts.rate_limited,
+        "frames_rate_limited_unqueued": c.rate_limited,
+        "frames_encoded": live.counts.encoded,
         "frames_similar_to_keyframe": live.counts.similar_to_keyframe,
         "frames_failed": c.errors,
         "poses_invalid": c.bad_poses,

@@ -41,6 +41,7 @@ from pair_vpr_ros.loop_messages import (
 from pair_vpr_ros.params import PARAMS
 from pair_vpr_ros.place_map import PlaceMap
 from pair_vpr_ros.ros.node import VprNode, _message_classes
+from pair_vpr_ros.ros.runtime import diagnostic_values
 from pair_vpr_ros.types import message_pose
 
 EXACT = dict(
@@ -282,6 +283,24 @@ def test_full_queue_drops_the_oldest_frames(harness, places):
     counts = h.node.stats.counts  # `received` counts on entry, `dropped` after the queue
     wait_for(lambda: (counts.received, counts.dropped) == (5, 3))
     assert [frame.stamp for frame, _ in h.node.frames.snapshot()] == [13.0, 14.0]
+
+
+def test_rate_limited_frames_never_enter_the_queue(harness, places):
+    """min_frame_interval is applied before the queue: a camera faster than the keyframe rate
+    fills it only with frames the pipeline will encode, so nothing is dropped."""
+    h = harness(start_worker=False, queue_size=3, min_frame_interval=1.0)
+    for i in range(9):  # 4 Hz for 2 s: stamps 10.0, 10.25, ..., 12.0
+        h.pub.publish(image_msg(places[i % len(places)], 10.0 + 0.25 * i))
+    counts = h.node.stats.counts
+    wait_for(lambda: counts.received == 9)
+    assert (counts.rate_limited, counts.dropped) == (6, 0)
+    assert [frame.stamp for frame, _ in h.node.frames.snapshot()] == [10.0, 11.0, 12.0]
+    assert h.set(min_frame_interval=0.0)[0].successful  # run-time change reaches the gate
+    h.pub.publish(image_msg(places[0], 12.1))
+    wait_for(lambda: counts.received == 10)
+    assert (counts.rate_limited, counts.dropped) == (6, 1)
+    values = diagnostic_values(h.node.values, h.node.stats, h.node.frames, h.node.maps)
+    assert (values["frames_rate_limited"], values["frames_rate_limited_unqueued"]) == ("6", "6")
 
 
 def test_services_switch_mode_save_load_and_clear(harness, places, tmp_path):
