@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
+from functools import partial
 
 import torch
 import torch.nn.functional as F
@@ -130,8 +131,12 @@ class PairClassifier(nn.Module):
             nn.Linear(c, cfg.cls_hidden), nn.ReLU(), nn.Linear(cfg.cls_hidden, 1)
         )
         self._dec_pos_cache: dict[tuple, tuple[Tensor, Tensor]] = {}
+        # Xavier-uniform, as MAE-style decoders: with std 0.02 on a narrow decoder (128-d) the
+        # attention logits start ~1e-3, attention stays uniform and its query/key weights get
+        # almost no gradient, so the classifier cannot learn to compare the two images
+        # (test_pair_classifier_learns_a_known_answer).
         for module in (self.decoder_embed, self.dec_blocks, self.dec_norm, self.classvprmodule):
-            module.apply(init_weights)
+            module.apply(partial(init_weights, xavier=True))
         nn.init.normal_(self.decoder_clstoken, std=1e-6)
 
     # ---- inputs ----------------------------------------------------------------------------

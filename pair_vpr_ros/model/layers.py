@@ -99,10 +99,14 @@ def layer_norm(dim: int) -> nn.LayerNorm:
     return nn.LayerNorm(dim, eps=1e-6)
 
 
-def init_weights(module: nn.Module) -> None:
-    """Truncated-normal Linear weights (std 0.02), zero biases, unit LayerNorms."""
+def init_weights(module: nn.Module, xavier: bool = False) -> None:
+    """Truncated-normal (std 0.02; ``xavier``: Xavier-uniform) Linear weights, zero biases, unit
+    LayerNorms."""
     if isinstance(module, nn.Linear):
-        nn.init.trunc_normal_(module.weight, std=0.02)
+        if xavier:
+            nn.init.xavier_uniform_(module.weight)
+        else:
+            nn.init.trunc_normal_(module.weight, std=0.02)
         if module.bias is not None:
             nn.init.zeros_(module.bias)
     elif isinstance(module, nn.LayerNorm):
