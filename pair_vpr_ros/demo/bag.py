@@ -1,6 +1,7 @@
 """Write the demo drive as a rosbag2 (MCAP storage), the topics a robot would record:
 
-``/camera/image_raw`` (or ``/compressed``), ``/camera/camera_info`` (pinhole, no distortion),
+``/camera/image_raw`` (rgb8, or mono8 for a grey camera; or ``/compressed``),
+``/camera/camera_info`` (pinhole, no distortion),
 ``/camera/depth/image_raw``: depth aligned with the colour pixels (16UC1 millimetres, 0 = none;
 ``demo.depth``), unless ``depth=False``,
 ``/odom``: drifting odometry of ``base_link`` in ``odom`` (see ``demo.odometry``), and
@@ -53,11 +54,12 @@ def write_demo_bag(
     force: bool = False,
     odometry: OdometryNoise | None = None,
     depth: bool = True,
+    mono: bool = False,
 ) -> Path:
     """Generate the world for `seed`; write its drive to `path` (`.mcap` file or bag folder)."""
     world = generate_world(seed, frames=frames, width=size[0], height=size[1])
     return write_world_bag(
-        world, path, compressed=compressed, force=force, odometry=odometry, depth=depth
+        world, path, compressed=compressed, force=force, odometry=odometry, depth=depth, mono=mono
     )
 
 
@@ -69,6 +71,7 @@ def write_world_bag(
     progress: bool = False,
     odometry: OdometryNoise | None = None,
     depth: bool = True,
+    mono: bool = False,
 ) -> Path:
     """Write every frame of `world` to `path` and return it.
 
@@ -76,7 +79,9 @@ def write_world_bag(
     (metadata.yaml plus `<name>.mcap`). Both read back with `rosbags.highlevel.AnyReader`. The bag
     is written next to `path` first and moved into place, so a failure leaves no partial bag.
     `progress` shows a tqdm bar; `odometry` sets how `/odom` drifts (default `OdometryNoise()`);
-    `depth=False` leaves out the depth topic (40 ms a frame to render, 150 KB at 320x240).
+    `depth=False` leaves out the depth topic (40 ms a frame to render, 150 KB at 320x240);
+    `mono=True` writes what a grey camera gives: mono8 images (grey JPEGs if `compressed`), the
+    BT.601 luma of the rendered colours.
     """
     path = Path(path)
     odometry = odometry or OdometryNoise()
@@ -86,7 +91,7 @@ def write_world_bag(
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     try:
         folder = tmp / (path.stem if _is_file(path) else path.name)
-        _write(world, folder, compressed, progress, odometry, depth)
+        _write(world, folder, compressed, progress, odometry, depth, mono)
         _remove(path)  # only now: a failed write keeps the old output
         (folder / f"{folder.name}.mcap" if _is_file(path) else folder).replace(path)
     except (OSError, WriterError) as err:
@@ -130,6 +135,7 @@ def _write(
     progress: bool,
     noise: OdometryNoise,
     depth: bool,
+    mono: bool = False,
 ) -> None:
     """Serialise every frame's messages with identical header stamps and log times."""
     ts = get_typestore(Stores.ROS2_JAZZY)
@@ -159,7 +165,7 @@ def _write(
                 sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000
             )
             messages = (
-                (image_topic, _image_msg(t, stamp, render_frame(world, i), compressed)),
+                (image_topic, _image_msg(t, stamp, render_frame(world, i), compressed, mono)),
                 (CAMERA_INFO_TOPIC, _camera_info_msg(t, stamp, cam)),
                 (ODOM_TOPIC, _odom_msg(t, stamp, odometry, i, rate, ODOM_FRAME)),
                 (GROUND_TRUTH_TOPIC, _odom_msg(t, stamp, world.poses, i, rate, MAP_FRAME)),
@@ -205,11 +211,15 @@ def _camera_info_msg(t: dict, stamp: object, cam: Camera) -> object:
     )
 
 
-def _image_msg(t: dict, stamp: object, rgb: np.ndarray, compressed: bool) -> object:
-    """sensor_msgs Image (rgb8) or CompressedImage (jpeg) of `rgb` [H, W, 3] uint8."""
+def _image_msg(
+    t: dict, stamp: object, rgb: np.ndarray, compressed: bool, mono: bool = False
+) -> object:
+    """sensor_msgs Image (rgb8, or mono8 with `mono`) or CompressedImage (jpeg) of `rgb`
+    [H, W, 3] uint8."""
     header = t["std_msgs/msg/Header"](stamp=stamp, frame_id=CAMERA_FRAME)
+    pixels = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if mono else rgb[..., ::-1]  # grey or BGR
     if compressed:
-        ok, buf = cv2.imencode(".jpg", rgb[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        ok, buf = cv2.imencode(".jpg", pixels, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
         assert ok, "JPEG encoding of a uint8 image cannot fail"
         return t["sensor_msgs/msg/CompressedImage"](header=header, format="jpeg", data=buf.ravel())
     h, w = rgb.shape[:2]
@@ -217,10 +227,10 @@ def _image_msg(t: dict, stamp: object, rgb: np.ndarray, compressed: bool) -> obj
         header=header,
         height=h,
         width=w,
-        encoding="rgb8",
+        encoding="mono8" if mono else "rgb8",
         is_bigendian=0,
-        step=3 * w,
-        data=np.ascontiguousarray(rgb).reshape(-1),
+        step=(1 if mono else 3) * w,
+        data=np.ascontiguousarray(pixels if mono else rgb).reshape(-1),
     )
 
 

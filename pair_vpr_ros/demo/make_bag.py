@@ -87,6 +87,11 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"{ODOM_TOPIC}'s yaw-rate bias in deg/s (default: %(default)s)",
     )
     parser.add_argument(
+        "--mono",
+        action="store_true",
+        help=f"write {IMAGE_TOPIC} as mono8 (a grey camera; grey JPEGs with --compressed)",
+    )
+    parser.add_argument(
         "--no-depth", action="store_true", help=f"leave out {DEPTH_TOPIC} (smaller, faster bag)"
     )
     parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
@@ -123,13 +128,15 @@ def _run(args: argparse.Namespace) -> None:
             force=args.force,
             progress=args.progress,
             depth=not args.no_depth,
+            mono=args.mono,
             odometry=OdometryNoise(
                 scale_error=args.odom_scale_error, yaw_rate_bias_deg_s=args.odom_yaw_bias
             ),
         )
         print(
             f"wrote {path}: {world.num_frames} frames {args.size[0]}x{args.size[1]} "
-            f"({'jpeg' if args.compressed else 'rgb8'}), {world.config.laps} laps = "
+            f"({'jpeg' if args.compressed else 'mono8' if args.mono else 'rgb8'}), "
+            f"{world.config.laps} laps = "
             f"{world.loops} loops, {len(world.revisit_pairs())} revisit frames, "
             f"seed {args.seed}, {time.perf_counter() - start:.1f} s"
         )

@@ -214,6 +214,24 @@ def test_compressed_bag_folder_reads_back(tmp_path):
     assert cv2.imdecode(msg.data, cv2.IMREAD_COLOR).shape == (48, 64, 3)
 
 
+def test_mono_bag_holds_the_luma_of_the_colour_bag(tmp_path, capsys):
+    argv = ["--seed", "3", "--frames", "24", "--size", "32x24", "--no-depth"]
+    assert main([str(tmp_path / "rgb.mcap"), *argv]) == 0
+    assert main([str(tmp_path / "mono.mcap"), *argv, "--mono"]) == 0
+    assert "24 frames 32x24 (mono8), 3 laps" in capsys.readouterr().out
+    rgb = read_bag(tmp_path / "rgb.mcap")[1]["/camera/image_raw"][5][1]
+    mono = read_bag(tmp_path / "mono.mcap")[1]["/camera/image_raw"][5][1]
+    assert (mono.encoding, mono.step, mono.width, mono.height) == ("mono8", 32, 32, 24)
+    colour = rgb.data.reshape(24, 32, 3).astype(np.float64)
+    luma = colour @ [0.299, 0.587, 0.114]
+    assert np.abs(mono.data.reshape(24, 32) - luma).max() <= 0.51
+    jpeg = write_demo_bag(
+        tmp_path / "j", seed=3, frames=24, size=(32, 24), compressed=True, mono=True
+    )
+    msg = read_bag(jpeg)[1]["/camera/image_raw/compressed"][0][1]
+    assert cv2.imdecode(msg.data, cv2.IMREAD_UNCHANGED).shape == (24, 32)
+
+
 def test_existing_output_needs_force(tmp_path):
     out = tmp_path / "demo.mcap"
     out.write_bytes(b"old")

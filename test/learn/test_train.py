@@ -7,8 +7,10 @@ import os
 import socket
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from synthetic_data import make_place_folders, make_utm_eval_set
@@ -26,9 +28,12 @@ from pair_vpr_ros.learn.train.common import (
     warmup_cosine,
 )
 from pair_vpr_ros.learn.train.data import (
+    AugmentConfig,
     PlaceBatchSampler,
     PlaceData,
     PlaceImagesDataset,
+    augment_rgb,
+    grey_rgb,
     make_loader,
 )
 from pair_vpr_ros.learn.train.loop import LoopJob, LoopSettings, Progress, run_loop
@@ -38,6 +43,7 @@ from pair_vpr_ros.learn.train.losses import (
     masked_patch_mse,
     patchify,
     random_patch_mask,
+    random_positive_indices,
 )
 from pair_vpr_ros.learn.train.options import config_from_args
 from pair_vpr_ros.learn.train.stage1 import Stage1Config, Stage1Objective, train_stage1
@@ -83,6 +89,33 @@ def test_batch_hard_indices_hand_made() -> None:
     assert pos.tolist() == [2, 2] and neg.tolist() == [3, 4] and valid.tolist() == [True, True]
     pos, neg, valid = batch_hard_indices(sim[:1], labels[3:4], labels, torch.tensor([3]))
     assert valid.tolist() == [False]
+
+
+def test_random_positive_indices_pick_another_view_of_the_place() -> None:
+    labels = torch.tensor([0, 0, 0, 1, 1, 2])
+    own = torch.tensor([0, 3, 5])
+    picks = {
+        tuple(
+            random_positive_indices(labels[own], labels, own, torch.Generator().manual_seed(s))[
+                :2
+            ].tolist()
+        )
+        for s in range(40)
+    }
+    assert {p[0] for p in picks} == {1, 2} and {p[1] for p in picks} == {4}
+
+
+def test_grey_and_exposure_augmentation() -> None:
+    rgb = np.zeros((4, 6, 3), np.uint8)
+    rgb[..., 0], rgb[..., 1], rgb[..., 2] = 200, 100, 50
+    assert grey_rgb(rgb)[0, 0].tolist() == pytest.approx([124.2] * 3, abs=1e-3)  # BT.601
+    flat = AugmentConfig(crop_scale=(1.0, 1.0), brightness=0.0, contrast=0.0)
+    rng = np.random.default_rng(0)
+    grey = augment_rgb(rgb, rng, replace(flat, grey=1.0))
+    assert grey.shape == (4, 6, 3) and (grey == 124).all()
+    assert (augment_rgb(rgb, rng, replace(flat, grey=0.0)) == rgb).all()
+    gains = [augment_rgb(rgb, rng, replace(flat, exposure=1.0))[0, 0, 2] / 50 for _ in range(50)]
+    assert 0.5 - 1e-6 <= min(gains) < 0.7 and 1.4 < max(gains) <= 2.0 + 1e-6
 
 
 def test_multi_similarity_objective_and_missing_package(monkeypatch) -> None:  # noqa: ANN001
@@ -221,6 +254,24 @@ def test_stage_objectives_reduce_their_loss_on_a_fixed_batch(tmp_path: Path) -> 
     assert losses[-1] < 0.9 * losses[0]
 
 
+def test_stage_two_patch_loss_and_random_positives(tmp_path: Path) -> None:
+    images, labels = _batch(tmp_path, places=3, per_place=2)
+    images, labels = images.flatten(0, 1), labels.flatten()
+    model = build_pairvpr(ModelConfig.tiny(), seed=0)
+    terms = {}
+    for weight, positives in ((0.0, "hardest"), (0.5, "hardest"), (0.5, "random")):
+        cfg = Stage2Config(
+            data=[], out_dir=tmp_path, patch_weight=weight, pair_positives=positives
+        )
+        torch.manual_seed(0)
+        terms[weight, positives] = Stage2Objective(model, cfg, DistContext())(images, labels)
+    off, on = terms[0.0, "hardest"], terms[0.5, "hardest"]
+    assert off["patch"].item() == 0.0 and on["patch"].item() > 0.0
+    assert on["loss"].item() == pytest.approx(off["loss"].item() + 0.5 * on["patch"].item())
+    # two views per place: the only other view is both the hardest and a random positive
+    assert terms[0.5, "random"]["pair"].item() == pytest.approx(on["pair"].item(), rel=1e-6)
+
+
 def test_stage_two_global_only_leaves_the_decoder_alone(trained: dict[str, Path]) -> None:
     out = trained["root"] / "s2_global"
     final = train_stage2(
@@ -247,6 +298,12 @@ def test_stage_two_global_only_leaves_the_decoder_alone(trained: dict[str, Path]
     [
         ("pair_weight", -1.0, "pair_weight must be >= 0, got -1.0"),
         ("warmup_steps", -1, "warmup_steps must be >= 0, got -1"),
+        ("patch_weight", -0.5, "patch_weight must be >= 0, got -0.5"),
+        ("patch_weight", float("nan"), "patch_weight must be >= 0, got nan"),
+        ("pair_positives", "easy", "pair_positives must be 'hardest' or 'random', got 'easy'"),
+        ("grey", 1.5, "grey=1.5: a probability, use a value in 0..1"),
+        ("grey", float("nan"), r"grey=nan: a probability, use a value in 0..1"),
+        ("exposure", -0.1, r"exposure=-0.1: must be >= 0 \(0 = no gain jitter\)"),
     ],
 )
 def test_stage_two_rejects_negative_settings(
@@ -524,6 +581,8 @@ def test_cli_flags_defaults_and_values(tmp_path: Path, capsys: pytest.CaptureFix
         "--log-every": ("2", "log_every", 2),
         "--resume": ("r.pt", "resume", Path("r.pt")),
         "--warmup-steps": ("6", "warmup_steps", 6),
+        "--grey": ("0.5", "grey", 0.5),
+        "--exposure": ("0.3", "exposure", 0.3),
     }
     own = {
         stage1: {
@@ -537,6 +596,8 @@ def test_cli_flags_defaults_and_values(tmp_path: Path, capsys: pytest.CaptureFix
             "--end-lr-factor": ("0.5", "end_lr_factor", 0.5),
             "--pair-weight": ("0", "pair_weight", 0.0),
             "--pair-directions": ("first", "pair_directions", "first"),
+            "--patch-weight": ("1.5", "patch_weight", 1.5),
+            "--pair-positives": ("random", "pair_positives", "random"),
             "--val-rerank-k": ("5", "val_rerank_k", 5),
         },
     }

@@ -52,6 +52,16 @@ class TrainConfig:
     )
     amp: bool = option(True, "disable bf16 autocast on GPU (CPU never uses it)", flag="--no-amp")
     augment: bool = option(True, "disable crop/brightness/contrast jitter", flag="--no-augment")
+    grey: float = option(
+        0.0,
+        "with augmentation: probability of training on a grey version of an image, so that "
+        "mono8 cameras work (default %(default)s)",
+    )
+    exposure: float = option(
+        0.0,
+        "with augmentation: scale the pixel values by a gain drawn log-uniformly from "
+        "[1/(1+E), 1+E] (default %(default)s: none)",
+    )
     seed: int = option(0, "random seed (default %(default)s)")
     save_every: int = option(
         1000, "also rewrite last.pt every N steps, 0 = only at epoch ends (default %(default)s)"

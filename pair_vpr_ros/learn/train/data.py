@@ -24,20 +24,36 @@ from pair_vpr_ros.model import preprocess
 
 @dataclass(frozen=True)
 class AugmentConfig:
-    """Light photometric/geometric jitter; ``None`` in the datasets means no augmentation."""
+    """Light photometric/geometric jitter; ``None`` in the datasets means no augmentation.
+
+    ``grey`` and ``exposure`` make a model that also works on mono8 cameras and under other
+    exposure: a grey image is what `imaging` makes of a mono8 frame (the grey value in all three
+    channels)."""
 
     crop_scale: tuple[float, float] = (0.7, 1.0)  # area fraction of a random crop (aspect kept)
     brightness: float = 0.2  # +- fraction of the pixel range
     contrast: float = 0.2  # +- fraction around the image mean
+    grey: float = 0.0  # probability of turning the image grey (ITU-R BT.601 luma)
+    exposure: float = 0.0  # gain drawn log-uniformly from [1/(1+e), 1+e]
+
+
+def grey_rgb(rgb: np.ndarray) -> np.ndarray:
+    """[H,W,3] -> [H,W,3] float32: BT.601 luma (what a mono camera sees) in all channels."""
+    luma = rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
+    return np.repeat(luma[..., None], 3, axis=2)
 
 
 def augment_rgb(rgb: np.ndarray, rng: np.random.Generator, aug: AugmentConfig) -> np.ndarray:
-    """[H,W,3] uint8 -> [h,w,3] uint8: random crop, brightness and contrast."""
+    """[H,W,3] uint8 -> [h,w,3] uint8: random crop, grey, exposure, brightness and contrast."""
     h, w = rgb.shape[:2]
     side = float(np.sqrt(rng.uniform(*aug.crop_scale)))
     ch, cw = max(1, round(h * side)), max(1, round(w * side))
     y, x = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
     out = rgb[y : y + ch, x : x + cw].astype(np.float32)
+    if aug.grey > 0 and rng.uniform() < aug.grey:
+        out = grey_rgb(out)
+    if aug.exposure > 0:
+        out = out * float(np.exp(rng.uniform(-1.0, 1.0) * np.log1p(aug.exposure)))
     contrast = 1.0 + rng.uniform(-aug.contrast, aug.contrast)
     shift = 255.0 * rng.uniform(-aug.brightness, aug.brightness)
     out = (out - out.mean()) * contrast + out.mean() + shift
@@ -152,7 +168,7 @@ def place_data(
     places: PlaceCollection, images_per_place: int, size: int, cfg: TrainConfig, ctx: DistContext
 ) -> PlaceData:
     """Batches of ``cfg.places_per_batch`` places x ``images_per_place`` images of ``size``."""
-    augment = AugmentConfig() if cfg.augment else None
+    augment = AugmentConfig(grey=cfg.grey, exposure=cfg.exposure) if cfg.augment else None
     dataset = PlaceImagesDataset(places, images_per_place, size, augment, seed=cfg.seed)
     sampler = PlaceBatchSampler(
         len(dataset), cfg.places_per_batch, ctx.rank, ctx.world_size, cfg.seed

@@ -18,7 +18,7 @@ from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 
 from pair_vpr_ros.cli import run_cli
-from pair_vpr_ros.errors import TrainingError
+from pair_vpr_ros.errors import ConfigError, TrainingError
 from pair_vpr_ros.learn.datasets import concat_collections, load_places
 from pair_vpr_ros.learn.train.common import (
     DistContext,
@@ -85,6 +85,10 @@ class Stage(ABC):
 
     def check(self) -> None:
         """Config errors found before any process group, dataset or model exists."""
+        if not 0.0 <= self.cfg.grey <= 1.0:
+            raise ConfigError(f"grey={self.cfg.grey}: a probability, use a value in 0..1")
+        if not self.cfg.exposure >= 0:
+            raise ConfigError(f"exposure={self.cfg.exposure}: must be >= 0 (0 = no gain jitter)")
         if self.cfg.resume is None:  # a bad size or preset fails now, before datasets are scanned
             ModelConfig.preset(self.cfg.arch, image_size=self.cfg.image_size)
 

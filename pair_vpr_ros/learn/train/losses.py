@@ -98,6 +98,22 @@ def batch_hard_indices(
     return positive, negative, same.any(dim=1) & other.any(dim=1)
 
 
+def random_positive_indices(
+    anchor_labels: Tensor,
+    labels: Tensor,
+    anchor_index: Tensor,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """For each anchor a uniformly random other item of its place: anchor_labels [A], labels [M],
+    anchor_index [A] -> [A] (an anchor without one gets an arbitrary index; `batch_hard_indices`
+    says which are valid)."""
+    rows = torch.arange(anchor_labels.shape[0], device=labels.device)
+    same = anchor_labels[:, None] == labels[None, :]
+    same[rows, anchor_index] = False
+    noise = torch.rand(same.shape, generator=generator).to(labels.device)
+    return noise.masked_fill(~same, -1.0).argmax(dim=1)
+
+
 def pair_bce(positive_logits: Tensor, negative_logits: Tensor) -> Tensor:
     """Binary cross-entropy: same-place logits -> 1, other-place logits -> 0 (mean over all)."""
     logits = torch.cat([positive_logits, negative_logits]).float()

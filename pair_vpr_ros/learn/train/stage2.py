@@ -11,9 +11,15 @@ both are trained. The network spec does not say which of the two the paper used;
 the anchor-first direction only. Total = global + 2.0 * pair. AdamW lr 8e-5, weight decay 0.05,
 lr falling linearly to 0.2x; the last half of the encoder blocks train.
 
-Two options beyond the paper, for training from a random init (the demo model): a linear lr
-warm-up, and ``pair_weight=0``, which trains the global descriptor alone without running the
-decoder (an encoder pre-training that can stand in for DINOv2 when no DINOv2 of that size exists).
+Options beyond the paper, for training from a random init (the demo model): a linear lr
+warm-up; ``pair_weight=0``, which trains the global descriptor alone without running the
+decoder (an encoder pre-training that can stand in for DINOv2 when no DINOv2 of that size exists);
+``patch_weight``, a multi-similarity loss on the mean of each image's dense tokens, so that the
+tokens the pair classifier reads carry the place and not only the class token (DINOv2's patch
+features do so from its own pre-training); and ``pair_positives="random"``, a random instead of
+the hardest positive for the pair loss: the hardest positive of a place seen in several lightings
+is nearly always one in another lighting, and the hardest negative one in the same lighting, so
+"other lighting" alone would separate them.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from pair_vpr_ros.errors import ConfigError
@@ -33,7 +40,12 @@ from pair_vpr_ros.learn.train.common import DistContext, gather_batch, linear_de
 from pair_vpr_ros.learn.train.config import TrainConfig
 from pair_vpr_ros.learn.train.driver import Stage, stage_main, stage_parser, train
 from pair_vpr_ros.learn.train.loop import StepFn
-from pair_vpr_ros.learn.train.losses import MultiSimilarityObjective, batch_hard_indices, pair_bce
+from pair_vpr_ros.learn.train.losses import (
+    MultiSimilarityObjective,
+    batch_hard_indices,
+    pair_bce,
+    random_positive_indices,
+)
 from pair_vpr_ros.learn.train.options import option, redefault
 from pair_vpr_ros.model import PairVPR, load_pairvpr
 from pair_vpr_ros.model.checkpoint import STAGE2_NEW
@@ -63,6 +75,17 @@ class Stage2Config(TrainConfig):
         "weight of the pair loss (default %(default)s); 0 trains the global descriptor alone, "
         "without running the decoder",
     )
+    patch_weight: float = option(
+        0.0,
+        "weight of a multi-similarity loss on each image's mean dense token, which teaches the "
+        "tokens the pair classifier reads the place (default %(default)s: off, as the paper)",
+    )
+    pair_positives: str = option(
+        "hardest",
+        "positive of each anchor in the pair loss: the hardest by descriptor (default, as the "
+        "paper) or a random one of the same place",
+        choices=("hardest", "random"),
+    )
     pair_directions: str = option(
         "both",
         "train the pair logits in both image orders (default) or anchor-first only",
@@ -88,6 +111,7 @@ class Stage2Objective(nn.Module):
         super().__init__()
         self.model, self.ctx = model, ctx
         self.pair_weight, self.both = cfg.pair_weight, cfg.pair_directions == "both"
+        self.patch_weight, self.random_positive = cfg.patch_weight, cfg.pair_positives == "random"
         self.metric = MultiSimilarityObjective(
             cfg.ms_alpha, cfg.ms_beta, cfg.ms_base, cfg.miner_epsilon
         )
@@ -98,17 +122,25 @@ class Stage2Objective(nn.Module):
         labels_all = gather_batch(labels, self.ctx)
         with torch.autocast(desc.device.type, enabled=False):  # beta=50 needs float32
             global_loss, mined = self.metric(desc_all, labels_all)
+            patch_loss = global_loss.new_zeros(())
+            if self.patch_weight > 0:
+                pooled = F.normalize(dense.float().mean(dim=1), dim=-1)  # [B,D]
+                patch_loss = self.metric(gather_batch(pooled, self.ctx), labels_all)[0]
+        terms = {
+            "global": global_loss.detach(),
+            "patch": patch_loss.detach(),
+            "pair": global_loss.new_zeros(()),
+            "mined": torch.tensor(float(mined)),
+        }
+        loss = global_loss + self.patch_weight * patch_loss
         if self.pair_weight == 0:  # global descriptor only: the decoder is frozen and not run
-            return {
-                "loss": global_loss,
-                "global": global_loss.detach(),
-                "pair": global_loss.new_zeros(()),
-                "mined": torch.tensor(float(mined)),
-            }
+            return {"loss": loss, **terms}
         own = self.ctx.rank * labels.shape[0] + torch.arange(labels.shape[0], device=labels.device)
         with torch.no_grad():
             sim = desc.detach().float() @ desc_all.detach().T
             pos, neg, valid = batch_hard_indices(sim, labels, labels_all, own)
+            if self.random_positive:
+                pos = random_positive_indices(labels, labels_all, own)
         dense_all = gather_batch(dense, self.ctx)
         anchor, positive, negative = dense[valid], dense_all[pos[valid]], dense_all[neg[valid]]
         if self.both:
@@ -120,12 +152,7 @@ class Stage2Objective(nn.Module):
         logits = self.model.pair_logits(first, second).view(-1, anchor.shape[0])
         pos_logits, neg_logits = logits[0::2].flatten(), logits[1::2].flatten()
         pair_loss = pair_bce(pos_logits, neg_logits)
-        return {
-            "loss": global_loss + self.pair_weight * pair_loss,
-            "global": global_loss.detach(),
-            "pair": pair_loss.detach(),
-            "mined": torch.tensor(float(mined)),
-        }
+        return {"loss": loss + self.pair_weight * pair_loss, **terms, "pair": pair_loss.detach()}
 
 
 def validate(model: PairVPR, cfg: Stage2Config) -> dict[str, dict[str, float]]:
@@ -169,8 +196,13 @@ class Stage2(Stage):
             raise ConfigError(
                 f"pair_directions must be 'both' or 'first', got {cfg.pair_directions!r}"
             )
-        if cfg.pair_weight < 0:
-            raise ConfigError(f"pair_weight must be >= 0, got {cfg.pair_weight}")
+        if cfg.pair_positives not in ("hardest", "random"):
+            raise ConfigError(
+                f"pair_positives must be 'hardest' or 'random', got {cfg.pair_positives!r}"
+            )
+        for name in ("pair_weight", "patch_weight"):
+            if not getattr(cfg, name) >= 0:
+                raise ConfigError(f"{name} must be >= 0, got {getattr(cfg, name)}")
         if cfg.warmup_steps < 0:
             raise ConfigError(f"warmup_steps must be >= 0, got {cfg.warmup_steps}")
         if cfg.images_per_place < 2:
