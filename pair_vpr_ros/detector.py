@@ -105,8 +105,10 @@ class LoopRecord:
     reason: str = ""  # why it was not accepted; "" when accepted
     # Relative pose T_match_query (see geometry.relpose): the query camera's pose in the match
     # camera's optical frame. Only accepted loops get one; NaN / () when there is none.
-    pose_status: str = ""  # "metric", "scale-free" or "" (no pose: see pose_reason)
-    pose_reason: str = ""  # why there is no pose (or no scale); "" for a metric pose
+    # "metric" (depth), "metric-odometry" (monocular, scale from an odometry baseline next to
+    # the match keyframe), "scale-free" or "" (no pose: see pose_reason)
+    pose_status: str = ""
+    pose_reason: str = ""  # why there is no pose (no scale; where the scale came from)
     pose_inliers: int = -1  # PnP / essential-matrix inliers; -1 when not tried
     tx: float = float("nan")  # m (scale-free: a unit vector)
     ty: float = float("nan")

@@ -17,7 +17,8 @@ pose.pose.orientation           rotation of T_match_query (query camera axes in 
 pose.covariance                 6x6 row-major, order (x, y, z, rx, ry, rz), errors expressed in the
                                 match camera frame (see ``LoopFactor.gtsam_covariance``)
 twist.twist.linear.x / .y       match keyframe's image stamp (t_previous): sec / nanosec
-twist.twist.linear.z            1.0 metric, 2.0 scale-free (translation variance 1e6 m^2)
+twist.twist.linear.z            1.0 metric (depth), 2.0 scale-free (translation variance 1e6 m^2),
+                                3.0 metric, monocular, scale from a short odometry baseline
 twist.twist.angular.x           inliers of the pose fit
 twist.twist.angular.y / .z      query / match keyframe ids in the place map
 twist.covariance                all zeros
@@ -53,7 +54,7 @@ FACTOR_MSG_TYPES = (  # every message type `factor_msg` constructs
     "geometry_msgs/msg/TwistWithCovariance",
     FACTOR_TYPE,
 )
-STATUS_CODES = {"metric": 1.0, "scale-free": 2.0}
+STATUS_CODES = {"metric": 1.0, "scale-free": 2.0, "metric-odometry": 3.0}
 
 
 @dataclass(frozen=True)
@@ -71,6 +72,8 @@ class LoopFactor:
     inliers: int
     query_id: int = -1
     match_id: int = -1
+    # metric, but the length comes from the odometry next to the match keyframe, not from depth
+    scale_from_odometry: bool = False
 
     def matrix(self) -> np.ndarray:
         """[4, 4] homogeneous T_match_query (maps query-camera points into the match camera)."""
@@ -115,10 +118,11 @@ def factor_from_record(record: Any) -> LoopFactor | None:
         translation=t,  # type: ignore[arg-type]
         rotation=q,  # type: ignore[arg-type]
         covariance=tuple(float(v) for v in cov),
-        metric=status == "metric",
+        metric=status != "scale-free",
         inliers=int(_get(record, "pose_inliers")),
         query_id=int(_get(record, "query_id")),
         match_id=int(_get(record, "match_id")),
+        scale_from_odometry=status == "metric-odometry",
     )
 
 
@@ -159,7 +163,9 @@ def factor_msg(factor: LoopFactor, types: Mapping[str, Callable[..., Any]]) -> A
 
 
 def _status(factor: LoopFactor) -> str:
-    return "metric" if factor.metric else "scale-free"
+    if not factor.metric:
+        return "scale-free"
+    return "metric-odometry" if factor.scale_from_odometry else "metric"
 
 
 def factor_from_msg(msg: Any) -> LoopFactor:
@@ -170,7 +176,7 @@ def factor_from_msg(msg: Any) -> LoopFactor:
     if len(cov) != 36 or twist.linear.z not in STATUS_CODES.values():
         raise ValueError(
             f"not a loop_closure/factor message: covariance has {len(cov)} values, status code "
-            f"{twist.linear.z} (expected 36 values and 1.0 or 2.0)"
+            f"{twist.linear.z} (expected 36 values and 1.0, 2.0 or 3.0)"
         )
     return LoopFactor(
         query_stamp=stamp.sec + stamp.nanosec * 1e-9,
@@ -180,8 +186,9 @@ def factor_from_msg(msg: Any) -> LoopFactor:
         translation=(p.x, p.y, p.z),
         rotation=(q.x, q.y, q.z, q.w),
         covariance=cov,
-        metric=twist.linear.z == STATUS_CODES["metric"],
+        metric=twist.linear.z != STATUS_CODES["scale-free"],
         inliers=int(twist.angular.x),
         query_id=int(twist.angular.y),
         match_id=int(twist.angular.z),
+        scale_from_odometry=twist.linear.z == STATUS_CODES["metric-odometry"],
     )

@@ -14,8 +14,9 @@ both publish identical data; the pose-graph tools decode them here too. One acce
     one value per field, labelled: ``DETAIL_LABELS`` = ``NUMERIC_FIELDS`` (query_id,
     query_stamp, match_id, match_stamp, pair_score, global_similarity, rank_before, rank_after,
     candidates, scored, inliers, inlier_ratio, accepted, pose_inliers, tx, ty, tz, qx, qy, qz,
-    qw), then ``pose_status`` (0 no pose, 1 metric, 2 scale-free), then the covariance
-    ``cov_00`` .. ``cov_55`` (row, column in x, y, z, rx, ry, rz order; NaN without a pose).
+    qw), then ``pose_status`` (0 no pose, 1 metric, 2 scale-free, 3 metric with the length from
+    odometry), then the covariance ``cov_00`` .. ``cov_55`` (row, column in x, y, z, rx, ry, rz
+    order; NaN without a pose).
     ``layout.dim`` has one ``MultiArrayDimension(label=<name>, size=1, stride=1)`` per value,
     ``layout.data_offset = 0``: look values up by label (``detail_to_dict``).
 
@@ -86,7 +87,7 @@ POSE_AXES = ("x", "y", "z", "rx", "ry", "rz")  # ROS PoseWithCovariance order
 NUMERIC_FIELDS = tuple(f for f in LOOP_RECORD_FIELDS if f not in (*TEXT_FIELDS, "covariance"))
 COVARIANCE_LABELS = tuple(f"cov_{r}{c}" for r in range(6) for c in range(6))
 DETAIL_LABELS = (*NUMERIC_FIELDS, "pose_status", *COVARIANCE_LABELS)
-POSE_STATUS_CODES = {"": 0, "metric": 1, "scale-free": 2}
+POSE_STATUS_CODES = {"": 0, "metric": 1, "scale-free": 2, "metric-odometry": 3}
 
 __all__ = [
     "DETAIL_LABELS",

@@ -28,6 +28,7 @@ from pair_vpr_ros.errors import ConfigError, MapFingerprintError
 from pair_vpr_ros.geometry.camera import CameraModel
 from pair_vpr_ros.geometry.features import Features
 from pair_vpr_ros.geometry.keyframes import GeometryConfig, KeyframeGeometry
+from pair_vpr_ros.geometry.odometry_scale import Neighbour
 from pair_vpr_ros.model import PairVPRModel, preprocess_batch
 from pair_vpr_ros.model.decoder import default_chunk
 from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
@@ -72,7 +73,8 @@ class PipelineCounts:
     keyframes: int = 0
     loops: int = 0  # accepted loop closures
     rejected: int = 0  # keyframes whose best candidate was not accepted
-    pose_metric: int = 0  # accepted loops with a metric relative pose
+    pose_metric: int = 0  # accepted loops with a metric relative pose (depth)
+    pose_metric_odometry: int = 0  # ... metric, monocular, scaled by an odometry baseline
     pose_scale_free: int = 0  # ... with a rotation and a translation direction only
     pose_none: int = 0  # ... without a pose (the record's pose_reason says why)
     depth_wrong_size: int = 0  # keyframes whose depth image did not fit (dropped)
@@ -267,7 +269,8 @@ class LoopClosurePipeline:
         loop = outcome.loop
         if loop is not None and loop.accepted and self.geometry.config.relative_pose:
             match = self._stored_features(loop.match_id)
-            outcome.timings_ms["pose"] = self.geometry.pose(loop, features, match)
+            near = self._scale_neighbours(loop.match_id)
+            outcome.timings_ms["pose"] = self.geometry.pose(loop, features, match, near)
         if self.config.mode == "mapping":
             meta = KeyframeMeta(
                 stamp=frame.stamp, frame_id=frame.frame_id, pose=frame.pose, source=frame.source
@@ -317,6 +320,16 @@ class LoopClosurePipeline:
 
     def _stored_features(self, kf_id: int) -> Features | None:
         return self.geometry.unpack(self._place_map.features(kf_id))
+
+    def _scale_neighbours(self, match_id: int) -> list[Neighbour]:
+        """Map keyframes next to the match (by id: recorded just before or after it) with an
+        odometry baseline, for the scale of a monocular loop."""
+        span = self.geometry.config.pose.scale_neighbours
+        ids = [i for i in range(match_id - span, match_id + span + 1)
+               if i != match_id and 0 <= i < len(self._place_map)]  # fmt: skip
+        near = [self._place_map.meta(i) for i in ids]
+        meta = self._place_map.meta(match_id)
+        return self.geometry.neighbours(meta, near, self._stored_features)
 
     def _candidate(self, kf_id: int, sim: float, rank: int) -> Candidate:
         meta = self._place_map.meta(kf_id)

@@ -4,6 +4,7 @@ pose of each accepted loop, with every problem of the inputs counted rather than
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -19,6 +20,7 @@ from pair_vpr_ros.geometry.features import (
     pack_features,
     unpack_features,
 )
+from pair_vpr_ros.geometry.odometry_scale import Neighbour, pick_neighbours
 from pair_vpr_ros.geometry.relpose import PoseConfig, RelativePose, relative_pose
 
 
@@ -79,6 +81,18 @@ class KeyframeGeometry:
             self.counts.features_damaged += 1
             return None
 
+    def neighbours(
+        self, match: Any, near: Sequence[Any], load: Callable[[int], Features | None]
+    ) -> list[Neighbour]:
+        """Baselines for a monocular scale: the match keyframe's metadata and that of the map
+        keyframes `near` it (`KeyframeMeta`), `load`: id -> stored features; empty when
+        switched off."""
+        c = self.config.pose
+        if not c.odometry_scale:
+            return []
+        candidates = [(n.id, n.stamp, n.pose) for n in near]
+        return pick_neighbours(match.stamp, match.pose, candidates, load, c)
+
     @staticmethod
     def verify(query: Features | None, match: Features | None) -> tuple[int, float]:
         """Fundamental-matrix verification; (-1, NaN) when either side has no features."""
@@ -86,10 +100,17 @@ class KeyframeGeometry:
             return -1, float("nan")
         return verify_pair(query, match)
 
-    def pose(self, record: Any, query: Features | None, match: Features | None) -> float:
-        """Fill the pose fields of an accepted `record`; -> milliseconds spent."""
+    def pose(
+        self,
+        record: Any,
+        query: Features | None,
+        match: Features | None,
+        neighbours: Sequence[Neighbour] = (),
+    ) -> float:
+        """Fill the pose fields of an accepted `record` (`neighbours`: odometry baselines next
+        to the match, for a monocular scale); -> milliseconds spent."""
         t0 = time.perf_counter()
-        result: RelativePose = relative_pose(query, match, self.config.pose)
+        result: RelativePose = relative_pose(query, match, self.config.pose, neighbours)
         for name, value in result.record_fields().items():
             setattr(record, name, value)
         name = f"pose_{(result.status or 'none').replace('-', '_')}"

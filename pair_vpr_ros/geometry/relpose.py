@@ -7,14 +7,20 @@ query camera's position seen from the match camera. The frames are those of the 
 
 * metric: depth at the keypoints of either keyframe (the match's from the map, else the
   query's) gives 3D points -> PnP-RANSAC -> Levenberg-Marquardt on the inliers;
-* scale-free: no usable depth -> essential matrix (USAC) -> R and the direction of t (a unit
-  vector) with a 1e6 m^2 translation variance, never a made-up metric length;
+* metric from odometry: no usable depth, but a map keyframe next to the match keyframe with an
+  odometry pose -> essential matrix (USAC) -> R and the direction of t; its length from points
+  triangulated over that short odometry baseline (``odometry_scale.py``), never from the
+  odometry between the loop's two keyframes, which holds the drift the loop is to remove;
+* scale-free: none of that -> R and the direction of t (a unit vector) with a 1e6 m^2
+  translation variance, never a made-up metric length;
 * no pose: a reason (no features, no intrinsics, too few matches or inliers, degenerate motion,
   too uncertain).
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,10 +29,11 @@ from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.geometry import covariance as cv
 from pair_vpr_ros.geometry.epipolar import essential_pose, parallax_deg, sampson_residuals
 from pair_vpr_ros.geometry.features import Features, match_features
+from pair_vpr_ros.geometry.odometry_scale import Neighbour, loop_length, triangulate_match
 from pair_vpr_ros.geometry.pnp import project, reprojection_residuals, solve_pnp
-from pair_vpr_ros.geometry.rotations import matrix_quaternion
+from pair_vpr_ros.geometry.rotations import exp_so3, matrix_quaternion
 
-METRIC, SCALE_FREE = "metric", "scale-free"
+METRIC, METRIC_ODOMETRY, SCALE_FREE = "metric", "metric-odometry", "scale-free"
 
 
 @dataclass(frozen=True)
@@ -46,13 +53,30 @@ class PoseConfig:
     # Gauss-Newton covariances came out too confident on the demo world's seed-8 loops (median
     # normalised error x1.9 of chi-square's, metric and scale-free alike): they are scaled by this.
     covariance_scale: float = 2.0
+    # Monocular scale from the odometry next to the match keyframe (odometry_scale.py).
+    odometry_scale: bool = True
+    scale_neighbours: int = 2  # map keyframes up to this many ids before / after the match
+    scale_tries: int = 2  # of those, how many to use (least turn, then longest, first)
+    scale_max_gap_s: float = 10.0  # stamps of the match and the neighbour at most this apart
+    scale_min_baseline_m: float = 0.2  # odometry distance between them at least this
+    scale_max_turn_deg: float = 10.0  # odometry turn between them at most this (lever arm)
+    scale_max_turn_mismatch_deg: float = 1.0  # visual and odometry turn agree within this
+    scale_min_parallax_deg: float = 1.0  # triangulated points need this much parallax
+    scale_min_points: int = 8  # loop inliers with a triangulated point needed
+    scale_sigma_floor: float = 0.03  # relative std of the scale at least (odometry error)
+    scale_lever_m: float = 1.0  # assumed camera offset from the odometry's turn axis, at most
 
     def __post_init__(self) -> None:
         for name in ("ratio", "ransac_px", "essential_px", "max_rotation_sigma_deg",
                      "max_translation_sigma_m", "max_direction_sigma_deg",
-                     "covariance_scale"):  # fmt: skip
+                     "covariance_scale", "scale_max_gap_s", "scale_min_baseline_m",
+                     "scale_max_turn_deg", "scale_max_turn_mismatch_deg",
+                     "scale_min_parallax_deg", "scale_sigma_floor", "scale_lever_m"):  # fmt: skip
             if not getattr(self, name) > 0:
                 raise ConfigError(f"pose {name}={getattr(self, name)!r} must be > 0")
+        for name in ("scale_neighbours", "scale_tries", "scale_min_points"):
+            if not getattr(self, name) >= 1:
+                raise ConfigError(f"pose {name}={getattr(self, name)!r} must be >= 1")
         if not 0 < self.ratio <= 1:
             raise ConfigError(f"pose ratio={self.ratio!r} must be in (0, 1]")
         if self.min_inliers < 6 or self.min_matches < 5:
@@ -61,8 +85,9 @@ class PoseConfig:
 
 @dataclass
 class RelativePose:
-    """Result for one loop: status "metric" / "scale-free" with R [3, 3], t [3], covariance
-    [6, 6] and inliers, or status "" with the reason."""
+    """Result for one loop: status "metric" / "metric-odometry" / "scale-free" with R [3, 3],
+    t [3], covariance [6, 6] and inliers, or status "" with the reason (a scale-free pose:
+    why it has no scale)."""
 
     status: str = ""
     reason: str = ""
@@ -70,6 +95,12 @@ class RelativePose:
     rotation: np.ndarray | None = None
     translation: np.ndarray | None = None
     covariance: np.ndarray | None = None
+
+    def matrix(self) -> np.ndarray:
+        """[4, 4] homogeneous T_match_query (needs a pose)."""
+        out = np.eye(4)
+        out[:3, :3], out[:3, 3] = self.rotation, self.translation
+        return out
 
     def record_fields(self) -> dict:
         """The ``LoopRecord`` pose fields of this result."""
@@ -87,9 +118,14 @@ def _fail(reason: str, inliers: int = -1) -> RelativePose:
 
 
 def relative_pose(
-    query: Features | None, match: Features | None, config: PoseConfig | None = None
+    query: Features | None,
+    match: Features | None,
+    config: PoseConfig | None = None,
+    neighbours: Sequence[Neighbour] = (),
 ) -> RelativePose:
-    """T_match_query of a loop from the query and match keyframes' features."""
+    """T_match_query of a loop from the query and match keyframes' features; `neighbours`:
+    map keyframes next to the match with an odometry baseline (``pick_neighbours``), for the
+    scale of a pose without depth."""
     c = config or PoseConfig()
     if match is None:
         return _fail("match keyframe has no features (kept only for keyframes added since "
@@ -110,10 +146,7 @@ def relative_pose(
         return _fail(f"too few feature matches ({len(pairs)} < {c.min_matches})")
     side, z, why = _depth_side(query, match, pairs, c.min_inliers)
     if side is None:
-        pose = _scale_free(query, match, pairs, c)
-        if pose.status:
-            pose.reason = why
-        return pose
+        return _monocular(query, match, pairs, c, neighbours, why)
     return _metric(query, match, pairs, side, z, c)
 
 
@@ -175,7 +208,74 @@ def _depth_agreement(q, m, pairs, r, t) -> tuple[int, int] | None:
     return int((gap < 0.05 * zm[ok] + 0.05).sum()), int(ok.sum())
 
 
-def _scale_free(q, m, pairs, c: PoseConfig) -> RelativePose:
+def _monocular(q, m, pairs, c: PoseConfig, neighbours, why: str) -> RelativePose:
+    """Essential-matrix pose; metric when the odometry next to the match gives the length."""
+    fit = _essential_fit(q, m, pairs, c)
+    if isinstance(fit, RelativePose):
+        return fit
+    r, t, idx, cov5 = fit
+    scaled: RelativePose | str = "switched off (odometry_scale false)"
+    if c.odometry_scale:
+        scaled = _odometry_scaled(q, m, pairs[idx], (r, t, cov5), c, neighbours)
+    if isinstance(scaled, RelativePose):
+        return scaled
+    cov = cv.embed_rotation(cov5[2:, 2:], cv.SCALE_FREE_VARIANCE)
+    return RelativePose(SCALE_FREE, f"{why}; no scale from odometry: {scaled}", len(idx), r, t,
+                        cov)  # fmt: skip
+
+
+def _odometry_scaled(q, m, inliers, fit, c: PoseConfig, neighbours) -> RelativePose | str:
+    """The essential-matrix pose `fit` (R, unit t, cov5) with its length from the match's
+    keypoints triangulated over odometry baselines (odometry_scale.py), or why not.
+
+    Covariance: with L = V sqrt(Lambda) of cov5 = V Lambda V^T and J_k the change of the length
+    s between the sigma points +-L_k, the errors are d_t = (s B L_dir + t J^T) xi and
+    d_rot = L_rot xi (xi ~ N(0, I_5)), plus an independent length error along t: the median's
+    standard error and the odometry's relative error (``scale_sigma_floor``, the lever arm)."""
+    r, t, cov5 = fit
+    tri = triangulate_match(m, neighbours, c)
+    if isinstance(tri, str):
+        return tri
+    rays_q = q.camera.rays(q.keypoints[inliers[:, 0]])
+    lengths = loop_length(m, tri.depth, inliers, rays_q, c.scale_min_parallax_deg)
+    s_i = lengths(r, t)
+    if len(s_i) < c.scale_min_points:
+        return (f"too few loop inliers with a triangulated point ({len(s_i)} < "
+                f"{c.scale_min_points})")  # fmt: skip
+    s = float(np.median(s_i))
+    lam, vec = np.linalg.eigh(cov5)
+    sq = vec * np.sqrt(np.clip(lam, 0.0, None))  # [5, 5]: column k is L_k
+    basis = _direction_basis(t)
+    jac = np.empty(5)
+    for k in range(5):
+        ends = []
+        for sign in (1.0, -1.0):
+            d = sign * sq[:, k]
+            t_k = t + basis @ d[:2]
+            ends.append(float(np.median(lengths(exp_so3(d[2:]) @ r, t_k / np.linalg.norm(t_k)))))
+        jac[k] = (ends[0] - ends[1]) / 2
+    a = np.zeros((6, 5))
+    a[:3] = s * basis @ sq[:2] + np.outer(t, jac)
+    a[3:] = sq[2:]
+    spread = 1.4826 * float(np.median(np.abs(s_i - s))) * math.sqrt(math.pi / 2 / len(s_i))
+    cov = a @ a.T
+    cov[:3, :3] += (spread**2 + (tri.relative_sigma * s) ** 2) * np.outer(t, t)
+    s_t, _ = cv.sigmas(cov)
+    if s_t > c.max_translation_sigma_m:
+        return f"too uncertain (std {s_t:.2f} m)"
+    used = ", ".join(map(str, tri.neighbours))
+    why = f"scale from the odometry to keyframes {used} ({len(s_i)} points)"
+    return RelativePose(METRIC_ODOMETRY, why, len(inliers), r, t * s, (cov + cov.T) / 2)
+
+
+def _direction_basis(t: np.ndarray) -> np.ndarray:
+    """[3, 2]: the two unit directions orthogonal to t (how its direction can change)."""
+    return np.linalg.svd(t[None])[2][1:].T
+
+
+def _essential_fit(q, m, pairs, c: PoseConfig):
+    """-> (R, unit t, inlier indices, covariance [5, 5] of (direction [2], rotation [3])) or a
+    failed RelativePose."""
     rays_q = q.camera.rays(q.keypoints[pairs[:, 0]])
     rays_m = m.camera.rays(m.keypoints[pairs[:, 1]])
     k = q.camera.k  # both images as ideal pixels of the query camera
@@ -190,7 +290,7 @@ def _scale_free(q, m, pairs, c: PoseConfig) -> RelativePose:
                      "translation direction", len(idx))  # fmt: skip
     residuals = sampson_residuals(px_q[idx], px_m[idx], k)
     basis = np.zeros((6, 5))  # directions of t that change it, then the rotation
-    basis[:3, :2] = np.linalg.svd(t[None])[2][1:].T
+    basis[:3, :2] = _direction_basis(t)
     basis[3:, 2:] = np.eye(3)
     jac = cv.jacobian(residuals, r, t) @ basis
     fit = cv.gauss_newton_covariance(jac, residuals(r, t), c.min_sigma_px)
@@ -202,5 +302,4 @@ def _scale_free(q, m, pairs, c: PoseConfig) -> RelativePose:
     if s_dir > c.max_direction_sigma_deg or s_rot > c.max_rotation_sigma_deg:
         return _fail(f"pose too uncertain (direction std {s_dir:.1f} deg, rotation std "
                      f"{s_rot:.2f} deg)", len(idx))  # fmt: skip
-    cov = cv.embed_rotation(cov5[2:, 2:], cv.SCALE_FREE_VARIANCE)
-    return RelativePose(SCALE_FREE, "", len(idx), r, t, cov)
+    return r, t, idx, cov5

@@ -162,6 +162,7 @@ def diagnostic_values(
         "poses_invalid": c.bad_poses,
         "loops": c.loops,
         "loops_pose_metric": live.counts.pose_metric,
+        "loops_pose_metric_odometry": live.counts.pose_metric_odometry,
         "loops_pose_scale_free": live.counts.pose_scale_free,
         "loops_pose_none": live.counts.pose_none,
         "candidates_scored": live.counts.candidates_scored,

@@ -46,7 +46,7 @@ def test_factor_from_a_json_dict_equals_the_one_from_the_record():
     assert lf.factor_from_record(record_dict(record)) == lf.factor_from_record(record)
 
 
-@pytest.mark.parametrize("status", ["metric", "scale-free"])
+@pytest.mark.parametrize("status", ["metric", "scale-free", "metric-odometry"])
 def test_odometry_message_round_trip_through_cdr(status):
     factor = lf.factor_from_record(posed_record(pose_status=status))
     msg = lf.factor_msg(factor, TS.types)
@@ -55,7 +55,11 @@ def test_odometry_message_round_trip_through_cdr(status):
     assert (back.header.stamp.sec, back.header.stamp.nanosec) == (1700000012, 250000000)
     assert (back.twist.twist.linear.x, back.twist.twist.linear.y) == (1700000001.0, 5e8)
     assert back.header.frame_id == "cam_m" and back.child_frame_id == "cam_q"
-    assert back.twist.twist.linear.z == (1.0 if status == "metric" else 2.0)
+    assert back.twist.twist.linear.z == {"metric": 1.0, "scale-free": 2.0}.get(status, 3.0)
+    assert (factor.metric, factor.scale_from_odometry) == (
+        status != "scale-free",
+        status == "metric-odometry",
+    )
     assert back.twist.covariance.tolist() == [0.0] * 36
     assert lf.factor_from_msg(back) == factor
 

@@ -31,12 +31,6 @@ def views():
     return rq, dq, rm, dm, truth
 
 
-def as_matrix(pose) -> np.ndarray:
-    t = np.eye(4)
-    t[:3, :3], t[:3, 3] = pose.rotation, pose.translation
-    return t
-
-
 def test_metric_pose_from_the_match_depth(views):
     rq, _, rm, dm, truth = views
     assert (
@@ -46,7 +40,7 @@ def test_metric_pose_from_the_match_depth(views):
     pose = relative_pose(extract_features(rq, camera=MODEL),
                          extract_features(rm, depth=dm, camera=MODEL))  # fmt: skip
     assert (pose.status, pose.reason) == ("metric", "")
-    rot, trans, _ = pose_errors(as_matrix(pose), truth)
+    rot, trans, _ = pose_errors(pose.matrix(), truth)
     assert rot < 0.5 and trans < 0.15 and pose.inliers >= 30
     cov = pose.covariance
     assert cov.shape == (6, 6) and np.allclose(cov, cov.T) and np.linalg.eigvalsh(cov)[0] > 0
@@ -61,7 +55,7 @@ def test_metric_pose_from_the_query_depth_when_the_match_has_none(views):
     pose = relative_pose(extract_features(rq, depth=dq, camera=MODEL),
                          extract_features(rm, camera=MODEL))  # fmt: skip
     assert pose.status == "metric"
-    rot, trans, _ = pose_errors(as_matrix(pose), truth)
+    rot, trans, _ = pose_errors(pose.matrix(), truth)
     assert rot < 0.5 and trans < 0.15
 
 
@@ -69,8 +63,12 @@ def test_scale_free_pose_without_depth(views):
     rq, _, rm, _, truth = views
     pose = relative_pose(extract_features(rq, camera=MODEL), extract_features(rm, camera=MODEL))
     assert pose.status == "scale-free"
-    assert pose.reason == "no depth image (monocular): the translation is a direction only"
-    rot, _, direction = pose_errors(as_matrix(pose), truth)
+    assert pose.reason == (
+        "no depth image (monocular): the translation is a direction only; no scale from "
+        "odometry: no map keyframe next to the match keyframe has an odometry baseline (both "
+        "poses known, stamps within 10 s, at least 0.2 m apart, turned at most 10 deg)"
+    )
+    rot, _, direction = pose_errors(pose.matrix(), truth)
     assert rot < 2.0 and direction < 10.0
     assert np.linalg.norm(pose.translation) == pytest.approx(1.0)
     np.testing.assert_array_equal(pose.covariance[:3, :3], np.eye(3) * SCALE_FREE_VARIANCE)
@@ -125,7 +123,7 @@ def test_orb_features_also_give_a_metric_pose(views):
     pose = relative_pose(extract_features(rq, "orb", camera=MODEL),
                          extract_features(rm, "orb", depth=dm, camera=MODEL))  # fmt: skip
     assert pose.status == "metric"
-    rot, trans, _ = pose_errors(as_matrix(pose), truth)
+    rot, trans, _ = pose_errors(pose.matrix(), truth)
     assert rot < 1.0 and trans < 0.3
 
 
