@@ -24,12 +24,13 @@ from tqdm import tqdm
 
 from pair_vpr_ros.cli import nonnegative_int, positive_float, positive_int, run_cli
 from pair_vpr_ros.detector import Candidate, rank_by_pair_score
-from pair_vpr_ros.devices import check_device
-from pair_vpr_ros.errors import ConfigError, DatasetError, UsageError
+from pair_vpr_ros.errors import ConfigError, DatasetError
 from pair_vpr_ros.learn.datasets import EvalSet, ImageFiles, load_eval_set
 from pair_vpr_ros.model import PairVPR
 from pair_vpr_ros.pipeline import encode_for_map, map_pair_scores
 from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
+from pair_vpr_ros.weights import RANDOM_PREFIX, Weights, resolve_weights
+from pair_vpr_ros.weights import load_model as load_weights
 
 
 @dataclass
@@ -185,16 +186,21 @@ def evaluate_set(model: PairVPR, data: EvalSet, cfg: EvalConfig) -> EvalResult:
     )
 
 
-def load_model(cfg: EvalConfig) -> torch.nn.Module:
-    from pair_vpr_ros.model import ModelConfig, build_pairvpr, load_pairvpr
-
-    device = check_device(cfg.device)
+def eval_weights(cfg: EvalConfig) -> Weights:
+    """--random-init, else --weights, else found as the node and the replay find them
+    (``weights.resolve_weights``: $PAIRVPR_WEIGHTS, the per-user folder; a ``CheckpointError``
+    names every place looked in)."""
+    if cfg.random_arch is not None:
+        return Weights(RANDOM_PREFIX + cfg.random_arch, "--random-init")
     if cfg.checkpoint is not None:
-        return load_pairvpr(cfg.checkpoint, device=device, image_size=cfg.image_size)
-    if cfg.random_arch is None:
-        raise UsageError("give a checkpoint (--weights PATH) or --random-init ARCH")
-    overrides = {"image_size": cfg.image_size} if cfg.image_size else {}
-    return build_pairvpr(ModelConfig.preset(cfg.random_arch, **overrides), device, seed=0)
+        return Weights(str(cfg.checkpoint), "--weights")
+    return resolve_weights(None, params_rule=False)
+
+
+def load_model(cfg: EvalConfig, found: Weights | None = None) -> torch.nn.Module:
+    """The network `cfg` names (``eval_weights``), on its device."""
+    found = found or eval_weights(cfg)
+    return load_weights(found, device=cfg.device, image_size=cfg.image_size)
 
 
 def run_evaluation(cfg: EvalConfig) -> list[EvalResult]:
@@ -206,11 +212,14 @@ def run_evaluation(cfg: EvalConfig) -> list[EvalResult]:
             f"need rerank_k >= 0 and recall N >= 1, got {cfg.rerank_k}, {cfg.recall_ns}"
         )
     sets = [load_eval_set(root, cfg.radius_m) for root in cfg.datasets]
-    model = load_model(cfg)
+    found = eval_weights(cfg)
+    model = load_model(cfg, found)
     results = [evaluate_set(model, s, cfg) for s in sets]
     if cfg.output_json is not None:
         payload = {
-            "checkpoint": str(cfg.checkpoint) if cfg.checkpoint else f"random:{cfg.random_arch}",
+            "checkpoint": found.value.replace(RANDOM_PREFIX, "random:", 1)
+            if found.value.startswith(RANDOM_PREFIX)
+            else found.value,
             "fingerprint": model.fingerprint,
             "results": [asdict(r) for r in results],
         }
@@ -268,7 +277,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--checkpoint",
         dest="checkpoint",
         type=Path,
-        help="Pair-VPR weights (e.g. pairvpr-vitB.pth)",
+        help="Pair-VPR weights (e.g. pairvpr-vitB.pth); default: $PAIRVPR_WEIGHTS, else the one "
+        ".pth in $XDG_DATA_HOME/pair_vpr_ros/ (README, 'Released weights')",
     )
     p.add_argument(
         "--random-init",

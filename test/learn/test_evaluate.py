@@ -167,8 +167,13 @@ def test_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     assert main([str(tmp_path / "nope"), "--random-init", "tiny"]) == 1  # bad data
     assert "error: dataset folder " in capsys.readouterr().err
     root = make_utm_eval_set(tmp_path / "set", places=2)
-    assert main([str(root)]) == 2  # usage: no model named
-    assert capsys.readouterr().err.startswith("error: give a checkpoint (--weights PATH)")
+    assert main([str(root)]) == 1  # no weights anywhere (test/conftest.py), one line
+    err = capsys.readouterr().err
+    assert err.startswith(
+        "error: no Pair-VPR weights found; looked in --weights: not given; $PAIRVPR_WEIGHTS: "
+        "not set; "
+    )
+    assert err.count("\n") == 1
     assert main([str(root), "--checkpoint", str(tmp_path / "missing.pth")]) == 1
     assert "missing.pth does not exist" in capsys.readouterr().err
 
@@ -191,3 +196,16 @@ def test_format_table_values() -> None:
         "31.0",
         "2.0",
     ]
+
+
+def test_weights_are_found_as_the_node_and_the_replay_find_them(tmp_path, capsys, monkeypatch):
+    root = make_utm_eval_set(tmp_path / "set", places=2)
+    monkeypatch.setenv("PAIRVPR_WEIGHTS", "random-tiny")  # as a robot's environment sets it
+    out = tmp_path / "eval.json"
+    assert main([str(root), "--rerank-k", "1", "--recall", "1", "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["checkpoint"] == "random:tiny"
+    capsys.readouterr()
+    monkeypatch.setenv("PAIRVPR_WEIGHTS", str(tmp_path / "missing.pth"))
+    assert main([str(root)]) == 1
+    err = capsys.readouterr().err
+    assert "missing.pth does not exist" in err and "(weights from $PAIRVPR_WEIGHTS)" in err
