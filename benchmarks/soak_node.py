@@ -38,6 +38,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+# The node's namespace: its topics, services and diagnostics are this soak's alone, even when
+# other ROS processes on this machine share the domain (one of them once cleared a soak's map).
+NS = f"/vpr_soak_{os.getpid()}"
+
 # Tiny random-network settings: only identical images pass (see test/test_pipeline.py).
 TINY = dict(
     global_floor=0.99999, score_threshold=-1e6, keyframe_max_similarity=0.99999, top_k=1
@@ -118,7 +122,7 @@ def vitb_checkpoint(folder: Path) -> Path:
 def node_values(args: argparse.Namespace) -> dict[str, object]:
     """The node's parameters for this soak (before --param extras)."""
     values: dict[str, object] = {
-        "weights": args.weights, "device": args.device, "image_topic": "/soak/image",
+        "weights": args.weights, "device": args.device, "image_topic": f"{NS}/image",
         "precision": args.precision, "queue_size": args.queue_size, "top_k": args.top_k,
         "rerank_budget_ms": args.budget_ms, "publish_rejected": True,
         "relative_pose": False,  # no camera_info: no poses; keeps SIFT out of the timings
@@ -133,6 +137,7 @@ def node_values(args: argparse.Namespace) -> dict[str, object]:
 def start_node(args: argparse.Namespace, log_path: Path) -> subprocess.Popen:
     values = node_values(args)
     cmd = [sys.executable, "-m", "pair_vpr_ros.ros.node", "--ros-args"]
+    cmd += ["-r", f"__ns:={NS}", "-r", f"/diagnostics:={NS}/diagnostics"]
     for name, value in values.items():
         cmd += ["-p", f"{name}:={value}"]
     for extra in args.param:
@@ -155,13 +160,13 @@ class Soak:
         self.rclpy, self.Image = rclpy, Image
         rclpy.init()
         self.node = rclpy.create_node("vpr_soak")
-        self.pub = self.node.create_publisher(Image, "/soak/image", qos_profile_sensor_data)
+        self.pub = self.node.create_publisher(Image, f"{NS}/image", qos_profile_sensor_data)
         self.diag: dict[str, str] = {}
         self.loop_ms: list[float] = []
         self.scored: list[tuple[int, int]] = []  # (candidates, scored) per record
         self.max_queue = 0
-        self.node.create_subscription(String, "/loop_closure/json", self._on_loop, 100)
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
+        self.node.create_subscription(String, f"{NS}/loop_closure/json", self._on_loop, 100)
+        self.node.create_subscription(DiagnosticArray, f"{NS}/diagnostics", self._on_diag, 10)
         self.executor = MultiThreadedExecutor(num_threads=2)
         self.executor.add_node(self.node)
         threading.Thread(target=self.executor.spin, daemon=True).start()
@@ -265,14 +270,14 @@ def soak_loop(args: argparse.Namespace, soak: Soak, node: subprocess.Popen) -> i
 
 
 def drain(soak: Soak, node: subprocess.Popen, timeout: float = 120.0) -> None:
-    """After the last frame: wait until the node's queue is empty and its counts stand still, so
-    the summary accounts for every frame."""
+    """After the last frame: wait until every received frame has a fate (none queued, none in
+    the worker's hands) and the counts stand still, so the summary accounts for every frame."""
     deadline, last = time.monotonic() + timeout, None
     while time.monotonic() < deadline and node.poll() is None:
         time.sleep(2.0)
         d = soak.diag
         now = tuple(d.get(k) for k in ("frames_received", "frames_processed", "queue_depth"))
-        if now == last and d.get("queue_depth") == "0":
+        if now == last and not accounting(soak.published, d)[1]:
             return
         last = now
 
