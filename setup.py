@@ -38,6 +38,8 @@ setup(
         "train": ["pytorch-metric-learning>=2.3"],
         # The reference pose-graph back end (pairvpr-posegraph, posegraph_node) and its metrics.
         "slam": ["gtsam>=4.2", "evo>=1.28"],
+        # backend openvino (fp32/bf16: openvino; int8: static quantization by nncf), CPU only.
+        "openvino": ["openvino>=2025.0", "nncf>=2.16"],
         "test": [
             "pytest>=7",
             "ruff>=0.5",

@@ -1,19 +1,28 @@
-"""Network speed on the current device: encode, re-rank (fast vs reference, fp32 vs int8), memory,
-and how closely int8 agrees with fp32.
+"""Network speed on the current device: encode, re-rank (fast vs reference, fp32 vs int8, the
+OpenVINO back end), memory, and how closely each path agrees with torch fp32.
 
     python benchmarks/bench_model.py                      # ViT-B/322, random weights, CPU
-    python benchmarks/bench_model.py --weights pairvpr-vitB.pth --device cuda --precision bf16
-    python benchmarks/bench_model.py --k 10 --quick        # a minute on a laptop
+    python benchmarks/bench_model.py --k 10 --json out.json
+    python benchmarks/bench_model.py --weights pairvpr-vitB.pth --device cuda
+
+Paths: `fp32` (torch, fast path), `reference` (torch, plain path), `int8` (torch dynamic int8),
+`openvino` (backend openvino, static int8 calibrated on synthetic scenes, as the node runs it) and
+`openvino-fp32` (the exported graphs in f32: their agreement checks the export). Paths run in
+turn, so their ratios share the machine's load.
 
 Speed does not depend on the weights, so random ViT-B weights measure the released model's
 speed. Agreement does: with random weights all pair scores are near-ties, so it is measured with
 `--agreement-weights` (default: the shipped demo model on demo-world images) and reported with
-which model it used.
+which model it used; the descriptor cosine of the timed (ViT-B) paths is printed as well.
+`--json PATH` writes {"paths": {NAME: {"encode_ms", "rerank_ms"}}, "agreement": {NAME: {"top1",
+"cosine"}}}: encode per image at batch 1, re-rank per candidate (both directions) at the first K.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import json
 import platform
 import resource
 import sys
@@ -25,6 +34,8 @@ import torch
 
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, load_pairvpr, quantize_int8
 from pair_vpr_ros.model.config import PATCH
+
+AGREEMENT_QUERIES = 100  # demo-world queries, each re-ranking its 10 nearest frames
 
 
 def interleaved(
@@ -62,23 +73,59 @@ def rerank_fns(models: dict, size: int, device: str, k: int, with_reference: boo
     return fns
 
 
-def agreement(model, images: torch.Tensor, k: int) -> tuple[float, float, str]:
-    """(top-1 agreement after re-ranking, mean descriptor cosine) of int8 vs fp32."""
-    qmodel = quantize_int8(model)
+def variants(model, device: str) -> dict:
+    """Every path this machine runs: name -> model (the reference is `model` run plainly)."""
+    out = {"fp32": model, "reference": model}
+    if device != "cpu":
+        return out
+    out["int8"] = quantize_int8(model)
+    if importlib.util.find_spec("openvino") and importlib.util.find_spec("nncf"):
+        from pair_vpr_ros.model.openvino_backend import OpenVINOModel
+
+        out["openvino"] = OpenVINOModel(model, "int8")
+        out["openvino-fp32"] = OpenVINOModel(model, "fp32")
+    else:
+        print("openvino: skipped (pip install 'pair_vpr_ros[openvino]')")
+    return out
+
+
+def agreement(models: dict, images: torch.Tensor, k: int) -> dict[str, dict[str, float]]:
+    """Per path: fraction of queries whose top-1 after re-ranking is the same as fp32's (each
+    image a query, its k nearest others by fp32 descriptor the candidates of every path), and
+    mean descriptor cosine with fp32."""
+    base = models["fp32"]
     with torch.inference_mode():
-        dense, desc = model.encode(images)
-        qdense, qdesc = qmodel.encode(images)
-        same = []
-        for i in range(len(images)):
-            others = [j for j in range(len(images)) if j != i][:k]
-            s = model.pair_scores(dense[i], dense[others])
-            qs = qmodel.pair_scores(qdense[i], qdense[others])
-            same.append(int(s.argmax()) == int(qs.argmax()))
-    cos = float((desc * qdesc).sum(-1).mean())
-    return float(np.mean(same)), cos, f"{len(images)} queries x {k} candidates"
+        dense, desc = base.encode(images)
+        sims = (desc @ desc.T).fill_diagonal_(-2.0)
+        nearest = sims.topk(k, dim=1).indices.tolist()
+        out = {}
+        for name, model in models.items():
+            if name in ("fp32", "reference"):
+                continue
+            mdense, mdesc = model.encode(images)
+            same = []
+            for i, others in enumerate(nearest):
+                s = base.pair_scores(dense[i], dense[others])
+                ms = model.pair_scores(mdense[i], mdense[others])
+                same.append(int(s.argmax()) == int(ms.argmax()))
+            cosine = float((desc.float() * mdesc.float()).sum(-1).mean())
+            out[name] = {"top1": float(np.mean(same)), "cosine": cosine}
+    return out
 
 
-def agreement_images(model, count: int) -> torch.Tensor:
+def descriptor_cosine(models: dict, images: torch.Tensor) -> dict[str, float]:
+    """Mean descriptor cosine of each path with fp32 (the timed model's weights)."""
+    with torch.inference_mode():
+        desc = models["fp32"].encode(images)[1]
+        return {
+            name: float((desc * m.encode(images)[1]).sum(-1).mean())
+            for name, m in models.items()
+            if name not in ("fp32", "reference")
+        }
+
+
+def agreement_images(size: int, count: int) -> torch.Tensor:
+    """`count` consecutive-ish demo-world frames (revisits included), preprocessed."""
     from pair_vpr_ros.model import preprocess_batch
 
     try:
@@ -93,7 +140,7 @@ def agreement_images(model, count: int) -> torch.Tensor:
             np.random.default_rng(i).integers(0, 256, (240, 320, 3), np.uint8)
             for i in range(count)
         ]
-    return preprocess_batch(rgb, model.config.image_size)
+    return preprocess_batch(rgb, size)
 
 
 def default_demo_weights() -> Path | None:
@@ -102,7 +149,16 @@ def default_demo_weights() -> Path | None:
     return found[0] if found else None
 
 
-def main(argv: list[str] | None = None) -> int:
+def print_table(rows: list[tuple[str, dict[str, float]]]) -> None:
+    names = list(rows[0][1])
+    print("| figure | " + " | ".join(f"{n} ms (x fp32)" for n in names) + " |")
+    print("|---|" + "---|" * len(names))
+    for label, t in rows:
+        cells = [f"{t[n]:.1f} ({t[n] / t['fp32']:.2f})" if n in t else "(skipped)" for n in names]
+        print(f"| {label} | " + " | ".join(cells) + " |")
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--weights", help="checkpoint to time (default: random weights of --arch)")
     p.add_argument("--arch", default="B", help="model preset when no weights are given")
@@ -115,10 +171,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="skip the reference path at the largest K")
     p.add_argument(
         "--agreement-weights",
-        help="model for the int8 agreement check (default: the shipped demo model)",
+        help="model for the agreement check (default: the shipped demo model)",
     )
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
-    args = p.parse_args(argv)
+    p.add_argument("--json", type=Path, help="also write the figures to this JSON file")
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     ks = [int(k) for k in args.k.split(",")]
@@ -133,9 +194,9 @@ def main(argv: list[str] | None = None) -> int:
         f"# Pair-VPR {model.config.arch}/{size}px on {args.device} ({cpu}, "
         f"{torch.get_num_threads()} threads, torch {torch.__version__})"
     )
-    models = {"fp32": model, "reference": model}
-    if args.device == "cpu":
-        models["int8"] = quantize_int8(model)
+    t0 = time.perf_counter()
+    models = variants(model, args.device)
+    print(f"building the paths took {time.perf_counter() - t0:.0f} s")
     rows = []
     with torch.inference_mode():
         for batch in (1, 8):
@@ -146,27 +207,37 @@ def main(argv: list[str] | None = None) -> int:
             fns = rerank_fns(models, size, args.device, k, not skip_ref)
             # Kernels are warm by now; at large K one pass already averages K candidates.
             t = interleaved(fns, 1 if k >= 50 else args.repeat, k, warmup=False)
-            rows.append((f"re-rank K={k} (ms/candidate)", t))
-    print("| figure | fp32 fast | int8 fast | fp32 reference | fast/ref | int8/ref |")
-    print("|---|---|---|---|---|---|")
-    nan = float("nan")
-    for name, t in rows:
-        fast, q, ref = t["fp32"], t.get("int8", nan), t.get("reference", nan)
-        print(f"| {name} | {fast:.1f} | {q:.1f} | {ref:.1f} | {fast / ref:.2f} | {q / ref:.2f} |")
+            rows.append((f"re-rank K={k} (ms/candidate, both directions)", t))
+    print_table(rows)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"peak resident memory: {peak:.0f} MiB")
     if torch.cuda.is_available() and args.device.startswith("cuda"):
         print(f"peak GPU memory: {torch.cuda.max_memory_allocated() / 2**20:.0f} MiB")
+    cos = descriptor_cosine(models, agreement_images(size, 8))
+    print(f"descriptor cosine with fp32, {model.config.arch}/{size}px, 8 demo-world images: "
+          + ", ".join(f"{n} {c:.5f}" for n, c in cos.items()))  # fmt: skip
+    figures = {
+        "paths": {
+            name: {"encode_ms": rows[0][1][name], "rerank_ms": rows[2][1].get(name)}
+            for name in models
+        },
+        "agreement": {},
+        "timed_model_cosine": cos,
+    }
     weights = args.agreement_weights or default_demo_weights()
     if weights is None:
-        print("int8 agreement: skipped (no --agreement-weights and no shipped demo model)")
-        return 0
-    amodel = load_pairvpr(weights)
-    top1, cos, what = agreement(amodel, agreement_images(amodel, 24), k=10)
-    print(
-        f"int8 vs fp32 ({Path(weights).name}, {what}): top-1 after re-ranking agrees "
-        f"{top1:.1%}, mean descriptor cosine {cos:.5f}"
-    )
+        print("agreement: skipped (no --agreement-weights and no shipped demo model)")
+    else:
+        amodel = load_pairvpr(weights)
+        images = agreement_images(amodel.config.image_size, AGREEMENT_QUERIES)
+        figures["agreement"] = agreement(variants(amodel, "cpu"), images, k=10)
+        print(f"agreement with fp32 ({Path(weights).name}, {len(images)} demo-world queries x "
+              "10 candidates):")  # fmt: skip
+        for name, a in figures["agreement"].items():
+            print(f"  {name}: top-1 after re-ranking {a['top1']:.1%}, cosine {a['cosine']:.5f}")
+    if args.json:
+        args.json.write_text(json.dumps(figures, indent=2) + "\n")
+        print(f"wrote {args.json}")
     return 0
 
 

@@ -57,6 +57,9 @@ PARAMS: tuple[ParamSpec, ...] = (
     _p("device", "cpu", "torch device: cpu, cuda, cuda:1, auto (cuda when there is one)", **RO),
     _p("precision", "fp32", "fp32; int8 (dynamic quantization, CPU only); bf16 (autocast, CPU "
        "or GPU); fp16 (autocast, GPU only)", choices=("fp32", "int8", "bf16", "fp16"), **RO),
+    _p("backend", "torch", "inference runtime: torch (the reference); openvino (CPU only, "
+       "optional package: pip install 'pair_vpr_ros[openvino]'; precision fp32, bf16 or int8 "
+       "= static int8 calibrated at start-up)", choices=("torch", "openvino"), **RO),
     _p("image_size", 0, "network input side in pixels, a multiple of 14; 0: the checkpoint's",
        0, 1022, **RO),
     _p("index", "flat", "map index: flat (exact) or hnsw (approximate, very large maps)",

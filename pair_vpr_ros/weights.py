@@ -26,7 +26,13 @@ import torch
 
 from pair_vpr_ros.devices import check_device
 from pair_vpr_ros.errors import CheckpointError, ConfigError
-from pair_vpr_ros.model import ModelConfig, PairVPR, build_pairvpr, load_pairvpr, quantize_int8
+from pair_vpr_ros.model import (
+    ModelConfig,
+    PairVPRModel,
+    build_pairvpr,
+    load_pairvpr,
+    quantize_int8,
+)
 from pair_vpr_ros.params import read_params_file
 
 ENV_VAR = "PAIRVPR_WEIGHTS"
@@ -37,6 +43,7 @@ RELEASED = (
     "see the README's 'Released weights'"
 )
 PRECISIONS = ("fp32", "int8", "bf16", "fp16")
+BACKENDS = ("torch", "openvino")  # torch: the reference; openvino: faster on a CPU (optional)
 
 
 @dataclass(frozen=True)
@@ -98,6 +105,30 @@ def resolve_weights(
     )
 
 
+def check_runtime(device: str | torch.device, precision: str, backend: str) -> torch.device:
+    """Whether ``precision`` and ``backend`` can run on ``device`` (and the backend's optional
+    packages are installed) -> the device; ``ConfigError`` saying what to change otherwise.
+    Cheap: callers check before they read or write anything."""
+    dev = check_device(device)
+    if backend not in BACKENDS:
+        raise ConfigError(f"backend {backend!r} must be one of {', '.join(BACKENDS)}")
+    if precision not in PRECISIONS:
+        raise ConfigError(f"precision {precision!r} must be one of {', '.join(PRECISIONS)}")
+    if precision == "int8" and dev.type != "cpu":
+        raise ConfigError("precision int8 runs on the CPU only: use device cpu, or bf16/fp16")
+    if precision == "fp16" and dev.type != "cuda":
+        raise ConfigError("precision fp16 needs a CUDA device: use device cuda, or bf16 on CPU")
+    if backend == "openvino":
+        if dev.type != "cpu":
+            raise ConfigError(
+                "backend openvino runs on the CPU only: use device cpu, or backend torch"
+            )
+        from pair_vpr_ros.model.openvino_backend import check_installed
+
+        check_installed(precision)
+    return dev
+
+
 def load_model(
     weights: str | os.PathLike | Weights | None = None,
     *,
@@ -107,8 +138,11 @@ def load_model(
     params_file: str | os.PathLike | None = None,
     explicit_name: str = "--weights",
     params_rule: bool = True,
-) -> PairVPR:
-    """The network to run -> ``PairVPR`` in eval mode on ``device`` (int8: a quantized CPU copy).
+    backend: str = "torch",
+) -> PairVPRModel:
+    """The network to run -> ``PairVPR`` in eval mode on ``device`` (int8: a quantized CPU copy),
+    or with ``backend`` openvino the same weights compiled by OpenVINO for the CPU
+    (``OpenVINOModel``: fp32, bf16, or int8 calibrated on synthetic scenes).
 
     ``weights`` (else the other places: ``resolve_weights`` and its options; or what it
     returned) is a checkpoint path or ``random-<preset>`` (e.g. ``random-tiny``: a tiny random
@@ -123,13 +157,7 @@ def load_model(
         found = resolve_weights(
             weights, params_file, explicit_name=explicit_name, params_rule=params_rule
         )
-    dev = check_device(device)
-    if precision not in PRECISIONS:
-        raise ConfigError(f"precision {precision!r} must be one of {', '.join(PRECISIONS)}")
-    if precision == "int8" and dev.type != "cpu":
-        raise ConfigError("precision int8 runs on the CPU only: use device cpu, or bf16/fp16")
-    if precision == "fp16" and dev.type != "cuda":
-        raise ConfigError("precision fp16 needs a CUDA device: use device cuda, or bf16 on CPU")
+    dev = check_runtime(device, precision, backend)
     if found.value.startswith(RANDOM_PREFIX):
         overrides = {"image_size": image_size} if image_size else {}
         config = ModelConfig.preset(found.value.removeprefix(RANDOM_PREFIX), **overrides)
@@ -139,4 +167,8 @@ def load_model(
             model = load_pairvpr(found.value, device=dev, image_size=image_size or None)
         except CheckpointError as err:
             raise CheckpointError(f"{err} (weights from {found.origin})") from err
+    if backend == "openvino":
+        from pair_vpr_ros.model.openvino_backend import OpenVINOModel  # optional dependency
+
+        return OpenVINOModel(model, precision)
     return quantize_int8(model) if precision == "int8" else model

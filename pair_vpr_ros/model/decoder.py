@@ -225,17 +225,23 @@ class PairClassifier(nn.Module):
             return query.new_zeros(0)
         if chunk is None:
             chunk = default_chunk(query.device)
-        eq = self.decoder_embed(query.unsqueeze(0))  # computed once for every candidate
-        x_query = self.dec_blocks[0].self_attend(self.first_input(eq))
-        y_query = self.second_input(eq)
-        memory_query = [block.memory(y_query) for block in self.dec_blocks]  # [1,H,N,d] each
+        x_query, memory_query = self.query_side(query)
         out = [
-            self._score_chunk(x_query, memory_query, cands[i : i + chunk])
+            self.score_chunk(x_query, memory_query, cands[i : i + chunk])
             for i in range(0, cands.shape[0], chunk)
         ]
         return torch.cat(out)
 
-    def _score_chunk(self, x_query: Tensor, memory_query: list[Memory], cands: Tensor) -> Tensor:
+    def query_side(self, query: Tensor) -> tuple[Tensor, list[Memory]]:
+        """What the fast path computes once per query [N,D]: its first-image stream after block
+        0's self-attention [1,1+N,C] and its cross-attention keys/values in every block
+        ([1,H,N,d] each)."""
+        eq = self.decoder_embed(query.unsqueeze(0))
+        x_query = self.dec_blocks[0].self_attend(self.first_input(eq))
+        y_query = self.second_input(eq)
+        return x_query, [block.memory(y_query) for block in self.dec_blocks]
+
+    def score_chunk(self, x_query: Tensor, memory_query: list[Memory], cands: Tensor) -> Tensor:
         """Both directions of k candidates [k,N,D] as one batch of 2k streams: rows :k are the
         query (first) against each candidate's memory, rows k: each candidate (first) against
         the query's memory, shared as an expanded view -> scores [k]."""

@@ -88,10 +88,15 @@ class DinoViT(nn.Module):
         return table
 
     def forward_features(
-        self, images: Tensor, mask: Tensor | None = None, fast: bool = True
+        self,
+        images: Tensor,
+        mask: Tensor | None = None,
+        fast: bool = True,
+        pos: Tensor | None = None,
     ) -> dict[str, Tensor]:
         """images [B,3,H,W] (H, W multiples of 14), mask [B,N] bool (True = masked)
-        -> {"cls": [B,D], "dense": [B,N,D]}, N = (H/14)*(W/14)."""
+        -> {"cls": [B,D], "dense": [B,N,D]}, N = (H/14)*(W/14). `pos`: `patch_position` of
+        this size computed beforehand (export: for a fixed size the resize is a constant)."""
         b, _, h, w = images.shape
         if h % PATCH or w % PATCH:
             raise ConfigError(f"image size {h}x{w} is not a multiple of {PATCH} pixels")
@@ -100,7 +105,7 @@ class DinoViT(nn.Module):
         if mask is not None:
             x = torch.where(mask.unsqueeze(-1), self.mask_token.to(x.dtype).unsqueeze(0), x)
         cls = self.cls_token.expand(b, -1, -1) + self.pos_embed[:, :1]
-        x = x + self.patch_position(gh, gw).to(x.dtype)
+        x = x + (self.patch_position(gh, gw) if pos is None else pos).to(x.dtype)
         x = torch.cat([cls.to(x.dtype), self.register_tokens.expand(b, -1, -1).to(x.dtype), x], 1)
         for block in self.blocks:
             x = block(x, fast)
@@ -116,6 +121,10 @@ class Encoder(nn.Module):
         self.model = DinoViT(cfg)
 
     def forward_features(
-        self, images: Tensor, mask: Tensor | None = None, fast: bool = True
+        self,
+        images: Tensor,
+        mask: Tensor | None = None,
+        fast: bool = True,
+        pos: Tensor | None = None,
     ) -> dict[str, Tensor]:
-        return self.model.forward_features(images, mask, fast)
+        return self.model.forward_features(images, mask, fast, pos)

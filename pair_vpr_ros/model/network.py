@@ -48,15 +48,22 @@ class PairVPR(PairClassifier):
     @property
     def fingerprint(self) -> str:
         """Identifies which descriptors this model makes: weights, input size, descriptor dim."""
-        c = self.config
-        return f"{self.weights_id}|{c.arch}|{c.image_size}px|desc{c.desc_dim}|dense{c.embed_dim}"
+        return fingerprint(self.weights_id, self.config)
 
-    def encode(self, images: Tensor, fast: bool = True) -> tuple[Tensor, Tensor]:
+    def encode(
+        self, images: Tensor, fast: bool = True, pos: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
         """Normalised images [B,3,H,W] -> (dense tokens [B,N,D], global descriptors [B,512],
-        L2-normalised)."""
-        feats = self.encoder.forward_features(images, fast=fast)
+        L2-normalised). `pos`: the encoder's position table for this size, precomputed."""
+        feats = self.encoder.forward_features(images, fast=fast, pos=pos)
         desc = F.normalize(self.globalizer(feats["cls"]).float(), dim=-1)
         return feats["dense"], desc
+
+
+def fingerprint(weights_id: str, c: ModelConfig) -> str:
+    """Which descriptors a model makes: its weights (and how they run, e.g. "+int8"), input
+    size, descriptor and dense sizes."""
+    return f"{weights_id}|{c.arch}|{c.image_size}px|desc{c.desc_dim}|dense{c.embed_dim}"
 
 
 def build_pairvpr(

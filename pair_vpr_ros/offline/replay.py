@@ -26,7 +26,6 @@ import numpy as np
 from tqdm import tqdm
 
 from pair_vpr_ros.detector import Candidate, DetectorConfig, LoopRecord
-from pair_vpr_ros.devices import check_device
 from pair_vpr_ros.errors import ConfigError, OutputError, PairVPRError
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
 from pair_vpr_ros.imaging import MAX_PIXELS
@@ -40,7 +39,7 @@ from pair_vpr_ros.offline.report import KeyframeInfo, write_report
 from pair_vpr_ros.offline.sources import FrameCounts, bag_frames
 from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
 from pair_vpr_ros.types import PoseTrack
-from pair_vpr_ros.weights import Weights, load_model
+from pair_vpr_ros.weights import Weights, check_runtime, load_model
 
 
 @dataclass(frozen=True)
@@ -67,6 +66,8 @@ class ReplayOptions:
     max_frames: int | None = None
     max_image_pixels: int = MAX_PIXELS
     device: str = "cpu"
+    precision: str = "fp32"  # and backend: as the node's parameters
+    backend: str = "torch"
     write_bag: bool = False
     map_dir: str | Path | None = None
     save_map: bool = True
@@ -239,9 +240,10 @@ def replay_bag(
 
     ``options``: topics, tolerances and outputs (``ReplayOptions``). ``model`` gives the network,
     else ``weights`` (a checkpoint path; None: found as ``weights.resolve_weights`` says) loaded
-    on ``options.device``. ``config``: the detector (acceptance, top-K); ``geometry``: feature
-    and relative-pose settings. Raises ``PairVPRError`` subclasses for bad input, before the bag
-    is read where possible; a failure part-way is returned in ``error``, with everything
+    on ``options.device`` with ``options.precision`` and ``options.backend``. ``config``: the
+    detector (acceptance, top-K); ``geometry``: feature and relative-pose settings. Raises
+    ``PairVPRError`` subclasses for bad input, before the bag is read where possible; a failure
+    part-way is returned in ``error``, with everything
     processed before it written.
     """
     config, o = config or DetectorConfig(), options or ReplayOptions()
@@ -252,7 +254,7 @@ def replay_bag(
         check_writable(o.map_path(out), "map folder")
         check_map_dir(o.map_path(out), o.overwrite)
     if model is None:
-        check_device(o.device)
+        check_runtime(o.device, o.precision, o.backend)
     with bag_io.open_bag(bag) as reader:
         topic = bag_io.choose_image_topic(reader, o.topic)
         found = bag_io.topics_of_types(reader, bag_io.POSE_TYPES)
@@ -262,7 +264,8 @@ def replay_bag(
         poses = _read_pose_topic(reader, summary, chosen.pose)
         truth = poses if chosen.gt == chosen.pose else _read_pose_topic(reader, summary, chosen.gt)
         bag_out = prepare_out(out, o.write_bag)
-        model = model if model is not None else load_model(weights, device=o.device)
+        if model is None:
+            model = load_model(weights, device=o.device, precision=o.precision, backend=o.backend)
         pipe = LoopClosurePipeline(model, config, geometry=geometry)
         summary.config = asdict(config)
         summary.model = pipe.model.fingerprint

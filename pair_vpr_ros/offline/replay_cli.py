@@ -25,7 +25,7 @@ from pair_vpr_ros.geometry.features import KINDS
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
 from pair_vpr_ros.imaging import MAX_PIXELS
 from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
-from pair_vpr_ros.params import detector_config, flag_help, flag_type, read_params_file
+from pair_vpr_ros.params import SPECS, detector_config, flag_help, flag_type, read_params_file
 from pair_vpr_ros.weights import resolve_weights
 
 NONE = "none"  # --pose-topic none / --map-dir none
@@ -101,6 +101,13 @@ def build_parser() -> argparse.ArgumentParser:
         default="cpu",
         help="torch device: cpu, cuda, cuda:1, auto (default: %(default)s)",
     )
+    for name in ("precision", "backend"):
+        default = SPECS[name].default
+        p.add_argument(
+            f"--{name}",
+            choices=SPECS[name].choices,
+            help=flag_help(name) + f" (default: --params-file's, else {default})",
+        )
     p.add_argument(
         "--batch-size",
         type=positive_int,
@@ -175,13 +182,15 @@ def _run(args: argparse.Namespace) -> int:
         "rerank_budget_ms": args.rerank_budget_ms,
     }
     overrides = {k: v for k, v in overrides.items() if v is not None}
-    max_pixels = MAX_PIXELS
+    max_pixels, runtime = MAX_PIXELS, {n: SPECS[n].default for n in ("precision", "backend")}
     if args.params_file is not None:
         values = read_params_file(args.params_file)
         config = detector_config(values).updated(**overrides)
         max_pixels = values["max_image_pixels"]
+        runtime = {name: values[name] for name in runtime}
     else:
         config = DetectorConfig(**overrides)
+    runtime = {name: getattr(args, name) or value for name, value in runtime.items()}
     weights = resolve_weights(args.weights, args.params_file)
     options = ReplayOptions(
         topic=args.topic, pose_topic=args.pose_topic, gt_topic=args.gt_topic,
@@ -191,6 +200,7 @@ def _run(args: argparse.Namespace) -> int:
         max_image_pixels=args.max_image_pixels or max_pixels, device=args.device,
         write_bag=args.write_bag, map_dir=None if args.map_dir == NONE else args.map_dir,
         save_map=args.map_dir != NONE, overwrite=args.overwrite, progress=not args.quiet,
+        **runtime,
     )  # fmt: skip
     summary = replay_bag(
         args.bag, args.out, options, weights=weights, config=config,

@@ -112,12 +112,15 @@ class VprNode(Node):
         model = load_model(
             v["weights"], device=device, precision=v["precision"], image_size=v["image_size"],
             explicit_name="parameter weights (-p weights:=PATH)", params_rule=False,
+            backend=v["backend"],
         )  # fmt: skip
+        # OpenVINO runs its own precision; torch autocast would only wrap the glue around it.
+        autocast = v["precision"] if v["backend"] == "torch" else "fp32"
         config, geometry = params.detector_config(v), params.geometry_config(v)
         self.maps = MapControl(
             lambda: LoopClosurePipeline(model, config, index=v["index"], geometry=geometry),
             self._log,
-            partial(precision_context, device, v["precision"]),
+            partial(precision_context, device, autocast),
         )
         self.frames = FrameQueue(v["queue_size"])
         # The frame-rate limit, applied before the queue as well (the image callback's own
@@ -142,7 +145,7 @@ class VprNode(Node):
         if start_worker:
             self._worker.start()
         self.summary = (
-            f"model {model.fingerprint} on {v['device']} ({v['precision']}), "
+            f"model {model.fingerprint} on {v['device']} ({v['backend']}, {v['precision']}), "
             f"{self.maps.size()} keyframes, mode {v['mode']}"
         )
 

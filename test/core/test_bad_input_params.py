@@ -48,6 +48,10 @@ CASES = {
     "inf": (section("exclude_recent_s: .inf").encode(), "exclude_recent_s must be a finite"),
     "out of range": (section("top_k: -4").encode(), "top_k=-4 is out of range [0, 1000]"),
     "bad choice": (section("mode: slam").encode(), "mode='slam' must be one of mapping"),
+    "backend typo": (
+        section("backend: onnx").encode(),
+        "backend='onnx' must be one of torch, openvino",
+    ),
     "image size": (section("image_size: 300").encode(), "image_size=300 must be 0 or a multiple"),
     "negative budget": (
         section("rerank_budget_ms: -1.0").encode(),

@@ -49,6 +49,7 @@ def test_preset_values_apply_unless_overridden():
         ("score_threshold", float("inf"), "score_threshold must be a finite number, got inf"),
         ("global_floor", 1.5, "global_floor=1.5 is out of range [-1.0, 1.0]"),
         ("precision", "int4", "precision='int4' must be one of fp32, int8, bf16, fp16"),
+        ("backend", "openvno", "backend='openvno' must be one of torch, openvino"),
         ("image_size", 300, "image_size=300 must be 0 or a multiple of 14 (e.g. 224, 322)"),
         ("no_such", 1, "unknown parameter 'no_such'"),
     ],

@@ -3,6 +3,7 @@ loader for the node, the replay and the evaluation."""
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 import pytest
@@ -10,7 +11,14 @@ import torch
 
 from pair_vpr_ros.errors import CheckpointError, ConfigError
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, save_pairvpr
-from pair_vpr_ros.weights import ENV_VAR, RELEASED, Weights, load_model, resolve_weights
+from pair_vpr_ros.weights import (
+    ENV_VAR,
+    RELEASED,
+    Weights,
+    check_runtime,
+    load_model,
+    resolve_weights,
+)
 
 # test/conftest.py unsets PAIRVPR_WEIGHTS and points XDG_DATA_HOME at a folder that never exists.
 
@@ -147,6 +155,36 @@ def test_missing_and_garbage_checkpoints_name_the_source(tmp_path):
 def test_device_and_precision_are_checked(device, precision, message):
     with pytest.raises(ConfigError, match=message):
         load_model("random-tiny", device=device, precision=precision)
+
+
+@pytest.mark.parametrize(
+    "backend, precision, message",
+    [
+        ("openvno", "fp32", "backend 'openvno' must be one of torch, openvino"),
+        ("onnx", "int8", "backend 'onnx' must be one of torch, openvino"),
+        ("openvino", "fp16", "precision fp16 needs a CUDA device"),
+    ],
+)
+def test_backend_is_checked(backend, precision, message):
+    with pytest.raises(ConfigError, match=message):
+        load_model("random-tiny", precision=precision, backend=backend)
+
+
+@pytest.mark.parametrize("missing", ["openvino", "nncf"])
+def test_backend_without_its_package_says_how_to_get_it(monkeypatch, missing):
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == missing else find_spec(name)
+    )
+    message = (
+        f"backend openvino needs the package '{missing}', which is not installed: pip install "
+        "'pair_vpr_ros[openvino]' (make setup installs it), or use backend torch"
+    )
+    with pytest.raises(ConfigError) as info:
+        load_model("random-tiny", precision="int8", backend="openvino")
+    assert str(info.value) == message
+    if missing == "nncf":  # fp32 and bf16 need openvino alone
+        assert check_runtime("cpu", "fp32", "openvino") == torch.device("cpu")
 
 
 def test_random_presets_and_int8():

@@ -6,6 +6,7 @@ the `error:` line and that no saved map changed."""
 from __future__ import annotations
 
 import errno
+import importlib.util
 import json
 import re
 import tempfile
@@ -70,6 +71,8 @@ FLAG_CASES = {
     "batch-size zero": (["--batch-size", "0"], "argument --batch-size: must be an integer >= 1"),
     "max-frames zero": (["--max-frames", "0"], "argument --max-frames: must be an integer >= 1"),
     "unknown flag": (["--radius", "3"], "unrecognized arguments: --radius 3"),
+    "backend typo": (["--backend", "openvno"], "argument --backend: invalid choice: 'openvno'"),
+    "precision typo": (["--precision", "int4"], "argument --precision: invalid choice: 'int4'"),
 }
 
 
@@ -101,6 +104,26 @@ def test_bad_params_file_is_an_error_line(setup, tmp_path, capsys, case) -> None
     err = capsys.readouterr().err
     assert err.startswith(f"error: parameter file {params}") and message in err
     assert err.count("\n") == 1
+
+
+@pytest.mark.parametrize("how", ["flag", "params file"])
+def test_backend_without_its_package_is_an_error_line(setup, tmp_path, capsys, how, monkeypatch):
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == "nncf" else find_spec(name)
+    )
+    extra = ["--backend", "openvino", "--precision", "int8"]
+    if how == "params file":
+        params = tmp_path / "p.yaml"
+        params.write_text("/**:\n  ros__parameters:\n    backend: openvino\n    precision: int8\n")
+        extra = ["--params-file", str(params)]
+    assert run(setup, tmp_path, *extra) == 1
+    err = capsys.readouterr().err
+    assert err == (
+        "error: backend openvino needs the package 'nncf', which is not installed: pip install "
+        "'pair_vpr_ros[openvino]' (make setup installs it), or use backend torch\n"
+    )
+    assert not (tmp_path / "out").exists()  # refused before anything was written
 
 
 # ---- output folders

@@ -1,0 +1,185 @@
+"""OpenVINO back end (`backend: openvino`): the network compiled by OpenVINO for the CPU.
+
+Chosen over ONNX Runtime by measurement (README, "Faster CPU back end"). The graphs come from our
+own modules (`export.py`); `precision` picks what OpenVINO runs:
+- fp32: f32 kernels throughout (agrees with torch to float rounding);
+- bf16: OpenVINO's default on a CPU with bf16 instructions (f32 elsewhere);
+- int8: static int8 from NNCF, activation ranges calibrated on synthetic scenes
+  (`calibration.py`) or on images the caller passes; the rest runs as bf16 does.
+
+`OpenVINOModel` implements `PairVPRModel`, so the pipeline, map and replay run it unchanged.
+OpenVINO and NNCF are optional (`pip install 'pair_vpr_ros[openvino]'`).
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+from types import ModuleType
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.model.calibration import synthetic_calibration
+from pair_vpr_ros.model.config import ModelConfig
+from pair_vpr_ros.model.export import Graphs, example_inputs, export_graphs
+from pair_vpr_ros.model.network import PairVPR, fingerprint
+
+PRECISIONS = ("fp32", "bf16", "int8")
+PACKAGES = {"fp32": ("openvino",), "bf16": ("openvino",), "int8": ("openvino", "nncf")}
+CALIBRATION_IMAGES = 16  # encoder samples; the re-rank graph gets half as many pairs
+
+
+def _not_installed(module: str) -> ConfigError:
+    return ConfigError(
+        f"backend openvino needs the package {module!r}, which is not installed: pip install "
+        "'pair_vpr_ros[openvino]' (make setup installs it), or use backend torch"
+    )
+
+
+def check_installed(precision: str) -> None:
+    """ConfigError when a package `precision` needs is missing (found without importing it)."""
+    for module in PACKAGES.get(precision, ()):
+        if importlib.util.find_spec(module) is None:
+            raise _not_installed(module)
+
+
+def require(module: str) -> ModuleType:
+    """Import an optional dependency of this back end, or say how to get it."""
+    try:
+        return importlib.import_module(module)
+    except ImportError as err:
+        raise _not_installed(module) from err
+
+
+class OpenVINOModel:
+    """`PairVPRModel` on OpenVINO: encode one image per inference, re-rank `chunk_size`
+    candidates per inference (the last chunk padded)."""
+
+    def __init__(
+        self,
+        model: PairVPR,
+        precision: str = "fp32",
+        calibration: Tensor | None = None,
+        chunk: int = 2,
+    ) -> None:
+        """`model`: the torch network to compile; `calibration` [B,3,S,S] preprocessed images for
+        int8 (default: `CALIBRATION_IMAGES` synthetic scenes)."""
+        if precision not in PRECISIONS:
+            raise ConfigError(
+                f"backend openvino runs precision {', '.join(PRECISIONS)}, not {precision!r}"
+            )
+        if calibration is not None and calibration.shape[0] < 2:
+            raise ConfigError("int8 calibration needs at least 2 images")
+        ov = require("openvino")
+        self._config: ModelConfig = model.config
+        suffix = "+ov-int8" if precision == "int8" else ""  # int8 descriptors differ slightly
+        self._fingerprint = fingerprint(model.weights_id + suffix, model.config)
+        self.precision = precision
+        self.chunk_size = chunk
+        graphs = export_graphs(model, chunk)
+        converted = convert(ov, graphs, model)
+        if precision == "int8":
+            if calibration is None:
+                calibration = synthetic_calibration(CALIBRATION_IMAGES, model.config.image_size)
+            converted = quantize(converted, model, calibration, chunk)
+        hint = {"INFERENCE_PRECISION_HINT": "f32"} if precision == "fp32" else {}
+        config = {**hint, "INFERENCE_NUM_THREADS": torch.get_num_threads()}
+        core = ov.Core()
+        self._requests = {
+            name: core.compile_model(graph, "CPU", config).create_infer_request()
+            for name, graph in converted.items()
+        }
+
+    # ---- PairVPRModel --------------------------------------------------------------------
+    @property
+    def config(self) -> ModelConfig:
+        return self._config
+
+    @property
+    def fingerprint(self) -> str:
+        return self._fingerprint
+
+    @property
+    def num_patches(self) -> int:
+        return self._config.num_patches
+
+    @property
+    def device(self) -> torch.device:
+        return torch.device("cpu")
+
+    @property
+    def dense_dtype(self) -> torch.dtype:
+        return torch.float32
+
+    def encode(self, images: Tensor) -> tuple[Tensor, Tensor]:
+        """images [B,3,S,S] -> (dense [B,N,D], descriptors [B,desc_dim]), one image at a time."""
+        size = self._config.image_size
+        if images.ndim != 4 or tuple(images.shape[1:]) != (3, size, size):
+            raise ConfigError(
+                f"backend openvino was compiled for images [B,3,{size},{size}], got "
+                f"{list(images.shape)}: preprocess to the model's image_size"
+            )
+        outs = [self._run("encoder", image[None]) for image in images.float()]
+        return tuple(torch.cat([o[i] for o in outs]) for i in range(2))  # type: ignore[return-value]
+
+    def pair_scores(self, query: Tensor, cands: Tensor, chunk: int | None = None) -> Tensor:
+        """query [N,D], cands [K,N,D] -> logit(q,c) + logit(c,q) [K]. `chunk` is ignored: the
+        graph was compiled for `chunk_size` candidates per call."""
+        k = cands.shape[0]
+        if k == 0:
+            return torch.zeros(0)
+        x_query, keys, values = self._run("query", query.float())
+        out = []
+        for i in range(0, k, self.chunk_size):
+            part = cands[i : i + self.chunk_size].float()
+            short = self.chunk_size - part.shape[0]
+            if short:  # pad with copies of the last candidate; their scores are dropped
+                part = torch.cat([part, part[-1:].expand(short, -1, -1)])
+            scores = self._run("chunk", x_query, keys, values, part)[0]
+            out.append(scores[: self.chunk_size - short])
+        return torch.cat(out)
+
+    def _run(self, name: str, *inputs: Tensor) -> list[Tensor]:
+        request = self._requests[name]
+        request.infer([np.ascontiguousarray(x.detach().cpu().numpy()) for x in inputs])
+        return [torch.from_numpy(out.data.copy()) for out in request.output_tensors]
+
+
+def convert(ov: ModuleType, graphs: Graphs, model: PairVPR) -> dict:
+    """Exported programs -> OpenVINO models with their inputs fixed to the exported shapes."""
+    inputs = example_inputs(model, graphs.chunk_size)
+    out = {}
+    for name in ("encoder", "query", "chunk"):
+        graph = ov.convert_model(getattr(graphs, name))
+        shapes = [ov.PartialShape(list(x.shape)) for x in inputs[name]]
+        graph.reshape(dict(zip(graph.inputs, shapes, strict=True)))
+        out[name] = graph
+    return out
+
+
+def quantize(converted: dict, model: PairVPR, images: Tensor, chunk: int) -> dict:
+    """Static int8 (NNCF) of the encoder and the re-rank chunk; activation ranges from `images`
+    [B,3,S,S] and, for re-ranking, pairs of their dense tokens. The per-query graph runs once
+    per query and stays as it is."""
+    nncf = require("nncf")
+    with torch.no_grad():
+        dense = torch.cat([model.encode(images[i : i + 1])[0] for i in range(len(images))])
+        pairs = []
+        for i in range(max(1, len(images) // 2)):
+            x_query, memory = model.query_side(dense[i])
+            keys, values = (torch.stack(t).numpy() for t in zip(*memory, strict=True))
+            others = [(i + 1 + j) % len(images) for j in range(chunk)]
+            pairs.append((x_query.numpy(), keys, values, dense[others].numpy()))
+    samples = {"encoder": [images[i : i + 1].numpy() for i in range(len(images))], "chunk": pairs}
+    out = dict(converted)
+    for name, data in samples.items():
+        out[name] = nncf.quantize(
+            converted[name],
+            nncf.Dataset(data),
+            model_type=nncf.ModelType.TRANSFORMER,
+            subset_size=len(data),
+        )
+    return out
