@@ -174,6 +174,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help="model for the agreement check (default: the shipped demo model)",
     )
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
+    p.add_argument(
+        "--batches", default="1,8", help="encode batch sizes, comma-separated (1 comes first)"
+    )
     p.add_argument("--json", type=Path, help="also write the figures to this JSON file")
     return p.parse_args(argv)
 
@@ -199,7 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"building the paths took {time.perf_counter() - t0:.0f} s")
     rows = []
     with torch.inference_mode():
-        for batch in (1, 8):
+        batches = [int(b) for b in args.batches.split(",")]
+        for batch in batches:
             t = interleaved(encode_fns(models, size, args.device, batch), args.repeat, batch)
             rows.append((f"encode, batch {batch} (ms/image)", t))
         for k in ks:
@@ -218,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
           + ", ".join(f"{n} {c:.5f}" for n, c in cos.items()))  # fmt: skip
     figures = {
         "paths": {
-            name: {"encode_ms": rows[0][1][name], "rerank_ms": rows[2][1].get(name)}
+            name: {"encode_ms": rows[0][1][name], "rerank_ms": rows[len(batches)][1].get(name)}
             for name in models
         },
         "agreement": {},
