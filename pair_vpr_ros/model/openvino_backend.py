@@ -5,7 +5,7 @@ own modules (`export.py`); `precision` picks what OpenVINO runs:
 - fp32: f32 kernels throughout (agrees with torch to float rounding);
 - bf16: OpenVINO's default on a CPU with bf16 instructions (f32 elsewhere);
 - int8: static int8 from NNCF, activation ranges calibrated on synthetic scenes
-  (`calibration.py`) or on images the caller passes; the rest runs as bf16 does.
+  (`calibration.py`) or on images the caller passes; the float layers run in f32.
 
 `OpenVINOModel` implements `PairVPRModel`, so the pipeline, map and replay run it unchanged.
 OpenVINO and NNCF are optional (`pip install 'pair_vpr_ros[openvino]'`).
@@ -85,7 +85,9 @@ class OpenVINOModel:
             if calibration is None:
                 calibration = synthetic_calibration(CALIBRATION_IMAGES, model.config.image_size)
             converted = quantize(converted, model, calibration, chunk)
-        hint = {"INFERENCE_PRECISION_HINT": "f32"} if precision == "fp32" else {}
+        # int8 runs its float layers in f32: as fast as in bf16 here (0.18x vs 0.19x encode),
+        # and the logits do not get bf16's 8-bit mantissa.
+        hint = {"INFERENCE_PRECISION_HINT": "f32"} if precision != "bf16" else {}
         config = {**hint, "INFERENCE_NUM_THREADS": torch.get_num_threads()}
         core = ov.Core()
         self._requests = {
