@@ -34,7 +34,7 @@ class DetectorConfig:
     keyframe_max_similarity: float = (
         0.98  # a frame this similar to the last keyframe is no keyframe
     )
-    exclude_recent_s: float = 30.0  # never match keyframes younger than this ...
+    exclude_recent_s: float = 30.0  # never match keyframes stamped this close to the query ...
     exclude_recent_keyframes: int = 10  # ... or among the newest this many
     temporal_consistency: int = 1  # accept after N consecutive agreeing queries (1: off)
     temporal_tolerance: int = 5  # "agreeing": matched ids within this many keyframes
@@ -173,15 +173,6 @@ class LoopDetector:
         return (
             similarity_to_last is None or similarity_to_last < self.config.keyframe_max_similarity
         )
-
-    def eligible_max_id(self, stamp: float, stamps: list[float]) -> int | None:
-        """Newest map id that is not recent for a query at `stamp` (None: nothing eligible).
-        `stamps[i]` is keyframe i's stamp; walking back stops at the first old-enough keyframe."""
-        c = self.config
-        i = len(stamps) - 1 - c.exclude_recent_keyframes
-        while i >= 0 and abs(stamp - stamps[i]) < c.exclude_recent_s:
-            i -= 1
-        return i if i >= 0 else None
 
     def decide(
         self,

@@ -8,7 +8,9 @@ both publish identical data; the pose-graph tools decode them here too. One acce
     ``data = [t_current, t_previous]``: exactly 2 float64, the query and match keyframes' image
     header stamps in seconds. ``layout`` is empty. LIO-SAM listens on
     ``lio_loop/loop_closure_detection``: remap this topic there. Every accepted loop, with or
-    without a relative pose.
+    without a relative pose, whose match is older than the query (``t_previous < t_current``);
+    a loop to a keyframe stamped later (a map from another clock, a bag played again) has no
+    pair message (``pair`` None): LIO-SAM would take it for a loop into its future.
 
 ``loop_closure/detail`` — ``std_msgs/Float64MultiArray``, every numeric field of the record,
     one value per field, labelled: ``DETAIL_LABELS`` = ``NUMERIC_FIELDS`` (query_id,
@@ -107,16 +109,18 @@ __all__ = [
 class LoopMessages:
     """The messages of one loop closure, as plain data (``factor`` None: no relative pose)."""
 
-    pair: list[float]
+    pair: list[float] | None  # None: the match is not older than the query
     detail_labels: tuple[str, ...]
     detail: list[float]
     json: str
     factor: LoopFactor | None = None
 
 
-def pair_data(record: Any) -> list[float]:
-    """``[t_current, t_previous]``: the query and match header stamps, s (LIO-SAM layout)."""
-    return [float(record.query_stamp), float(record.match_stamp)]
+def pair_data(record: Any) -> list[float] | None:
+    """``[t_current, t_previous]``: the query and match header stamps, s (LIO-SAM layout);
+    None unless ``t_previous < t_current``."""
+    current, previous = float(record.query_stamp), float(record.match_stamp)
+    return [current, previous] if previous < current else None
 
 
 def covariance_values(record: Any) -> list[float]:

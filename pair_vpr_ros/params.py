@@ -133,7 +133,8 @@ PARAMS: tuple[ParamSpec, ...] = (
        "(-1 = the preset's)", -1.0, 3600.0),
     _p("keyframe_max_similarity", 0.98, "a frame this similar to the last keyframe is skipped",
        -1.0, 1.0),
-    _p("exclude_recent_s", 30.0, "never match keyframes younger than this (s)", 0.0, 86400.0),
+    _p("exclude_recent_s", 30.0, "never match keyframes stamped within this many seconds of the "
+       "query, before or after it (a bag played again, a clock reset)", 0.0, 86400.0),
     _p("exclude_recent_keyframes", 10, "... nor among the newest this many", 0, 1000000),
     _p("temporal_consistency", 1, "accept after this many consecutive agreeing queries", 1, 100),
     _p("temporal_tolerance", 5, "agreeing: matched ids within this many keyframes", 0, 100000),

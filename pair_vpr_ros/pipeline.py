@@ -32,6 +32,7 @@ from pair_vpr_ros.geometry.odometry_scale import Neighbour
 from pair_vpr_ros.model import PairVPRModel, preprocess_batch
 from pair_vpr_ros.model.decoder import default_chunk
 from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
+from pair_vpr_ros.recency import ClockWatch, StampBuffer, eligible_keyframes
 from pair_vpr_ros.types import Pose
 
 
@@ -60,6 +61,8 @@ class FrameOutcome:
     # similarity alone would return.
     candidates: list[Candidate] = field(default_factory=list)
     timings_ms: dict[str, float] = field(default_factory=dict)
+    # > 0: the stamps jumped back this many seconds before this frame, which starts a session
+    clock_jump_s: float = 0.0
 
 
 @dataclass
@@ -82,6 +85,7 @@ class PipelineCounts:
     features_damaged: int = 0  # stored features that could not be unpacked
     candidates_scored: int = 0  # pair scores computed (candidates re-ranked, all keyframes)
     rerank_budget_cut: int = 0  # keyframes whose re-ranking stopped at rerank_budget_ms
+    clock_jumps: int = 0  # stamps that went back by more than CLOCK_JUMP_S: new sessions
 
     def to_dict(self) -> dict[str, int]:
         return asdict(self)
@@ -108,7 +112,9 @@ class LoopClosurePipeline:
         self.rerank_chunk = rerank_chunk
         self._place_map = place_map if place_map is not None else self._new_map()
         self._check_fingerprint(self._place_map)
-        self._stamps: list[float] = []  # keyframe stamps by id, for recent-frame exclusion
+        self._stamps = StampBuffer()  # keyframe stamps by id, for recent-frame exclusion
+        self._clock = ClockWatch()
+        self._jump_s = 0.0  # a clock jump not yet reported in an outcome
         self._last_encoded: float | None = None
         self._last_desc: np.ndarray | None = None
         self._reset_tracking()
@@ -159,7 +165,13 @@ class LoopClosurePipeline:
         return cfg.desc_dim, (self.model.num_patches, cfg.embed_dim)
 
     def _reset_tracking(self) -> None:
-        self._stamps = [m.stamp for m in self._place_map.all_meta()]
+        self._stamps = StampBuffer(m.stamp for m in self._place_map.all_meta())
+        self._clock.reset()
+        self._new_session()
+
+    def _new_session(self) -> None:
+        """Forget the stream so far (frame-rate limit, last keyframe, temporal consistency); the
+        map keeps its keyframes, matched by stamp distance like a loaded map's."""
         self._last_encoded = None
         self._last_desc = None
         self.detector.reset()
@@ -218,6 +230,14 @@ class LoopClosurePipeline:
         queue: list[Frame | FrameOutcome] = []  # frame order; a Frame waits for the encoder
         waiting = 0
         for frame in frames:
+            jump = self._clock.check(frame.stamp)
+            if jump:  # the frames before it finish in their session; this one starts a new one
+                if queue:
+                    yield from self._run_batch(queue)
+                    queue, waiting = [], 0
+                self.counts.clock_jumps += 1
+                self._jump_s = jump
+                self._new_session()
             if self.due(frame.stamp):
                 self._last_encoded = frame.stamp
                 queue.append(frame)
@@ -245,12 +265,14 @@ class LoopClosurePipeline:
         i = 0
         for entry in queue:
             if isinstance(entry, FrameOutcome):  # decided already (rate limited)
-                yield entry
-                continue
-            outcome = self._decide(entry, dense[i], desc[i])
-            i += 1
-            outcome.timings_ms["encode"] = encode_ms
-            self.counts.encoded += 1
+                outcome = entry
+            else:
+                outcome = self._decide(entry, dense[i], desc[i])
+                i += 1
+                outcome.timings_ms["encode"] = encode_ms
+                self.counts.encoded += 1
+            # a jump flushes the queue first, so the frame after it is the first entry here
+            outcome.clock_jump_s, self._jump_s = self._jump_s, 0.0
             yield outcome
 
     def _decide(self, frame: Frame, dense: np.ndarray, desc: np.ndarray) -> FrameOutcome:
@@ -289,12 +311,15 @@ class LoopClosurePipeline:
         return outcome
 
     def _query(self, frame: Frame, dense, desc, outcome: FrameOutcome, features: Features | None):
-        max_id = self.detector.eligible_max_id(frame.stamp, self._stamps)
-        if max_id is None:
+        c = self.config
+        allowed = eligible_keyframes(
+            self._stamps.values, frame.stamp, c.exclude_recent_s, c.exclude_recent_keyframes
+        )
+        if allowed is None:
             return None
         timings = outcome.timings_ms
         t0 = time.perf_counter()
-        hits = self._place_map.search(desc, self.config.top_k, max_id=max_id)
+        hits = self._place_map.search(desc, c.top_k, allowed=allowed)
         timings["search"] = (time.perf_counter() - t0) * 1e3
         outcome.candidates = candidates = [
             self._candidate(kf_id, sim, rank) for rank, (kf_id, sim) in enumerate(hits, start=1)

@@ -379,7 +379,6 @@ class LoopBagWriter:
             ts.types["std_msgs/msg/MultiArrayLayout"],
             ts.types["std_msgs/msg/MultiArrayDimension"],
         )
-        pair = array(layout=layout(dim=[], data_offset=0), data=np.asarray(content.pair))
         detail = array(
             layout=layout(
                 dim=[dim(label=label, size=1, stride=1) for label in content.detail_labels],
@@ -388,8 +387,11 @@ class LoopBagWriter:
             data=np.asarray(content.detail, dtype=np.float64),
         )
         text = ts.types["std_msgs/msg/String"](data=content.json)
-        msgs = [
-            (loop_messages.PAIR_TOPIC, pair),
+        msgs = []
+        if content.pair is not None:  # None: the match is not older (loop_messages.pair_data)
+            pair = array(layout=layout(dim=[], data_offset=0), data=np.asarray(content.pair))
+            msgs.append((loop_messages.PAIR_TOPIC, pair))
+        msgs += [
             (loop_messages.DETAIL_TOPIC, detail),
             (loop_messages.JSON_TOPIC, text),
         ]

@@ -1,7 +1,8 @@
 """FAISS inner-product index over L2-normalised global descriptors; ids are insertion positions.
 
-Recent keyframes are excluded with an `IDSelectorRange` passed as search parameters, so FAISS
-only ever ranks eligible ids: k results come back even when thousands of newer frames are closer.
+Recent keyframes are excluded with an `IDSelectorRange` (an id prefix) or an `IDSelectorBitmap`
+(any set of ids) passed as search parameters, so FAISS only ever ranks eligible ids: k results
+come back even when thousands of newer frames are closer.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ class IndexConfig:
     hnsw_m: HNSW neighbours per node (M); memory ~ 2*M*4 bytes per keyframe on top of the vector.
     ef_construction: HNSW candidate list while inserting; higher = better graph, slower add.
     ef_search: HNSW candidate list while searching (raised to k when k is larger); recall vs time.
-    exact_below: with "hnsw", a search with at most this many eligible ids (<= max_id) scans them
+    exact_below: with "hnsw", a search with at most this many eligible ids scans them
         exactly instead (cheap at that size, and a filtered graph search can miss a few).
     search_threads: OpenMP threads for one search (0 = FAISS default). 1 by default: a single
         query is latency-bound, and on a 2-core machine FAISS's fan-out made a flat search of
@@ -78,34 +79,56 @@ class DescriptorIndex:
         self._index = self._new_index()
 
     def search(
-        self, desc: np.ndarray, k: int, max_id: int | None = None
+        self,
+        desc: np.ndarray,
+        k: int,
+        max_id: int | None = None,
+        allowed: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """desc [dim] -> (ids [k'] int64, similarities [k'] float32), best first, ids <= max_id.
+        """desc [dim] -> (ids [k'] int64, similarities [k'] float32), best first, ids <= max_id
+        and, with `allowed` (bool [m]), only ids i < m with allowed[i].
 
         k' = min(k, number of eligible ids); never returns FAISS's -1 padding.
         """
         limit = len(self) if max_id is None else min(len(self), int(max_id) + 1)
-        k = min(int(k), limit)
+        count, selector = self._selector(limit, allowed)
+        k = min(int(k), count)
         if k <= 0:
             return np.empty(0, np.int64), np.empty(0, np.float32)
         query = np.ascontiguousarray(desc, dtype=np.float32).reshape(1, self.dim)
-        selector = faiss.IDSelectorRange(0, limit) if limit < len(self) else None
         threads = faiss.omp_get_max_threads()
         if self.config.search_threads:
             faiss.omp_set_num_threads(self.config.search_threads)  # this thread only (ICV)
         try:
-            ids, sims = self._search(query, k, limit, selector)
+            ids, sims = self._search(query, k, count, selector)
         finally:
             faiss.omp_set_num_threads(threads)
         keep = ids[0] >= 0
         return ids[0][keep].astype(np.int64), sims[0][keep].astype(np.float32)
 
+    def _selector(
+        self, limit: int, allowed: np.ndarray | None
+    ) -> tuple[int, faiss.IDSelector | None]:
+        """(how many ids are eligible, FAISS selector or None for all): ids < `limit` that
+        `allowed` lets through."""
+        if allowed is not None:
+            allowed = np.asarray(allowed, dtype=bool)[: max(limit, 0)]
+            ids = np.flatnonzero(allowed)
+            if len(ids) < len(allowed) and len(ids):  # not a prefix: a bitmap of the ids
+                bits = np.packbits(allowed, bitorder="little")
+                selector = faiss.IDSelectorBitmap(len(bits), faiss.swig_ptr(bits))  # n: bytes
+                selector.referenced_objects = [bits]  # FAISS keeps a pointer, not the array
+                return len(ids), selector
+            limit = len(ids)
+        selector = faiss.IDSelectorRange(0, limit) if limit < len(self) else None
+        return limit, selector
+
     def _search(
-        self, query: np.ndarray, k: int, limit: int, selector: faiss.IDSelector | None
+        self, query: np.ndarray, k: int, count: int, selector: faiss.IDSelector | None
     ) -> tuple[np.ndarray, np.ndarray]:
         if self.config.kind == "flat":
             sims, ids = self._flat_search(self._index, query, k, selector)
-        elif limit <= self.config.exact_below:
+        elif count <= self.config.exact_below:
             sims, ids = self._flat_search(self._storage(), query, k, selector)
         else:
             params = faiss.SearchParametersHNSW(efSearch=max(self.config.ef_search, k))
@@ -114,7 +137,7 @@ class DescriptorIndex:
             sims, ids = self._index.search(query, k, params=params)
             if int((ids[0] >= 0).sum()) < k:
                 # The filtered graph walk found fewer than k eligible nodes (rare: only when
-                # max_id excludes most of the map); an exact scan of the prefix is then correct.
+                # the selector excludes most of the map); an exact scan is then correct.
                 sims, ids = self._flat_search(self._storage(), query, k, selector)
         return ids, sims
 

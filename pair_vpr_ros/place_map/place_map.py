@@ -116,13 +116,19 @@ class PlaceMap:
         return kf_id
 
     def search(
-        self, desc: np.ndarray, k: int, max_id: int | None = None
+        self,
+        desc: np.ndarray,
+        k: int,
+        max_id: int | None = None,
+        allowed: np.ndarray | None = None,
     ) -> list[tuple[int, float]]:
-        """desc [desc_dim] -> up to k (id, inner-product similarity), best first, id <= max_id."""
+        """desc [desc_dim] -> up to k (id, inner-product similarity), best first, id <= max_id
+        and, with `allowed` (bool [m]), only ids i < m with allowed[i]."""
         self._check_open()
         if int(k) < 0:
             raise MapError(f"search k must be >= 0, got {k}")
-        ids, sims = self._index.search(unit_descriptor(desc, self.desc_dim), int(k), max_id)
+        query = unit_descriptor(desc, self.desc_dim)
+        ids, sims = self._index.search(query, int(k), max_id, allowed)
         return [(int(i), float(s)) for i, s in zip(ids, sims, strict=True)]
 
     def get_dense(self, ids: Iterable[int]) -> np.ndarray:

@@ -35,16 +35,15 @@ services `ros.maps`.
 
 from __future__ import annotations
 
-import importlib
 import signal
 import sys
 import threading
 import time
-from functools import cache, partial
+from functools import partial
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Point, PoseStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -54,11 +53,8 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
-from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import SetBool, Trigger
-from visualization_msgs.msg import Marker, MarkerArray
 
-from pair_vpr_ros import loop_messages as lm
 from pair_vpr_ros import params
 from pair_vpr_ros.cli import EXIT_ERROR, EXIT_OK
 from pair_vpr_ros.detector import LoopRecord
@@ -68,6 +64,7 @@ from pair_vpr_ros.imaging import msg_to_rgb
 from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline, frame_due
 from pair_vpr_ros.ros.geometry_inputs import GeometryInputs
 from pair_vpr_ros.ros.maps import MapControl
+from pair_vpr_ros.ros.outputs import MARKER_TOPIC, LoopOutputs
 from pair_vpr_ros.ros.parameters import descriptor
 from pair_vpr_ros.ros.runtime import (
     FrameQueue,
@@ -78,22 +75,12 @@ from pair_vpr_ros.ros.runtime import (
 from pair_vpr_ros.types import Pose, PoseTrack, message_pose, message_stamp
 from pair_vpr_ros.weights import load_model
 
-MARKER_TOPIC = "loop_closure/markers"
+__all__ = ["MARKER_TOPIC", "VprNode", "main"]
 POSE_TYPES = {
     "odometry": Odometry,
     "pose_stamped": PoseStamped,
     "pose_with_covariance_stamped": PoseWithCovarianceStamped,
 }
-
-
-@cache
-def _message_classes() -> dict[str, type]:
-    """rclpy classes of the messages `loop_messages.factor_msg` builds, by type name."""
-    out = {}
-    for name in lm.FACTOR_MSG_TYPES:
-        package, kind, cls = name.split("/")
-        out[name] = getattr(importlib.import_module(f"{package}.{kind}"), cls)
-    return out
 
 
 class VprNode(Node):
@@ -189,11 +176,8 @@ class VprNode(Node):
             self.create_subscription(
                 pose_type, v["pose_topic"], self._on_pose, qos, callback_group=group
             )
-        self.pub_pair = self.create_publisher(Float64MultiArray, lm.PAIR_TOPIC, 10)
-        self.pub_detail = self.create_publisher(Float64MultiArray, lm.DETAIL_TOPIC, 10)
-        self.pub_json = self.create_publisher(String, lm.JSON_TOPIC, 10)
-        self.pub_factor = self.create_publisher(Odometry, lm.FACTOR_TOPIC, 10)
-        self.pub_markers = self.create_publisher(MarkerArray, MARKER_TOPIC, 10)
+        self.outputs = LoopOutputs(self)
+        self.pub_pair = self.outputs.pair
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         for srv_type, name, handler in (
             (SetBool, "~/set_localization", self._srv_localization),
@@ -278,6 +262,14 @@ class VprNode(Node):
         try:
             outcome, match_pose = self.maps.process(frame)
             self.stats.counts.processed += 1
+            if outcome.clock_jump_s:
+                self.get_logger().warning(
+                    f"image stamps went back {outcome.clock_jump_s:.3f} s (to {frame.stamp:.3f} "
+                    "s): a bag played again or a clock reset; starting a new session (the map "
+                    "keeps its keyframes; loops only to keyframes stamped at least "
+                    "exclude_recent_s apart, and the pair topic only when the match is older)",
+                    throttle_duration_sec=10.0,
+                )
             now_ms = self.get_clock().now().nanoseconds / 1e6
             self.stats.add_ms("latency", (time.monotonic() - received) * 1e3)
             self.stats.add_ms("stamp_age", now_ms - frame.stamp * 1e3)
@@ -294,35 +286,16 @@ class VprNode(Node):
     def _publish_loop(self, record: LoopRecord, pose: Pose | None, match_pose: Pose | None):
         if not (record.accepted or self.values["publish_rejected"]):
             return
-        content = lm.loop_messages(record)
-        detail = Float64MultiArray(data=content.detail)
-        detail.layout.dim = [
-            MultiArrayDimension(label=x, size=1, stride=1) for x in content.detail_labels
-        ]
-        if record.accepted:
-            self.pub_pair.publish(Float64MultiArray(data=content.pair))
-            self.stats.counts.loops += 1
-            self.get_logger().info(
-                f"loop closure {content.pair}: keyframe {record.match_id}, "
-                f"score {record.pair_score:.3f}"
-            )
-        self.pub_detail.publish(detail)
-        self.pub_json.publish(String(data=content.json))
-        if record.accepted and content.factor is not None:
-            self.pub_factor.publish(lm.factor_msg(content.factor, _message_classes()))
-        if record.accepted and pose is not None and match_pose is not None:
-            self.pub_markers.publish(self._marker(record, pose, match_pose))
-
-    def _marker(self, record: LoopRecord, pose_a, pose_b) -> MarkerArray:
-        """One green line between the two keyframes' positions (id: the loop's number)."""
-        m = Marker(ns="loop_closures", id=self.stats.counts.loops)
-        m.header.frame_id = self.values["marker_frame_id"]
-        m.header.stamp.sec, m.header.stamp.nanosec = divmod(int(record.query_stamp * 1e9), 10**9)
-        m.type, m.action = Marker.LINE_LIST, Marker.ADD
-        m.pose.orientation.w, m.scale.x = 1.0, 0.1
-        m.color.g, m.color.a = 1.0, 1.0
-        m.points = [Point(x=p[0], y=p[1], z=p[2]) for p in (pose_a, pose_b)]
-        return MarkerArray(markers=[m])
+        counts = self.stats.counts
+        sent, note = self.outputs.publish(
+            record, (pose, match_pose), self.values["marker_frame_id"], counts.loops + 1
+        )
+        if record.accepted and sent:
+            counts.loops += 1
+            self.get_logger().info(note)
+        elif record.accepted:
+            counts.loops_unordered += 1
+            self.get_logger().warning(note, throttle_duration_sec=10.0)
 
     # ---- diagnostics, autosave, services --------------------------------------------------------
     def diagnostic_values(self) -> dict[str, str]:
@@ -365,7 +338,7 @@ class VprNode(Node):
 
     def _clear(self) -> tuple[bool, str]:
         result = self.maps.clear()
-        self.pub_markers.publish(MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
+        self.outputs.clear_markers()
         return result
 
     def _start_build(self) -> tuple[bool, str]:

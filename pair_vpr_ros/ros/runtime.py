@@ -77,6 +77,7 @@ class NodeCounts:
     processed: int = 0  # worker: through the pipeline
     errors: int = 0  # worker: the pipeline raised
     loops: int = 0  # worker: accepted loop closures published
+    loops_unordered: int = 0  # worker: accepted, match not older: no pair message
     bad_poses: int = 0  # pose callback: NaN / inf values, not stored
     camera_info_invalid: int = 0  # camera_info callback: unusable intrinsics (zero focal, ...)
     depth_unmatched: int = 0  # worker: no depth image within depth_tolerance of the frame
@@ -161,6 +162,8 @@ def diagnostic_values(
         "frames_failed": c.errors,
         "poses_invalid": c.bad_poses,
         "loops": c.loops,
+        "loops_unordered": c.loops_unordered,
+        "clock_jumps": live.counts.clock_jumps,
         "loops_pose_metric": live.counts.pose_metric,
         "loops_pose_metric_odometry": live.counts.pose_metric_odometry,
         "loops_pose_scale_free": live.counts.pose_scale_free,

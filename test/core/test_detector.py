@@ -126,25 +126,6 @@ def test_geometric_verification_gate():
     assert (rec.accepted, rec.inliers, rec.inlier_ratio) == (True, 40, 0.6)
 
 
-@pytest.mark.parametrize(
-    "stamps,query,expected",
-    [
-        ([0.0, 1.0, 2.0, 50.0, 51.0], 60.0, 2),  # newest 2 are within 30 s
-        ([0.0, 1.0, 2.0], 10.0, None),  # everything recent
-        ([0.0, 100.0, 101.0, 102.0], 103.0, 0),
-        ([], 5.0, None),
-    ],
-)
-def test_recent_keyframes_are_excluded(stamps, query, expected):
-    det = LoopDetector(DetectorConfig(exclude_recent_s=30.0, exclude_recent_keyframes=0))
-    assert det.eligible_max_id(query, stamps) == expected
-
-
-def test_keyframe_gap_excludes_newest_ids():
-    det = LoopDetector(DetectorConfig(exclude_recent_s=0.0, exclude_recent_keyframes=3))
-    assert det.eligible_max_id(100.0, [0.0, 1.0, 2.0, 3.0, 4.0]) == 1
-
-
 def test_keyframe_selection_by_similarity():
     det = LoopDetector(DetectorConfig(keyframe_max_similarity=0.9))
     assert det.is_new_keyframe(None) and det.is_new_keyframe(0.89)

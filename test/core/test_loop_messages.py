@@ -40,6 +40,12 @@ def test_pair_is_exactly_two_stamps():
     assert lm.pair_data(_record()) == [1700000123.456789, 1700000001.25]
 
 
+@pytest.mark.parametrize("match_stamp", [1700000123.456789, 1700000200.0])
+def test_no_pair_unless_the_match_is_older(match_stamp):
+    record = _record(match_stamp=match_stamp)  # same stamp, or a later one (another clock)
+    assert lm.pair_data(record) is None and lm.loop_messages(record).pair is None
+
+
 def test_detail_layout_and_values():
     assert lm.NUMERIC_FIELDS == (
         "query_id", "query_stamp", "match_id", "match_stamp", "pair_score", "global_similarity",

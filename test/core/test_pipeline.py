@@ -10,6 +10,7 @@ from exact_match import EXACT_MATCH
 
 from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.errors import ConfigError, MapFingerprintError
+from pair_vpr_ros.loop_messages import loop_messages
 from pair_vpr_ros.model import ModelConfig, PairVPRModel, build_pairvpr
 from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline, PipelineCounts
 
@@ -218,3 +219,27 @@ def test_pipeline_needs_only_the_model_interface(tiny_model, places):
     b = run(LoopClosurePipeline(narrow, DetectorConfig(**EXACT)), places, order)
     assert [o.loop and o.loop.to_dict() for o in a] == [o.loop and o.loop.to_dict() for o in b]
     assert loops(b) == [(4, 0), (5, 1)]
+
+
+@pytest.mark.parametrize("batch_size", [1, 4])
+def test_stamps_going_back_start_a_session_and_never_pair_a_frame_with_itself(
+    tiny_model, places, batch_size
+):
+    # Issue 17 #1: the same sequence played twice (`ros2 bag play --loop`). The second pass
+    # used to match the first pass's keyframe at the very same stamp: pair [t, t].
+    pipe = LoopClosurePipeline(tiny_model, DetectorConfig(**EXACT))
+    order = [0, 1, 2, 3, 4, 5]
+    first = run(pipe, places, order, batch_size=batch_size)
+    second = run(pipe, places, order, batch_size=batch_size)
+    assert [o.clock_jump_s for o in first + second] == [0.0] * 6 + [5.0] + [0.0] * 5
+    assert pipe.counts.clock_jumps == 1
+    assert loops(first) == [] and [o.keyframe_id for o in second] == [6, 7, 8, 9, 10, 11]
+    for o in second:  # the first pass within exclude_recent_s (2.5 s) is excluded by stamp
+        assert all(abs(c.stamp - o.stamp) >= EXACT["exclude_recent_s"] for c in o.candidates)
+    assert loops(second) == []  # exact repeats only: each is at its own (excluded) stamp
+    third = run(pipe, places, [3, 4, 5], batch_size=batch_size, t0=100.0)  # time moves on
+    assert loops(third) == [(12, 3), (13, 4), (14, 5)]  # FAISS keeps the lower id on a tie
+    earlier = run(pipe, places, [0, 1], batch_size=batch_size, t0=-50.0)  # another clock
+    assert pipe.counts.clock_jumps == 2 and loops(earlier) == [(15, 0), (16, 1)]
+    for o in earlier:  # loops into the "future": no LIO-SAM pair for them
+        assert o.loop.match_stamp > o.loop.query_stamp and loop_messages(o.loop).pair is None

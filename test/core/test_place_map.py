@@ -196,3 +196,23 @@ def test_hnsw_walk_missing_eligible_ids_falls_back_to_exact(monkeypatch) -> None
         hits = m.search(descs[400], 5, max_id=5)  # 6 eligible ids among 500
         assert [i for i, _ in hits] == np.argsort(-(descs[:6] @ descs[400]))[:5].tolist()
         assert calls  # the exact scan answered
+
+
+@pytest.mark.parametrize("config", ["flat", HNSW_NO_SHORTCUT, IndexConfig(kind="hnsw")])
+def test_search_only_among_allowed_ids(config) -> None:
+    descs = random_descs(60, seed=7)
+    allowed = np.zeros(50, bool)
+    allowed[[3, 10, 11, 40, 49]] = True  # gaps: a bitmap selector; ids >= 50 never
+    with PlaceMap(DIM, SHAPE, "fp", index=config) as m:
+        fill(m, descs)
+        expect = [
+            int(i) for i in np.flatnonzero(allowed)[np.argsort(-(descs[:50][allowed] @ descs[55]))]
+        ]
+        assert [i for i, _ in m.search(descs[55], 10, allowed=allowed)] == expect
+        assert [i for i, _ in m.search(descs[55], 2, allowed=allowed)] == expect[:2]
+        prefix = np.ones(20, bool)  # a prefix: the range selector, as max_id=19
+        assert m.search(descs[55], 4, allowed=prefix) == m.search(descs[55], 4, max_id=19)
+        assert m.search(descs[55], 4, allowed=np.zeros(60, bool)) == []
+        assert [i for i, _ in m.search(descs[55], 9, max_id=10, allowed=allowed)] == sorted(
+            [3, 10], key=lambda i: -float(descs[i] @ descs[55])
+        )

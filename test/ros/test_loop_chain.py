@@ -9,11 +9,10 @@ import math
 import numpy as np
 from bag_fixtures import textured
 from nav_msgs.msg import Odometry, Path
+from node_harness import image_msg, wait_for
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
 from sensor_msgs.msg import CameraInfo, Image
-from test_node import harness as harness  # noqa: F401 - the fixture, shared
-from test_node import image_msg, wait_for
 from test_node_geometry import GEOMETRY, depth_msg, info_msg
 from test_posegraph_node import odom_msg
 

@@ -8,9 +8,6 @@ listens to every output and calls the services; both spin in one executor thread
 from __future__ import annotations
 
 import json
-import threading
-import time
-from collections import defaultdict
 from pathlib import Path
 
 import cv2
@@ -18,17 +15,11 @@ import numpy as np
 import pytest
 import rclpy
 from bag_fixtures import synthetic_images, write_rosbag2
-from diagnostic_msgs.msg import DiagnosticArray
-from exact_match import EXACT_MATCH
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
-from rclpy.executors import MultiThreadedExecutor
-from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile
-from sensor_msgs.msg import CompressedImage, Image
-from std_msgs.msg import Float64MultiArray, String
+from node_harness import diagnostics, image_msg, stamp_msg, wait_for
+from sensor_msgs.msg import CompressedImage
 from std_srvs.srv import SetBool, Trigger
-from visualization_msgs.msg import MarkerArray
 
 from pair_vpr_ros.errors import MapError
 from pair_vpr_ros.loop_messages import (
@@ -40,102 +31,10 @@ from pair_vpr_ros.loop_messages import (
 )
 from pair_vpr_ros.params import PARAMS
 from pair_vpr_ros.place_map import PlaceMap
-from pair_vpr_ros.ros.node import VprNode, _message_classes
+from pair_vpr_ros.ros.node import VprNode
+from pair_vpr_ros.ros.outputs import message_classes as _message_classes
 from pair_vpr_ros.ros.runtime import diagnostic_values
 from pair_vpr_ros.types import message_pose
-
-EXACT = dict(
-    weights="random-tiny",
-    **EXACT_MATCH,
-    min_frame_interval=0.0,
-    qos="reliable",
-    queue_size=50,
-    diagnostics_period=0.2,
-)
-OUTPUTS = {
-    "loop_closure": Float64MultiArray,
-    "loop_closure/detail": Float64MultiArray,
-    "loop_closure/json": String,
-    "loop_closure/markers": MarkerArray,
-    "/diagnostics": DiagnosticArray,
-}
-
-
-def wait_for(condition, timeout: float = 20.0) -> None:
-    end = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < end, "timed out"
-        time.sleep(0.02)
-
-
-class Harness:
-    """The node under test and a peer that publishes, listens and calls services."""
-
-    def __init__(self, start_worker: bool = True, **overrides) -> None:
-        values = {**EXACT, **overrides}
-        self.node = VprNode(
-            parameter_overrides=[Parameter(k, value=v) for k, v in values.items()],
-            start_worker=start_worker,
-        )
-        self.peer = rclpy.create_node("peer")
-        self.got: dict[str, list] = defaultdict(list)
-        for topic, msg_type in OUTPUTS.items():
-            self.peer.create_subscription(msg_type, topic, self.got[topic].append, 50)
-        self.pub = self.peer.create_publisher(Image, "image", QoSProfile(depth=50))
-        self.executor = MultiThreadedExecutor(num_threads=4)
-        for node in (self.node, self.peer):
-            self.executor.add_node(node)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
-        wait_for(lambda: self.pub.get_subscription_count() >= 1)
-        wait_for(lambda: self.node.pub_pair.get_subscription_count() >= 1)
-
-    def publish(self, images, t0: float = 100.0, frame_id: str = "cam") -> None:
-        for i, rgb in enumerate(images):
-            self.pub.publish(image_msg(rgb, t0 + i, frame_id))
-
-    def processed(self, n: int) -> None:
-        wait_for(lambda: self.node.stats.counts.processed >= n)
-
-    def call(self, srv_type, name: str, **fields):
-        client = self.peer.create_client(srv_type, f"/vpr_node/{name}")
-        assert client.wait_for_service(timeout_sec=10.0)
-        future = client.call_async(srv_type.Request(**fields))
-        wait_for(future.done)
-        return future.result()
-
-    def set(self, **values):
-        return self.node.set_parameters([Parameter(k, value=v) for k, v in values.items()])
-
-    def close(self) -> None:
-        if self.executor is None:
-            return
-        self.executor.shutdown()
-        self.executor = None
-        self.thread.join(5.0)
-        self.node.shutdown()
-        self.node.destroy_node()
-        self.peer.destroy_node()
-
-
-def stamp_msg(msg, t: float, frame_id: str = "cam"):
-    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(round(t * 1e9), 10**9)
-    msg.header.frame_id = frame_id
-    return msg
-
-
-def image_msg(rgb: np.ndarray, t: float, frame_id: str = "cam", encoding: str = "rgb8", data=None):
-    h, w = rgb.shape[:2]
-    data = rgb.tobytes() if data is None else data
-    msg = Image(height=h, width=w, encoding=encoding, step=len(data) // h, data=data)
-    return stamp_msg(msg, t, frame_id)
-
-
-def diagnostics(h: Harness) -> dict[str, str]:
-    """The values of the newest /diagnostics message ({} before the first)."""
-    if not h.got["/diagnostics"]:
-        return {}
-    return {kv.key: kv.value for kv in h.got["/diagnostics"][-1].status[0].values}
 
 
 def saved_keyframes(path: Path) -> int | None:
@@ -144,21 +43,6 @@ def saved_keyframes(path: Path) -> int | None:
             return len(saved)
     except MapError:
         return None
-
-
-@pytest.fixture
-def harness():
-    rclpy.init()
-    made: list[Harness] = []
-
-    def make(**kwargs) -> Harness:
-        made.append(Harness(**kwargs))
-        return made[-1]
-
-    yield make
-    for h in made:
-        h.close()
-    rclpy.try_shutdown()
 
 
 @pytest.fixture(scope="module")

@@ -10,10 +10,9 @@ import numpy as np
 import pytest
 from bag_fixtures import textured
 from nav_msgs.msg import Odometry
+from node_harness import image_msg, stamp_msg, wait_for
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
-from test_node import harness as harness  # noqa: F401 - the fixture, shared
-from test_node import image_msg, stamp_msg, wait_for
 
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.loop_messages import FACTOR_TOPIC, JSON_TOPIC, factor_from_msg

@@ -136,7 +136,8 @@ def test_start_line_starts_the_node_with_its_remappings(env, index):
         assert node.get_parameter("weights").value == RANDOM_TINY
         image = SPECS["image_topic"].default
         expected_subs = {"/" + remaps.get(image, image).lstrip("/")}
-        expected_pubs = {"/" + remaps.get(t, t).lstrip("/") for t in OUTPUT_TOPICS}
+        base = "/" + remaps.get(lm.PAIR_TOPIC, lm.PAIR_TOPIC).lstrip("/")  # all follow it
+        expected_pubs = {base + t.removeprefix(lm.PAIR_TOPIC) for t in OUTPUT_TOPICS}
         wait_for(lambda: expected_pubs <= set(graph.topics()[0]))
         published, subscribed = graph.topics()
         assert set(subscribed) == expected_subs

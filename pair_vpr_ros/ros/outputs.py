@@ -1,0 +1,109 @@
+"""The loop-closure outputs of `vpr_node`: one base topic and the topics under it.
+
+`loop_closure` carries the LIO-SAM pair; `detail`, `json`, `factor` and `markers` live under
+whatever `loop_closure` resolves to, so one remap moves them all:
+`-r loop_closure:=/lio_loop/loop_closure_detection` puts the pair where LIO-SAM listens and the
+rest under `/lio_loop/loop_closure_detection/...`. A sub-topic can still be remapped on its own
+by its resolved name (`-r /loop_closure/json:=/loops_json` without a base remap).
+"""
+
+from __future__ import annotations
+
+import importlib
+from functools import cache
+
+from geometry_msgs.msg import Point
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
+from visualization_msgs.msg import Marker, MarkerArray
+
+from pair_vpr_ros import loop_messages as lm
+from pair_vpr_ros.detector import LoopRecord
+from pair_vpr_ros.types import Pose
+
+MARKER_TOPIC = "loop_closure/markers"
+SUBTOPICS = {  # output -> its topic relative to the base (loop_messages' names, base stripped)
+    name: topic.removeprefix(lm.PAIR_TOPIC + "/")
+    for name, topic in (
+        ("detail", lm.DETAIL_TOPIC),
+        ("json", lm.JSON_TOPIC),
+        ("factor", lm.FACTOR_TOPIC),
+        ("markers", MARKER_TOPIC),
+    )
+}
+
+
+@cache
+def message_classes() -> dict[str, type]:
+    """rclpy classes of the messages `loop_messages.factor_msg` builds, by type name."""
+    out = {}
+    for name in lm.FACTOR_MSG_TYPES:
+        package, kind, cls = name.split("/")
+        out[name] = getattr(importlib.import_module(f"{package}.{kind}"), cls)
+    return out
+
+
+class LoopOutputs:
+    """The publishers of one node; `publish` sends one loop's messages."""
+
+    def __init__(self, node: Node, depth: int = 10) -> None:
+        self.base = node.resolve_topic_name(lm.PAIR_TOPIC)
+        topics = {name: f"{self.base}/{sub}" for name, sub in SUBTOPICS.items()}
+        self.topics = {"pair": self.base, **topics}
+        self.pair = node.create_publisher(Float64MultiArray, self.base, depth)
+        self.detail = node.create_publisher(Float64MultiArray, topics["detail"], depth)
+        self.json = node.create_publisher(String, topics["json"], depth)
+        self.factor = node.create_publisher(Odometry, topics["factor"], depth)
+        self.markers = node.create_publisher(MarkerArray, topics["markers"], depth)
+
+    def publish(
+        self,
+        record: LoopRecord,
+        poses: tuple[Pose | None, Pose | None],
+        marker_frame_id: str,
+        number: int,
+    ) -> tuple[bool, str]:
+        """Send `record` (accepted, or rejected with publish_rejected): pair (accepted and
+        ordered), detail, json, factor (with a relative pose), markers (both poses known, in
+        `marker_frame_id`, marker id `number`) -> (pair sent, what the log should say)."""
+        content = lm.loop_messages(record)
+        detail = Float64MultiArray(data=content.detail)
+        detail.layout.dim = [
+            MultiArrayDimension(label=x, size=1, stride=1) for x in content.detail_labels
+        ]
+        note = ""
+        if record.accepted and content.pair is not None:
+            self.pair.publish(Float64MultiArray(data=content.pair))
+            note = (
+                f"loop closure {content.pair}: keyframe {record.match_id}, "
+                f"score {record.pair_score:.3f}"
+            )
+        elif record.accepted:
+            note = (
+                f"loop closure to keyframe {record.match_id} stamped {record.match_stamp:.3f} s, "
+                f"not before the query ({record.query_stamp:.3f} s; another clock or a replayed "
+                f"bag): published on {self.topics['detail']} and json, not on {self.base}"
+            )
+        self.detail.publish(detail)
+        self.json.publish(String(data=content.json))
+        if record.accepted and content.factor is not None:
+            self.factor.publish(lm.factor_msg(content.factor, message_classes()))
+        if record.accepted and None not in poses:
+            self.markers.publish(loop_marker(record, *poses, marker_frame_id, number))
+        return content.pair is not None, note
+
+    def clear_markers(self) -> None:
+        self.markers.publish(MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
+
+
+def loop_marker(record: LoopRecord, pose_a: Pose, pose_b: Pose, frame_id: str, number: int):
+    """One green line between the two keyframes' positions (id: the loop's number)."""
+    m = Marker(ns="loop_closures", id=number)
+    m.header.frame_id = frame_id
+    m.header.stamp.sec, m.header.stamp.nanosec = divmod(int(record.query_stamp * 1e9), 10**9)
+    m.type, m.action = Marker.LINE_LIST, Marker.ADD
+    m.pose.orientation.w, m.scale.x = 1.0, 0.1
+    m.color.g, m.color.a = 1.0, 1.0
+    m.points = [Point(x=p[0], y=p[1], z=p[2]) for p in (pose_a, pose_b)]
+    return MarkerArray(markers=[m])
