@@ -6,7 +6,6 @@ Everything waits on conditions, never on time alone (2 busy cores)."""
 from __future__ import annotations
 
 import threading
-import time
 from collections import defaultdict
 
 import numpy as np
@@ -17,6 +16,7 @@ from nav_msgs.msg import Odometry
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
+from ros_cli import wait_for
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float64MultiArray, String
 from visualization_msgs.msg import MarkerArray
@@ -39,13 +39,6 @@ OUTPUTS = {
     "loop_closure/factor": Odometry,
     "/diagnostics": DiagnosticArray,
 }
-
-
-def wait_for(condition, timeout: float = 20.0) -> None:
-    end = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < end, "timed out"
-        time.sleep(0.02)
 
 
 class Harness:

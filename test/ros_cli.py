@@ -26,7 +26,8 @@ from rclpy.parameter import Parameter
 PKG_PREFIX = re.compile(r"\$\(ros2 pkg prefix (\w+)\)")
 
 
-def wait_for(condition, timeout: float = 20.0) -> None:
+def wait_for(condition, timeout: float = 60.0) -> None:
+    """Poll `condition` until true; generous: discovery is slow on busy cores."""
     end = time.monotonic() + timeout
     while not condition():
         assert time.monotonic() < end, "timed out"
@@ -115,9 +116,17 @@ class Graph:
         subs = self.peer.get_subscriber_names_and_types_by_node(node, "/")
         return dict(pubs), dict(subs)
 
-    def services(self, node: str = "vpr_node") -> dict[str, list[str]]:
-        wait_for(lambda: node in self.peer.get_node_names())
-        return dict(self.peer.get_service_names_and_types_by_node(node, "/"))
+    def services(
+        self, node: str = "vpr_node", expect: tuple[str, ...] = ()
+    ) -> dict[str, list[str]]:
+        """{service: types} of ``node`` once the services ``expect`` are discovered (a node's
+        name is discovered before its services)."""
+
+        def found() -> dict[str, list[str]]:
+            return dict(self.peer.get_service_names_and_types_by_node(node, "/"))
+
+        wait_for(lambda: node in self.peer.get_node_names() and set(expect) <= set(found()))
+        return found()
 
     def close(self) -> None:
         self.executor.shutdown()

@@ -151,7 +151,8 @@ def test_start_line_starts_the_node_with_its_remappings(env, index):
 def test_service_and_param_lines_in_order(env, tmp_path):
     node, graph = start(start_lines()[0], env)
     try:
-        services = graph.services()
+        calls = [w[3] for w in section_commands() if w[:3] == ["ros2", "service", "call"]]
+        services = graph.services(expect=tuple(calls))
         for words in section_commands():
             words = placeholders(words, env)
             if words[:3] == ["ros2", "service", "call"]:
