@@ -50,8 +50,8 @@ setup(
     zip_safe=False,
     entry_points={
         "console_scripts": [
-            "vpr_node = pair_vpr_ros.ros.node:main",
-            "posegraph_node = pair_vpr_ros.ros.posegraph_node:main",
+            "vpr_node = pair_vpr_ros.ros.entry:vpr_node",
+            "posegraph_node = pair_vpr_ros.ros.entry:posegraph_node",
             "pairvpr-posegraph = pair_vpr_ros.offline.posegraph:main",
             "pairvpr-bag-replay = pair_vpr_ros.offline.replay_cli:main",
             "pairvpr-eval = pair_vpr_ros.learn.evaluate:main",

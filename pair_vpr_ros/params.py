@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import textwrap
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -25,6 +26,7 @@ from pair_vpr_ros.imaging import MAX_PIXELS
 from pair_vpr_ros.model.config import PATCH
 
 Value = bool | int | float | str | tuple[float, ...]  # a tuple default: a fixed-size double array
+INSTALLED_CONFIG = "$(ros2 pkg prefix pair_vpr_ros)/share/pair_vpr_ros/config/vpr_node.yaml"
 RANDOM_TINY = "random-tiny"  # test-only weights value: a tiny random network (finds nothing real)
 TYPE_NAMES = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
 
@@ -266,6 +268,25 @@ def check_change(current: Mapping[str, Any], changes: Mapping[str, Any]) -> str 
             detector_config({**current, **changes})
         except ConfigError as err:
             return str(err)
+    return None
+
+
+def params_file_problem(args: list[str]) -> str | None:
+    """Why a `--params-file` of the command line `args` cannot be read (None: all can). rcl
+    would raise an RCLError traceback for a missing one."""
+    for flag, path in zip(args, args[1:], strict=False):
+        if flag != "--params-file":
+            continue
+        where = Path(path)
+        if not where.is_file():
+            what = "is a folder" if where.is_dir() else "does not exist"
+            what += "" if where.is_absolute() else f" (relative to {Path.cwd()})"
+            return (
+                f"--params-file {path} {what}: give a parameter file, e.g. the installed one, "
+                f"{INSTALLED_CONFIG}"
+            )
+        if not os.access(where, os.R_OK):
+            return f"--params-file {path} cannot be read (permissions): give a readable file"
     return None
 
 

@@ -58,11 +58,13 @@ def build_map(
     batch_size: int = 8,
     max_pixels: int = MAX_PIXELS,
     geometry: GeometryConfig | None = None,
+    result: BuildResult | None = None,
 ) -> tuple[LoopClosurePipeline, BuildResult]:
     """Map every frame of `source` in mapping mode -> (the pipeline holding the unsaved map,
     what was read). `stop` cancels between frames (`result.cancelled`). Raises `ConfigError`
-    for a missing source or one without a usable image, `BagError` for an unreadable bag."""
-    result = BuildResult(source=str(source))
+    for a missing source or one without a usable image, `BagError` for an unreadable bag.
+    `result`: filled in as the build goes (another thread may read its counts: progress)."""
+    result = result if result is not None else BuildResult(source=str(source))
     t0 = time.perf_counter()
     frames = source_frames(source, result.counts, image_topic, image_period, max_pixels)
     pipe = LoopClosurePipeline(

@@ -145,12 +145,28 @@ def source_frames(
     folder (stamps ``i * period`` s). Unusable images (also those over ``max_pixels``) are
     counted in ``counts``; a missing source is a ``ConfigError``, an unreadable bag (also
     part-way) a ``BagError``."""
-    path = Path(source).expanduser()
-    if not str(source) or not path.exists():
-        raise ConfigError(
-            f"build_source {str(source)!r} does not exist: set it to a rosbag (folder, .mcap, "
-            ".db3 or .bag) or an image folder"
-        )
+    path = check_source(source)
     if path.is_dir() and folder_images(path):
         return folder_frames(folder_images(path), counts, period, max_pixels)
     return _bag_source(path, image_topic or None, counts, max_pixels)
+
+
+def check_source(source: str | Path) -> Path:
+    """The path of a build source that exists and may hold frames (ConfigError otherwise: a
+    missing path, or a folder with neither images nor a bag in it)."""
+    path = Path(source).expanduser()
+    kinds = (
+        f"a rosbag (folder, .mcap, .db3 or .bag) or an image folder ({', '.join(IMAGE_SUFFIXES)})"
+    )
+    if not str(source) or not path.exists():
+        raise ConfigError(f"build_source {str(source)!r} does not exist: set it to {kinds}")
+    if path.is_dir() and not folder_images(path):
+        bag_files = [
+            p for p in path.iterdir() if p.name == "metadata.yaml" or p.suffix in (".mcap", ".db3")
+        ]
+        if not bag_files:
+            raise ConfigError(
+                f"build_source {path} is a folder with neither images nor a rosbag2 "
+                f"(metadata.yaml or a .mcap/.db3 file) in it: set it to {kinds}"
+            )
+    return path

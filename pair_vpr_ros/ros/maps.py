@@ -11,6 +11,7 @@ diagnostics timer) read `state`, a copy the map thread makes after each task. Op
 from __future__ import annotations
 
 import contextlib
+import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -20,7 +21,8 @@ from typing import Any, TypeVar
 
 from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.errors import ConfigError, MapError, PairVPRError
-from pair_vpr_ros.offline.build_map import build_map
+from pair_vpr_ros.offline.build_map import BuildResult, build_map
+from pair_vpr_ros.offline.sources import check_source
 from pair_vpr_ros.pipeline import Frame, FrameOutcome, LoopClosurePipeline, PipelineCounts
 from pair_vpr_ros.types import Pose
 
@@ -34,6 +36,39 @@ def _map_dir(map_dir: str) -> Path:
     if not map_dir:
         raise ConfigError(f"map_dir is not set: {MAP_DIR_HINT}")
     return Path(map_dir).expanduser()
+
+
+def check_map_target(map_dir: str) -> Path:
+    """`map_dir` as a folder a map can be saved to (ConfigError: unset, a file, or under a
+    folder that does not let us write)."""
+    path = _map_dir(map_dir)
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"map_dir {path} is a file, not a folder: {MAP_DIR_HINT}")
+    existing = next(p for p in (path, *path.parents) if p.exists())
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        raise ConfigError(
+            f"map_dir {path} cannot be written ({existing} is not a writable folder): "
+            f"{MAP_DIR_HINT}"
+        )
+    return path
+
+
+@dataclass
+class BuildStatus:
+    """The background build as `~/map_info` reports it. `state`: idle, building, done, failed
+    or cancelled; `error` stays set from a failure until the next successful build."""
+
+    state: str = "idle"
+    source: str = ""
+    map_dir: str = ""
+    detail: str = ""  # the result line when done, the reason when failed
+    error: str = ""
+    progress: BuildResult | None = None  # the running build's counts (frames read so far)
+
+    def to_dict(self) -> dict[str, object]:
+        frames = self.progress.frames if self.progress is not None else 0
+        keys = ("state", "source", "map_dir", "detail", "error")
+        return {**{k: getattr(self, k) for k in keys}, "frames_read": frames}
 
 
 @dataclass(frozen=True)
@@ -60,7 +95,7 @@ class MapControl:
         log: Callable[[str, str], None],
         context: Callable[[], contextlib.AbstractContextManager] = contextlib.nullcontext,
     ) -> None:
-        self.build_state = "idle"
+        self.build = BuildStatus()
         self._log, self._context = log, context
         self._thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vpr_map")
         self._stop = threading.Event()
@@ -175,17 +210,18 @@ class MapControl:
         """Build a map of `source` in a thread, save it to `map_dir`, then load it live.
         `options` go to `build_map` (image_topic, image_period, index, max_pixels)."""
         try:
-            target = _map_dir(map_dir)
-            if not source or not Path(source).expanduser().exists():
-                raise ConfigError(f"build_source {source!r} does not exist: {SOURCE_HINT}")
             if self._build is not None and self._build.is_alive():
                 raise ConfigError(
                     f"a map build is running already ({self.build_state}): wait for it to finish"
                 )
+            target = check_map_target(map_dir)
+            check_source(source)
         except ConfigError as err:
-            return False, str(err)
-        self.build_state = f"building from {source}"
-        args = (source, target, config, options)
+            return False, f"{err} ({SOURCE_HINT})" if "build_source" in str(err) else str(err)
+        progress = BuildResult(source=str(source))
+        error = self.build.error  # kept until a build succeeds
+        self.build = BuildStatus("building", str(source), str(target), "", error, progress)
+        args = (source, target, config, {**options, "result": progress})
         self._build = threading.Thread(target=self._run_build, args=args, name="vpr_build")
         self._build.daemon = True
         self._build.start()
@@ -208,14 +244,23 @@ class MapControl:
                 )
             if result.cancelled:
                 built.close()
-                self.build_state = "cancelled"
+                self.build = replace(self.build, state="cancelled")
                 return
             self._swap_in(built, target)
-            self.build_state = f"done: {result.line()}"
+            self.build = replace(self.build, state="done", detail=result.line(), error="")
             self._log("info", f"map built, saved to {target} and loaded: {result.line()}")
         except Exception as err:  # noqa: BLE001 - a failed build must not take the node down
-            self.build_state = f"failed: {err}"
-            self._log("error", f"building a map from {source} failed: {err}")
+            why = f"building a map from {source} into {target} failed: {err}"
+            self.build = replace(self.build, state="failed", detail=str(err), error=why)
+            self._log("error", why)
+
+    @property
+    def build_state(self) -> str:
+        """One line: "idle", "building from SOURCE", "done: RESULT", "failed: WHY", "cancelled"."""
+        b = self.build
+        if b.state == "building":
+            return f"building from {b.source}"
+        return f"{b.state}: {b.detail}" if b.detail else b.state
 
     def _swap_in(self, built: LoopClosurePipeline, target: Path) -> None:
         """Save `built` (this thread's) to `target` and load it live (map thread), which lets go

@@ -26,15 +26,19 @@ Services (paths come from the `map_dir` and `build_source` parameters)::
     ros2 service call /vpr_node/clear_map std_srvs/srv/Trigger
     ros2 param set /vpr_node build_source /path/to/bag_or_image_folder
     ros2 service call /vpr_node/build_map std_srvs/srv/Trigger
+    ros2 service call /vpr_node/map_info std_srvs/srv/Trigger
 
-`build_map` returns at once; the build runs in the background, saves to `map_dir` and then
-replaces the live map (the log and `/diagnostics` say when). Only rclpy code lives here; the
-parameter table is `params`, the queue / statistics `ros.runtime`, poses `types`, the map
-services `ros.maps`.
+`build_map` checks its source and `map_dir`, then returns; the build runs in the background,
+saves to `map_dir` and then replaces the live map (`map_info` answers JSON with the build's
+state; a failed build keeps `/diagnostics` at ERROR until one succeeds). Outputs other than
+`loop_closure` live under its resolved name (`ros.outputs`). Entry point: `ros.entry`. Only
+rclpy code lives here; the parameter table is `params`, the queue / statistics `ros.runtime`,
+poses `types`, the map services `ros.maps`.
 """
 
 from __future__ import annotations
 
+import json
 import signal
 import sys
 import threading
@@ -49,6 +53,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -64,7 +69,7 @@ from pair_vpr_ros.imaging import msg_to_rgb
 from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline, frame_due
 from pair_vpr_ros.ros.geometry_inputs import GeometryInputs
 from pair_vpr_ros.ros.maps import MapControl
-from pair_vpr_ros.ros.outputs import MARKER_TOPIC, LoopOutputs
+from pair_vpr_ros.ros.outputs import MARKER_TOPIC, LoopOutputs, publish_while_up
 from pair_vpr_ros.ros.parameters import descriptor
 from pair_vpr_ros.ros.runtime import (
     FrameQueue,
@@ -76,6 +81,7 @@ from pair_vpr_ros.types import Pose, PoseTrack, message_pose, message_stamp
 from pair_vpr_ros.weights import load_model
 
 __all__ = ["MARKER_TOPIC", "VprNode", "main"]
+RCLError = rclpy_implementation.RCLError
 POSE_TYPES = {
     "odometry": Odometry,
     "pose_stamped": PoseStamped,
@@ -125,6 +131,7 @@ class VprNode(Node):
                 self.maps.close()
                 raise ConfigError(f"load_map_on_start: {message}")
             self._log("info", message)
+        self._warn_settings(v)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
         self._make_interfaces(v)
@@ -185,6 +192,7 @@ class VprNode(Node):
             (Trigger, "~/load_map", self._trigger(lambda: self.maps.load(self.values["map_dir"]))),
             (Trigger, "~/clear_map", self._trigger(self._clear)),
             (Trigger, "~/build_map", self._trigger(self._start_build)),
+            (Trigger, "~/map_info", self._trigger(self._map_info)),
         ):
             self.create_service(srv_type, name, handler, callback_group=services)
         diagnostics = MutuallyExclusiveCallbackGroup()
@@ -193,12 +201,22 @@ class VprNode(Node):
             self.create_timer(v["autosave_period"], self._autosave, services)
 
     # ---- parameters --------------------------------------------------------------------------
+    def _warn_settings(self, v: dict) -> None:
+        """Settings that are valid alone but do nothing together: say so at once."""
+        if v["save_on_shutdown"] and not v["map_dir"]:
+            self.get_logger().warning(
+                "save_on_shutdown is true but map_dir is empty: nothing will be saved when the "
+                "node stops; set map_dir (-p map_dir:=/path/to/map or ros2 param set)"
+            )
+
     def _on_set_parameters(self, changed: list[Parameter]) -> SetParametersResult:
         reason = params.check_change(self.values, {p.name: p.value for p in changed})
         return SetParametersResult(successful=reason is None, reason=reason or "")
 
     def _after_set_parameters(self, changed: list[Parameter]) -> None:
         self.values = {**self.values, **{p.name: p.value for p in changed}}
+        if any(p.name in ("save_on_shutdown", "map_dir") for p in changed):
+            self._warn_settings(self.values)
         if any(p.name in params.DETECTOR_PARAMS for p in changed):
             config = params.detector_config(self.values)
             self.maps.set_config(config)
@@ -305,16 +323,22 @@ class VprNode(Node):
     def _publish_diagnostics(self) -> None:
         values = self.diagnostic_values()
         problems = self.stats.problems()
+        level = DiagnosticStatus.WARN if problems else DiagnosticStatus.OK
+        if self.maps.build.error:  # until the next successful build
+            level, problems = (
+                DiagnosticStatus.ERROR,
+                "; ".join(x for x in (self.maps.build.error, problems) if x),
+            )
         status = DiagnosticStatus(
             name="vpr_node: loop closure",
             hardware_id=self.values["device"],
-            level=DiagnosticStatus.WARN if problems else DiagnosticStatus.OK,
+            level=level,
             message=problems or f"{values['mode']}, {values['map_size']} keyframes",
             values=[KeyValue(key=k, value=x) for k, x in values.items()],
         )
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
-        self.pub_diag.publish(msg)
+        publish_while_up(self, self.pub_diag, msg)
 
     def _autosave(self) -> None:
         result = self.maps.autosave(self.values["map_dir"])
@@ -335,6 +359,16 @@ class VprNode(Node):
         response.success = result.successful
         response.message = f"mode: {mode}" if result.successful else result.reason
         return response
+
+    def _map_info(self) -> tuple[bool, str]:
+        """The live map and the last build as JSON (a script polls this after build_map)."""
+        info = {
+            "keyframes": self.maps.size(),
+            "mode": self.maps.state.mode,
+            "map_dir": self.values["map_dir"],
+            "build": self.maps.build.to_dict(),
+        }
+        return True, json.dumps(info)
 
     def _clear(self) -> tuple[bool, str]:
         result = self.maps.clear()
@@ -398,14 +432,23 @@ def main(argv: list[str] | None = None) -> int:
     """`vpr_node` entry point: `EXIT_OK` on a clean stop (Ctrl-C and SIGTERM are how a node is
     stopped, so they are not `EXIT_INTERRUPTED`), `EXIT_ERROR` when it cannot start."""
     signals = _StopSignals()
-    rclpy.init(args=argv)
+    log = rclpy.logging.get_logger("vpr_node")
+    problem = params.params_file_problem(sys.argv if argv is None else argv)
+    if problem:
+        log.error(f"cannot start: {problem}")
+        return EXIT_ERROR
+    try:
+        rclpy.init(args=argv)
+    except RCLError as err:  # rcl's argument and parameter-file parser
+        log.error(f"cannot start: {str(err).splitlines()[0]}")
+        return EXIT_ERROR
     executor = MultiThreadedExecutor(num_threads=4)  # before the slow start: see below
     node = None
     try:
         try:
             node = VprNode()
         except (PairVPRError, ParameterException) as err:
-            rclpy.logging.get_logger("vpr_node").error(f"cannot start: {err}")
+            log.error(f"cannot start: {err}")
             return EXIT_ERROR
         executor.add_node(node)
         node.get_logger().info(f"ready: {node.summary}")  # after `node` is set: see finally

@@ -34,6 +34,20 @@ SUBTOPICS = {  # output -> its topic relative to the base (loop_messages' names,
 }
 
 
+def publish_while_up(node: Node, publisher, msg) -> bool:
+    """Publish unless the node's context is shut down (a stop signal shuts it down at once,
+    while a timer or the worker may still be about to publish): then drop `msg` quietly."""
+    if not node.context.ok():
+        return False
+    try:
+        publisher.publish(msg)
+    except Exception:  # noqa: BLE001 - the context went down between the check and publish
+        if node.context.ok():
+            raise
+        return False
+    return True
+
+
 @cache
 def message_classes() -> dict[str, type]:
     """rclpy classes of the messages `loop_messages.factor_msg` builds, by type name."""
@@ -48,6 +62,7 @@ class LoopOutputs:
     """The publishers of one node; `publish` sends one loop's messages."""
 
     def __init__(self, node: Node, depth: int = 10) -> None:
+        self._node = node
         self.base = node.resolve_topic_name(lm.PAIR_TOPIC)
         topics = {name: f"{self.base}/{sub}" for name, sub in SUBTOPICS.items()}
         self.topics = {"pair": self.base, **topics}
@@ -74,7 +89,7 @@ class LoopOutputs:
         ]
         note = ""
         if record.accepted and content.pair is not None:
-            self.pair.publish(Float64MultiArray(data=content.pair))
+            self._send(self.pair, Float64MultiArray(data=content.pair))
             note = (
                 f"loop closure {content.pair}: keyframe {record.match_id}, "
                 f"score {record.pair_score:.3f}"
@@ -85,16 +100,19 @@ class LoopOutputs:
                 f"not before the query ({record.query_stamp:.3f} s; another clock or a replayed "
                 f"bag): published on {self.topics['detail']} and json, not on {self.base}"
             )
-        self.detail.publish(detail)
-        self.json.publish(String(data=content.json))
+        self._send(self.detail, detail)
+        self._send(self.json, String(data=content.json))
         if record.accepted and content.factor is not None:
-            self.factor.publish(lm.factor_msg(content.factor, message_classes()))
+            self._send(self.factor, lm.factor_msg(content.factor, message_classes()))
         if record.accepted and None not in poses:
-            self.markers.publish(loop_marker(record, *poses, marker_frame_id, number))
+            self._send(self.markers, loop_marker(record, *poses, marker_frame_id, number))
         return content.pair is not None, note
 
+    def _send(self, publisher, msg) -> None:
+        publish_while_up(self._node, publisher, msg)
+
     def clear_markers(self) -> None:
-        self.markers.publish(MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
+        self._send(self.markers, MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
 
 
 def loop_marker(record: LoopRecord, pose_a: Pose, pose_b: Pose, frame_id: str, number: int):

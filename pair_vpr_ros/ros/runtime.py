@@ -137,6 +137,13 @@ class NodeStats:
                     yield f"{key}_ms_{label}", f"{value:.2f}"
 
 
+STAMP_AGE = (
+    "stamp_age_ms_*: ROS time at processing minus the image header stamp; the ROS time is the "
+    "wall clock unless use_sim_time is true, so a bag played without --clock and "
+    "use_sim_time:=true reads its age since recording"
+)
+
+
 def diagnostic_values(
     values: dict, stats: NodeStats, frames: FrameQueue, maps: MapControl
 ) -> dict[str, str]:
@@ -178,5 +185,6 @@ def diagnostic_values(
         "map_bytes": live.keyframes * live.bytes_per_keyframe,
         "map_dir": values["map_dir"],
         "build": maps.build_state,
+        "stamp_age": STAMP_AGE,
     }
     return {**{k: str(x) for k, x in out.items()}, **dict(stats.latency_items())}

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.params import read_params_file
+from pair_vpr_ros.params import params_file_problem, read_params_file
 
 
 def section(body: str) -> str:
@@ -89,3 +89,32 @@ def test_params_file_that_is_not_a_file(tmp_path: Path, kind: str) -> None:
         path.mkdir()
     with pytest.raises(ConfigError, match=re.escape(f"cannot read parameter file {path}")):
         read_params_file(path)
+
+
+@pytest.mark.parametrize("kind", ["missing", "folder", "relative missing", "readable"])
+def test_node_params_file_flag_is_checked_before_rcl(tmp_path: Path, monkeypatch, kind) -> None:
+    # Issue 17 #3: rcl raised an RCLError traceback for a --params-file that does not exist.
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "folder").mkdir()
+    (tmp_path / "readable.yaml").write_text(section("top_k: 3"))
+    path = {
+        "missing": str(tmp_path / "nope.yaml"),
+        "folder": str(tmp_path / "folder"),
+        "relative missing": "config/vpr_node.yaml",
+        "readable": "readable.yaml",
+    }[kind]
+    args = ["vpr_node", "--ros-args", "-p", "top_k:=3", "--params-file", path]
+    problem = params_file_problem(args)
+    if kind == "readable":
+        assert problem is None
+        return
+    what = {
+        "missing": "does not exist",
+        "folder": "is a folder",
+        "relative missing": f"does not exist (relative to {tmp_path})",
+    }[kind]
+    assert problem == (
+        f"--params-file {path} {what}: give a parameter file, e.g. the installed one, "
+        "$(ros2 pkg prefix pair_vpr_ros)/share/pair_vpr_ros/config/vpr_node.yaml"
+    )
+    assert params_file_problem(["vpr_node", "--params-file"]) is None  # rcl's to report

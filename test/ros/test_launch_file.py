@@ -61,7 +61,7 @@ def test_node_action_names_what_setup_py_installs(share):
     node = launched(share)
     package = ET.parse(ROOT / "package.xml").getroot().findtext("name")
     assert node.package == package == PACKAGE
-    assert console_scripts()[node.executable] == "pair_vpr_ros.ros.node:main"
+    assert console_scripts()[node.executable] == "pair_vpr_ros.ros.entry:vpr_node"
     assert node.name == "vpr_node"  # the services are /vpr_node/... (README, node.py)
     assert node.parameters == [str(share / "config" / "vpr_node.yaml")]  # no weights given
     params_file = Path(node.parameters[0])

@@ -179,3 +179,58 @@ def test_folder_images_are_read_in_name_order(tiny_model, tmp_path):
     assert np.array_equal(
         cv2.cvtColor(cv2.imread(str(folder / "img001.png")), cv2.COLOR_BGR2RGB), images[1]
     )
+
+
+def test_build_checks_both_ends_before_it_starts(control, tmp_path):
+    # Issue 17 #5 and #6 (bad-input matrix of build_source and map_dir for build_map): answered
+    # at once, nothing started, the live map and the file untouched.
+    good = image_folder(tmp_path / "imgs", synthetic_images(2))
+    (tmp_path / "empty").mkdir()
+    a_file = tmp_path / "map.txt"
+    a_file.write_text("not a map")
+    hint = "ros2 param set /vpr_node map_dir /path/to/map"
+    kinds = (
+        "a rosbag (folder, .mcap, .db3 or .bag) or an image folder (.png, .jpg, .jpeg, .bmp, "
+        ".tif, .tiff, .webp)"
+    )
+    source_hint = "(ros2 param set /vpr_node build_source /path/to/bag_or_image_folder)"
+    cases = {
+        (str(good), str(a_file)): f"map_dir {a_file} is a file, not a folder: {hint}",
+        (str(good), str(a_file / "sub")): (
+            f"map_dir {a_file / 'sub'} cannot be written ({a_file} is not a writable folder): "
+            f"{hint}"
+        ),
+        (str(good), ""): f"map_dir is not set: {hint}",
+        (str(tmp_path / "empty"), str(tmp_path / "map")): (
+            f"build_source {tmp_path / 'empty'} is a folder with neither images nor a rosbag2 "
+            f"(metadata.yaml or a .mcap/.db3 file) in it: set it to {kinds} {source_hint}"
+        ),
+        ("", str(tmp_path / "map")): (
+            f"build_source '' does not exist: set it to {kinds} {source_hint}"
+        ),
+    }
+    for (source, map_dir), message in cases.items():
+        assert control.start_build(source, map_dir, EXACT) == (False, message)
+        assert control.build.state == "idle" and control.build_state == "idle"
+    assert a_file.read_text() == "not a map" and not (tmp_path / "map").exists()
+
+
+def test_a_failed_build_stays_reported_until_one_succeeds(control, tmp_path):
+    folder = tmp_path / "broken"
+    folder.mkdir()
+    (folder / "a.png").write_bytes(b"not a png")
+    assert control.start_build(str(folder), str(tmp_path / "map"), EXACT)[0]
+    assert control.wait_build(60.0)
+    failed = control.build.to_dict()
+    assert (failed["state"], failed["source"], failed["frames_read"]) == ("failed", str(folder), 1)
+    assert failed["error"].startswith(f"building a map from {folder} into {tmp_path / 'map'} ")
+    good = image_folder(tmp_path / "imgs", synthetic_images(2))
+    assert control.start_build(str(good), str(tmp_path / "map"), EXACT)[0]
+    assert control.build.error == failed["error"]  # still an error while the next one runs
+    assert control.wait_build(60.0)
+    done = control.build.to_dict()
+    assert done == dict(
+        state="done", source=str(good), map_dir=str(tmp_path / "map"),
+        detail=done["detail"], error="", frames_read=2,
+    )  # fmt: skip
+    assert done["detail"].startswith("2 keyframes from 2 images")

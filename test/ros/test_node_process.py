@@ -4,6 +4,7 @@ and the colcon install layout that `ros2 run pair_vpr_ros vpr_node` resolves."""
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -131,3 +132,49 @@ def test_colcon_install_resolves_like_ros2_run(tmp_path):
     assert os.access(exe, os.X_OK)
     done = run_without_weights([str(exe)], env, tmp_path)
     assert done.returncode == 1 and "cannot start: no Pair-VPR weights found" in done.stderr
+
+
+def test_ctrl_c_while_modules_import_stops_quietly():
+    # Issue 17 #2: Ctrl-C in the first second or two printed a KeyboardInterrupt traceback and
+    # exited with -2. `-X importtime` writes a line as each module finishes importing: the
+    # signal goes out once rclpy is in and the node module (torch, ...) is still importing.
+    entry = [sys.executable, "-X", "importtime", "-m", "pair_vpr_ros.ros.entry"]
+    proc = subprocess.Popen(
+        [*entry, "--ros-args", "-p", "weights:=random-tiny"], cwd=ROOT, env=ENV, text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    )  # fmt: skip
+    guard = threading.Timer(120.0, proc.kill)  # never hang the suite if the line never comes
+    guard.start()
+    lines = []
+    for line in proc.stderr:
+        lines.append(line)
+        if re.search(r"\|\s*rclpy$", line.rstrip()):  # nested: "|     rclpy"
+            proc.send_signal(signal.SIGINT)
+            break
+    out, err = proc.communicate(timeout=120)
+    guard.cancel()
+    text = out + "".join(lines) + err
+    assert proc.returncode == 0, text
+    assert "Traceback" not in text and "KeyboardInterrupt" not in text
+    assert "ready:" not in text  # it stopped while starting
+
+
+@pytest.mark.parametrize("content", [None, "a: [b\n"], ids=["missing", "broken yaml"])
+def test_a_params_file_that_cannot_be_used_is_one_clear_error(tmp_path, content):
+    # Issue 17 #3: an RCLError traceback.
+    path = tmp_path / "vpr_node.yaml"
+    if content is not None:
+        path.write_text(content)
+    done = subprocess.run(
+        [*NODE, "--params-file", str(path), "-p", "weights:=random-tiny"], cwd=ROOT, env=ENV,
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
+    errors = [line for line in done.stderr.splitlines() if "[vpr_node]" in line]
+    expected = (
+        f"cannot start: --params-file {path} does not exist: give a parameter file"
+        if content is None
+        else f"cannot start: failed to initialize rcl: Couldn't parse params file: "
+        f"'--params-file {path}'"
+    )
+    assert len(errors) == 1 and expected in errors[0], done.stderr

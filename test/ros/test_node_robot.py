@@ -6,9 +6,16 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import pytest
+import rclpy
 from bag_fixtures import synthetic_images
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from node_harness import diagnostics, wait_for
+from std_srvs.srv import Trigger
+
+from pair_vpr_ros.pipeline import Frame
+from pair_vpr_ros.ros.outputs import publish_while_up
 
 
 @pytest.fixture(scope="module")
@@ -61,3 +68,67 @@ def test_every_output_follows_a_remapped_loop_closure(harness, places):
     wait_for(lambda: expected <= set(published()))  # the graph is discovered, not instant
     assert {t for t in published() if "loop" in t} == expected
     assert published()[base] == ["std_msgs/msg/Float64MultiArray"]
+
+
+def diagnostic_level(h) -> bytes | None:
+    """Level of the newest /diagnostics status (None before the first message)."""
+    return h.got["/diagnostics"][-1].status[0].level if h.got["/diagnostics"] else None
+
+
+def test_build_map_reports_to_a_script_and_a_failure_is_an_error_until_a_success(
+    harness, tmp_path
+):
+    # Issue 17 #5: a build into a file answered success and failed later; a failed build left
+    # /diagnostics at OK. map_info is what a script polls after build_map.
+    a_file = tmp_path / "map.txt"
+    a_file.write_text("x")
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "a.png").write_bytes(b"not a png")
+    good = tmp_path / "good"
+    good.mkdir()
+    for i, rgb in enumerate(synthetic_images(2, size=32)):
+        (good / f"{i}.png").write_bytes(cv2.imencode(".png", rgb)[1].tobytes())
+    h = harness(map_dir=str(a_file), build_source=str(good))
+
+    def info() -> dict:
+        return json.loads(h.call(Trigger, "map_info").message)
+
+    reply = h.call(Trigger, "build_map")
+    assert not reply.success and reply.message.startswith(f"map_dir {a_file} is a file")
+    assert info()["build"]["state"] == "idle"
+    h.set(map_dir=str(tmp_path / "map"), build_source=str(broken))
+    assert h.call(Trigger, "build_map").success
+    wait_for(lambda: info()["build"]["state"] == "failed")
+    wait_for(lambda: diagnostic_level(h) == DiagnosticStatus.ERROR)
+    assert (
+        h.got["/diagnostics"][-1]
+        .status[0]
+        .message.startswith(f"building a map from {broken} into ")
+    )
+    h.set(build_source=str(good))
+    assert h.call(Trigger, "build_map").success
+    wait_for(lambda: info()["build"]["state"] == "done")
+    assert info()["keyframes"] == 2 and info()["build"]["error"] == ""
+    wait_for(lambda: diagnostic_level(h) == DiagnosticStatus.OK)
+
+
+def test_save_on_shutdown_without_map_dir_warns_at_start_up(harness, capfd):
+    # Issue 17 #7: it saved nothing and said nothing.
+    harness(save_on_shutdown=True)
+    wait_for(lambda: "save_on_shutdown is true but map_dir is empty" in capfd.readouterr().err)
+
+
+def test_nothing_is_published_once_the_context_is_shut_down(harness, places):
+    # Issue 17 #4: a stop signal shuts the context down at once; a timer callback publishing
+    # then raised "Failed to publish: publisher's context is invalid" (exception never retrieved).
+    h = harness()
+    h.publish([places[i] for i in (0, 1, 2, 0)], t0=100.0)
+    h.processed(4)
+    wait_for(lambda: len(h.got["loop_closure"]) == 1)
+    rclpy.shutdown()
+    assert not publish_while_up(h.node, h.node.pub_diag, DiagnosticArray())
+    h.node._publish_diagnostics()  # the timer's callback: no exception
+    outcome, match_pose = h.node.maps.process(Frame(104.0, places[1], "cam"))
+    h.node._publish_loop(outcome.loop, None, match_pose)  # the worker's
+    assert outcome.loop.accepted and h.node.stats.counts.loops == 2

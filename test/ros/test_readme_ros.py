@@ -78,12 +78,12 @@ def node_arguments(words: list[str]) -> list[str]:
     """The `--ros-args ...` a start line gives the node (`ros2 run`, console script, launch)."""
     if words[:2] == ["ros2", "run"]:
         assert words[2] == PACKAGE and words[4] == "--ros-args", words
-        assert console_scripts()[words[3]] == "pair_vpr_ros.ros.node:main"
+        assert console_scripts()[words[3]] == "pair_vpr_ros.ros.entry:vpr_node"
         # colcon puts console scripts where `ros2 run` looks: lib/<package>/
         assert f"install_scripts=$base/lib/{PACKAGE}" in (ROOT / "setup.cfg").read_text()
         return words[4:]
     if words[0] == "vpr_node":
-        assert console_scripts()["vpr_node"] == "pair_vpr_ros.ros.node:main"
+        assert console_scripts()["vpr_node"] == "pair_vpr_ros.ros.entry:vpr_node"
         return words[1:]
     assert words[:4] == ["ros2", "launch", PACKAGE, "vpr_node.launch.py"], words
     share = Path(get_package_prefix(PACKAGE)) / "share" / PACKAGE
