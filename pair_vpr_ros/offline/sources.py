@@ -34,7 +34,7 @@ class FrameCounts:
     first_error: str = ""
     error: str | None = None
     # Usable frames whose stamp is earlier than (backwards) or equal to (repeated) the previous
-    # usable frame's: the detector's time windows assume increasing stamps.
+    # usable frame's: reported, since the detector's time windows compare stamps.
     backwards: int = 0
     repeated: int = 0
     first_backwards: str = ""
@@ -61,13 +61,15 @@ class FrameCounts:
         """What to tell the user about stamps that do not increase ([] when they all do)."""
         used = self.frames - self.skipped
         advice = (
-            "rate limiting and the recent-frame exclusion assume increasing header stamps, so "
-            "loops may be missed or wrong; check the camera driver's stamps"
+            "a step back of more than 1 s starts a new session (clock_jumps), and a frame only "
+            "matches keyframes stamped at least exclude_recent_s from it, before or after; "
+            "unless the recording was played twice, check the camera driver's stamps"
         )
         if used > 1 and self.repeated == used - 1:
             return [
                 f"all {used} image stamps of {topic} are identical ({self.last_stamp:.3f} s): "
-                + advice
+                "no frame can match another (keyframes at a frame's own stamp never do); check "
+                "the camera driver's stamps"
             ]
         out = []
         if self.backwards:

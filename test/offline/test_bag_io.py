@@ -271,12 +271,14 @@ def test_loop_bag_writer_round_trip(tmp_path):
         writer.write_image(cdr, 120_250_000_000)
         writer.write_loop(record, 120_250_000_000)
         writer.write_loop(no_pose, 121_250_000_000)  # no relative pose: no factor message
+        later = replace(no_pose, match_stamp=130.0)  # the match stamped after the query:
+        writer.write_loop(later, 122_250_000_000)  # no LIO-SAM pair (issue 17)
     with AnyReader([out]) as reader:
         got: dict = {}
         for c, t, raw in reader.messages():
             got.setdefault(c.topic, []).append((c.msgtype, t, reader.deserialize(raw, c.msgtype)))
     assert {k: len(v) for k, v in got.items()} == {
-        "/cam": 1, "/loop_closure": 2, "/loop_closure/detail": 2, "/loop_closure/json": 2,
+        "/cam": 1, "/loop_closure": 2, "/loop_closure/detail": 3, "/loop_closure/json": 3,
         "/loop_closure/factor": 1,
     }  # fmt: skip
     got = {k: v[0] for k, v in got.items()}
