@@ -32,7 +32,7 @@ from pair_vpr_ros.geometry.odometry_scale import Neighbour
 from pair_vpr_ros.model import PairVPRModel, preprocess_batch
 from pair_vpr_ros.model.decoder import default_chunk
 from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
-from pair_vpr_ros.recency import ClockWatch, StampBuffer, eligible_keyframes
+from pair_vpr_ros.recency import ClockWatch, StampBuffer
 from pair_vpr_ros.types import Pose
 
 
@@ -312,14 +312,17 @@ class LoopClosurePipeline:
 
     def _query(self, frame: Frame, dense, desc, outcome: FrameOutcome, features: Features | None):
         c = self.config
-        allowed = eligible_keyframes(
-            self._stamps.values, frame.stamp, c.exclude_recent_s, c.exclude_recent_keyframes
+        allowed = self._stamps.eligible(
+            frame.stamp, c.exclude_recent_s, c.exclude_recent_keyframes
         )
         if allowed is None:
             return None
         timings = outcome.timings_ms
         t0 = time.perf_counter()
-        hits = self._place_map.search(desc, c.top_k, allowed=allowed)
+        if isinstance(allowed, int):  # ids below it: a prefix
+            hits = self._place_map.search(desc, c.top_k, max_id=allowed - 1)
+        else:
+            hits = self._place_map.search(desc, c.top_k, allowed=allowed)
         timings["search"] = (time.perf_counter() - t0) * 1e3
         outcome.candidates = candidates = [
             self._candidate(kf_id, sim, rank) for rank, (kf_id, sim) in enumerate(hits, start=1)

@@ -25,6 +25,7 @@ class StampBuffer:
         self._data = np.zeros(max(1024, len(given)))
         self._data[: len(given)] = given
         self._size = len(given)
+        self.sorted = bool(np.all(given[1:] >= given[:-1]))  # non-decreasing: the usual case
 
     def __len__(self) -> int:
         return self._size
@@ -36,8 +37,25 @@ class StampBuffer:
     def append(self, stamp: float) -> None:
         if self._size == len(self._data):
             self._data = np.concatenate([self._data, np.zeros_like(self._data)])
+        if self._size and stamp < self._data[self._size - 1]:
+            self.sorted = False
         self._data[self._size] = stamp
         self._size += 1
+
+    def eligible(self, stamp: float, exclude_s: float, exclude_n: int) -> int | np.ndarray | None:
+        """`eligible_keyframes` of these stamps; while they are sorted, found by bisection in
+        O(log n) and, when the eligible ids are a prefix (a live run: nothing stamped after the
+        query), given as its length (int) instead of a mask."""
+        if not self.sorted:
+            return eligible_keyframes(self.values, stamp, exclude_s, exclude_n)
+        stamps = self.values[: max(self._size - int(exclude_n), 0)]
+        older = np.searchsorted(stamps, stamp - exclude_s, "right" if exclude_s else "left")
+        newer = np.searchsorted(stamps, stamp + exclude_s, "left" if exclude_s else "right")
+        if newer >= len(stamps):
+            return int(older) or None
+        mask = np.zeros(len(stamps), dtype=bool)
+        mask[:older] = mask[newer:] = True
+        return mask
 
 
 def eligible_keyframes(

@@ -50,3 +50,34 @@ def test_clock_watch_tells_jumps_from_reordering():
     assert watch.check(3.0) == 0.0
     watch.reset()
     assert watch.check(0.0) == 0.0
+
+
+def as_ids(result, n: int):
+    """Eligible ids of a `StampBuffer.eligible` result (a prefix length, a mask or None)."""
+    if result is None:
+        return None
+    return list(range(result)) if isinstance(result, int) else np.flatnonzero(result).tolist()
+
+
+@pytest.mark.parametrize("exclude_s,exclude_n", [(30.0, 0), (2.5, 3), (0.0, 1), (0.0, 0)])
+def test_sorted_stamps_give_the_same_keyframes_by_bisection(exclude_s, exclude_n):
+    rng = np.random.default_rng(4)
+    for trial in range(200):
+        stamps = np.sort(rng.integers(0, 100, rng.integers(0, 30))).astype(np.float64)
+        if trial % 2:  # a jump back: not sorted any more, the mask path
+            stamps = np.concatenate([stamps, stamps[: len(stamps) // 2]])
+        buf = StampBuffer(stamps[: len(stamps) // 3])
+        for t in stamps[len(stamps) // 3 :]:
+            buf.append(float(t))
+        assert buf.sorted == bool(np.all(np.diff(stamps) >= 0))
+        query = float(rng.integers(-10, 110))
+        expected = eligible(stamps, query, exclude_s, exclude_n)
+        assert as_ids(buf.eligible(query, exclude_s, exclude_n), len(stamps)) == expected
+
+
+def test_a_live_run_gets_a_prefix_length_not_a_mask():
+    buf = StampBuffer(float(t) for t in range(100))
+    assert buf.eligible(100.0, 30.0, 10) == 71  # ids 0..70: stamps <= 70
+    assert buf.eligible(10.0, 30.0, 0) is not None and not isinstance(
+        buf.eligible(10.0, 30.0, 0), int
+    )  # keyframes stamped after the query (another clock): a mask
