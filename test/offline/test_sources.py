@@ -86,5 +86,5 @@ def test_source_errors(tmp_path):
     with pytest.raises(ConfigError, match="build_source '.*absent' does not exist"):
         source_frames(tmp_path / "absent", FrameCounts())
     (tmp_path / "empty").mkdir()
-    with pytest.raises(BagError, match="empty is a folder without metadata.yaml and with 0"):
-        list(source_frames(tmp_path / "empty", FrameCounts()))
+    with pytest.raises(ConfigError, match="empty is a folder with neither images nor a rosbag2"):
+        source_frames(tmp_path / "empty", FrameCounts())  # issue 17 #6: names both kinds
