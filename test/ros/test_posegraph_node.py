@@ -21,6 +21,7 @@ from nav_msgs.msg import Odometry, Path
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
+from ros_cli import wait_for
 
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.loop_factor import FACTOR_MSG_TYPES, factor_msg
@@ -31,13 +32,6 @@ CLASSES = {
     name: getattr(importlib.import_module(".".join(name.split("/")[:2])), name.split("/")[2])
     for name in FACTOR_MSG_TYPES
 }
-
-
-def wait_for(condition, timeout: float = 20.0) -> None:
-    end = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < end, "timed out"
-        time.sleep(0.02)
 
 
 def odom_msg(stamp: float, pose) -> Odometry:
