@@ -30,7 +30,6 @@ from the camera frame to its body frame (camera extrinsics).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -39,6 +38,7 @@ import numpy as np
 
 from pair_vpr_ros.geometry.covariance import SCALE_FREE_VARIANCE  # noqa: F401 (consumers)
 from pair_vpr_ros.geometry.rotations import quaternion_matrix
+from pair_vpr_ros.types import split_stamp
 
 FACTOR_TOPIC = "loop_closure/factor"
 FACTOR_TYPE = "nav_msgs/msg/Odometry"
@@ -124,13 +124,6 @@ def factor_from_record(record: Any) -> LoopFactor | None:
         match_id=int(_get(record, "match_id")),
         scale_from_odometry=status == "metric-odometry",
     )
-
-
-def split_stamp(stamp: float) -> tuple[int, int]:
-    """Seconds -> (sec, nanosec) of the nearest nanosecond."""
-    sec = math.floor(stamp)
-    nsec = round((stamp - sec) * 1e9)
-    return (sec + 1, 0) if nsec >= 1_000_000_000 else (int(sec), int(nsec))
 
 
 def factor_msg(factor: LoopFactor, types: Mapping[str, Callable[..., Any]]) -> Any:

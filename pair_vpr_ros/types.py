@@ -26,6 +26,13 @@ def message_stamp(msg: Any, fallback: float = 0.0) -> float:
     return stamp.sec + stamp.nanosec / 1e9
 
 
+def split_stamp(stamp: float) -> tuple[int, int]:
+    """Seconds -> (sec, nanosec) of the nearest nanosecond."""
+    sec = math.floor(stamp)
+    nsec = round((stamp - sec) * 1e9)
+    return (sec + 1, 0) if nsec >= 1_000_000_000 else (int(sec), int(nsec))
+
+
 def message_pose(msg: Any) -> Pose:
     """The pose of an Odometry / PoseWithCovarianceStamped (``msg.pose.pose``) or a
     PoseStamped (``msg.pose``) message."""

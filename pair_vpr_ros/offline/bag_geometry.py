@@ -20,6 +20,7 @@ from rosbags.highlevel import AnyReader
 from pair_vpr_ros.errors import BagError, GeometryInputError
 from pair_vpr_ros.geometry.camera import CameraModel, camera_from_info
 from pair_vpr_ros.geometry.depth import DEPTH_SCALE, depth_from_msg
+from pair_vpr_ros.types import message_stamp
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
@@ -106,8 +107,7 @@ class BagGeometry:
         ):
             try:
                 msg = self.reader.deserialize(raw, connection.msgtype)
-                stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-                out.append((stamp or log_time * 1e-9, camera_from_info(msg)))
+                out.append((message_stamp(msg, log_time / 1e9), camera_from_info(msg)))
             except (GeometryInputError, Exception) as err:  # noqa: BLE001 - counted
                 bad[str(err).split(":")[0]] += 1
         self.counts.update({f"camera_info invalid: {k}": v for k, v in bad.items()})
@@ -135,8 +135,7 @@ class BagGeometry:
             except Exception:  # noqa: BLE001 - one corrupt depth message: counted
                 self.counts["depth undecodable"] += 1
                 continue
-            s = msg.header.stamp
-            self._window.append(_Depth(s.sec + s.nanosec * 1e-9 or log_time * 1e-9, msg))
+            self._window.append(_Depth(message_stamp(msg, log_time / 1e9), msg))
         while self._window and self._window[0].stamp < stamp - self.tolerance:
             self._window.popleft()
         if not self._window:

@@ -16,10 +16,7 @@ from typing import Any
 from pair_vpr_ros.errors import ConfigError, GeometryInputError
 from pair_vpr_ros.geometry.camera import CameraModel, camera_from_info, camera_from_params
 from pair_vpr_ros.geometry.depth import depth_from_msg
-
-
-def stamp_of(msg: Any) -> float:
-    return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+from pair_vpr_ros.types import message_stamp
 
 
 class GeometryInputs:
@@ -50,8 +47,9 @@ class GeometryInputs:
     # ---- callbacks (executor threads) ----------------------------------------------------
     def on_depth(self, msg: Any) -> None:
         with self._cond:
-            i = bisect.bisect_right(self._stamps, stamp_of(msg))
-            self._stamps.insert(i, stamp_of(msg))
+            stamp = message_stamp(msg)
+            i = bisect.bisect_right(self._stamps, stamp)
+            self._stamps.insert(i, stamp)
             self._msgs.insert(i, msg)
             if len(self._stamps) > self.size:
                 del self._stamps[0], self._msgs[0]

@@ -20,7 +20,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from pair_vpr_ros import loop_messages as lm
 from pair_vpr_ros.detector import LoopRecord
-from pair_vpr_ros.types import Pose
+from pair_vpr_ros.types import Pose, split_stamp
 
 MARKER_TOPIC = "loop_closure/markers"
 SUBTOPICS = {  # output -> its topic relative to the base (loop_messages' names, base stripped)
@@ -119,7 +119,7 @@ def loop_marker(record: LoopRecord, pose_a: Pose, pose_b: Pose, frame_id: str, n
     """One green line between the two keyframes' positions (id: the loop's number)."""
     m = Marker(ns="loop_closures", id=number)
     m.header.frame_id = frame_id
-    m.header.stamp.sec, m.header.stamp.nanosec = divmod(int(record.query_stamp * 1e9), 10**9)
+    m.header.stamp.sec, m.header.stamp.nanosec = split_stamp(record.query_stamp)
     m.type, m.action = Marker.LINE_LIST, Marker.ADD
     m.pose.orientation.w, m.scale.x = 1.0, 0.1
     m.color.g, m.color.a = 1.0, 1.0

@@ -30,13 +30,13 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 
 from pair_vpr_ros.errors import ConfigError, PairVPRError
-from pair_vpr_ros.loop_factor import LoopFactor, factor_from_msg, split_stamp
+from pair_vpr_ros.loop_factor import LoopFactor, factor_from_msg
 from pair_vpr_ros.params import check_value
 from pair_vpr_ros.posegraph import params
 from pair_vpr_ros.posegraph.graph import PoseGraph
 from pair_vpr_ros.posegraph.transforms import pose3, pose7
 from pair_vpr_ros.ros.parameters import descriptor
-from pair_vpr_ros.types import message_pose, message_stamp
+from pair_vpr_ros.types import message_pose, message_stamp, split_stamp
 
 
 def _stamp_msg(seconds: float) -> Time:

@@ -71,12 +71,6 @@ def test_a_message_that_is_not_a_factor_is_refused():
         lf.factor_from_msg(msg)
 
 
-def test_split_stamp_rounds_to_the_nearest_nanosecond():
-    assert lf.split_stamp(1700000001.5) == (1700000001, 500000000)
-    assert lf.split_stamp(12.9999999999) == (13, 0)
-    assert lf.split_stamp(0.0) == (0, 0)
-
-
 def test_matrix_maps_query_points_into_the_match_frame():
     factor = lf.factor_from_record(posed_record())
     t = factor.matrix()

@@ -7,7 +7,7 @@ import threading
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
-from pair_vpr_ros.types import PoseTrack, message_pose, message_stamp
+from pair_vpr_ros.types import PoseTrack, message_pose, message_stamp, split_stamp
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 
@@ -113,3 +113,9 @@ def test_message_pose_of_every_pose_type(kind):
     pose = message_pose(msg)
     assert pose == (1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0)
     assert all(type(v) is float for v in pose)
+
+
+def test_split_stamp_rounds_to_the_nearest_nanosecond():
+    assert split_stamp(1700000001.5) == (1700000001, 500000000)
+    assert split_stamp(12.9999999999) == (13, 0)
+    assert split_stamp(0.0) == (0, 0)
