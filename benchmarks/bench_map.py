@@ -1,23 +1,20 @@
-"""Place map benchmark: FAISS add/search cost (exact vs HNSW), HNSW recall, bytes per keyframe.
+"""Place map benchmark: add/search cost of each index kind (flat, hnsw, ivf), recall, memory.
 
-Two kinds of synthetic 512-d descriptors (`--data`, both by default):
-
-- ``trajectory``: what a robot's map looks like. Sessions of 10,000 keyframes drive smooth
-  random walks (1 m per keyframe) over a square city of `--city-km`; a place's descriptor is a
-  smooth random field of its position (random Fourier features at 15 m, 150 m and 1.5 km length
-  scales, 60/30/10 % of the variance) plus a per-session appearance offset (a quarter of the
-  place signal's variance) and per-frame noise, so consecutive keyframes are near-duplicates,
-  sessions form clusters, and routes revisit each other. Queries are revisits: a database
-  keyframe's position moved up to 2 m, seen in a new session's appearance.
-- ``lowrank``: x = normalise(A z + noise), z ~ N(0, I_64): no trajectory structure at all, an
-  unstructured 64-d cloud (the earlier benchmark's data). Queries: database vector + noise.
+Two kinds of synthetic 512-d descriptors (`--data`, both by default; map_data.py):
+``trajectory`` (sessions of random walks through a city: what a robot's map looks like) and
+``lowrank`` (an unstructured 64-d cloud).
 
 Search is timed one query at a time on one thread, as the loop detector issues them; each HNSW
-graph is built once per M and searched at every `--ef-search`; recall@k is against the exact
-(flat) search. `--extrapolate N` fits recall and median time against log10(size) over the sizes
-run (least squares, per M / efSearch) and prints the fit at N: a fit, not a measurement.
+graph is built once per M and searched at every `--ef-search`; each `ivf` index (the place map's
+own kind, built through DescriptorIndex as the map builds it: exact below `--train-at`, trained
+on the add that reaches it and again at 4x) once per `--ivf-nlist` and searched at every
+`--nprobe`; its trainings (the one-off pauses of the add that triggers them) are printed.
+recall@k is against the exact (flat) search. `--extrapolate N` fits recall and median time
+against log10(size) over the sizes run (least squares, per M / efSearch) and prints the fit at
+N: a fit, not a measurement.
 
     python benchmarks/bench_map.py --sizes 1e4,3e4,1e5 --ef-search 64,128,256 --extrapolate 1e6
+    python benchmarks/bench_map.py --data trajectory --sizes 1e6 --hnsw-max 0 --nprobe 16,32,64
 """
 
 from __future__ import annotations
@@ -32,99 +29,44 @@ from pathlib import Path
 
 import faiss
 import numpy as np
+from map_data import lowrank, trajectory, trajectory_queries
 from tqdm import tqdm
 
 from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
 from pair_vpr_ros.place_map.index import DescriptorIndex
 
 
-def lowrank(n: int, dim: int, rng: np.random.Generator, basis: np.ndarray) -> np.ndarray:
-    """-> [n, dim] float32 unit vectors with intrinsic dimension basis.shape[0]."""
-    out = np.empty((n, dim), np.float32)
-    for lo in range(0, n, 100_000):
-        z = rng.standard_normal((min(n, lo + 100_000) - lo, basis.shape[0]), dtype=np.float32)
-        x = z @ basis + 0.05 * rng.standard_normal((len(z), dim), dtype=np.float32)
-        out[lo : lo + len(z)] = x / np.linalg.norm(x, axis=1, keepdims=True)
-    return out
-
-
-class City:
-    """A smooth random field R^2 -> R^dim over several length scales (random Fourier features:
-    a street's look at 15 m, a block's at 150 m, a district's at 1.5 km) and session
-    appearances."""
-
-    SCALES = ((15.0, 0.6), (150.0, 0.3), (1500.0, 0.1))  # (length scale m, share of variance)
-
-    def __init__(self, dim: int, km: float, rng: np.random.Generator, features: int = 512):
-        self.size = km * 1000.0
-        self.fields = [
-            (
-                rng.standard_normal((2, features)).astype(np.float32) / scale,
-                rng.uniform(0, 2 * np.pi, features).astype(np.float32),
-                rng.standard_normal((features, dim)).astype(np.float32)
-                * np.sqrt(2.0 * share / features),
-            )
-            for scale, share in self.SCALES
-        ]
-        self.dim, self.rng = dim, rng
-
-    def describe(self, xy: np.ndarray, session: np.ndarray) -> np.ndarray:
-        """positions [n, 2] m, session appearance offsets [n, dim] -> unit descriptors [n, dim]:
-        place signal of unit variance per dimension + session offset + per-frame noise."""
-        xy = xy.astype(np.float32)
-        x = sum(np.cos(xy @ omega + phase) @ mix for omega, phase, mix in self.fields)
-        x += session + 0.3 * self.rng.standard_normal(x.shape, dtype=np.float32)
-        return x / np.linalg.norm(x, axis=1, keepdims=True)
-
-    def appearance(self) -> np.ndarray:
-        """A session's appearance offset (lighting, season): [dim], ~0.5 of the place signal."""
-        return 0.5 * self.rng.standard_normal(self.dim).astype(np.float32)
-
-    def drive(self, n: int) -> np.ndarray:
-        """A smooth random walk of n keyframes 1 m apart inside the city -> [n, 2] m."""
-        heading = np.cumsum(self.rng.normal(0.0, 0.05, n)) + self.rng.uniform(0, 2 * np.pi)
-        steps = np.stack([np.cos(heading), np.sin(heading)], axis=1)
-        xy = self.rng.uniform(0, self.size, 2) + np.cumsum(steps, axis=0)
-        return np.abs((xy + self.size) % (2 * self.size) - self.size)  # reflect at the edges
-
-
-def trajectory(n: int, dim: int, rng: np.random.Generator, km: float):
-    """-> (descriptors [n, dim], positions [n, 2] m, the City): sessions of 10,000 keyframes."""
-    city = City(dim, km, rng)
-    out, xy_all = np.empty((n, dim), np.float32), np.empty((n, 2), np.float32)
-    for lo in range(0, n, 10_000):
-        hi = min(n, lo + 10_000)
-        xy_all[lo:hi] = xy = city.drive(hi - lo)
-        out[lo:hi] = city.describe(xy, city.appearance()[None])
-    return out, xy_all, city
-
-
-def trajectory_queries(city: City, xy: np.ndarray, limit: int, q: int, rng) -> np.ndarray:
-    """Revisits of keyframes < `limit`: position moved up to 2 m, a new session's appearance."""
-    picks = rng.integers(0, limit, q)
-    moved = xy[picks] + rng.uniform(-2.0, 2.0, (q, 2)).astype(np.float32)
-    return city.describe(moved, city.appearance()[None])
-
-
 def time_searches(index: DescriptorIndex, queries: np.ndarray, k: int, max_id: int | None):
-    """-> (ids [Q, k], latencies [Q] seconds), one query per call."""
-    ids, lat = np.full((len(queries), k), -1, np.int64), np.empty(len(queries))
+    """-> (ids [Q, k], latencies [Q, 2] seconds: wall, CPU of this thread), one query per call.
+
+    On one search thread the CPU time is the search's own work: on a shared machine it is not
+    inflated by waiting for a core, the wall time is (compare the two)."""
+    ids, lat = np.full((len(queries), k), -1, np.int64), np.empty((len(queries), 2))
     for i, q in enumerate(queries):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         found, _ = index.search(q, k, max_id)
-        lat[i] = time.perf_counter() - t0
+        lat[i] = time.perf_counter() - t0, time.thread_time() - c0
         ids[i, : len(found)] = found
     return ids, lat
 
 
+BULK = 25_000  # adds of this many: ivf then trains at its own sizes (25,000 x 4^s)
+
+
 def build(descs: np.ndarray, config: IndexConfig, single_adds: int) -> tuple:
     """Index over descs (the last `single_adds` one at a time, as the live map adds) ->
-    (index, build s, µs per single add)."""
+    (index, build s, µs per single add); prints each ivf training."""
     index, n = DescriptorIndex(descs.shape[1], config), len(descs)
     n_single = min(single_adds, n)
-    t0 = time.perf_counter()
-    for lo in tqdm(range(0, n - n_single, 50_000), desc=f"{config.kind} {n:.0e}", leave=False):
-        index.add(descs[lo : min(lo + 50_000, n - n_single)])
+    t0, trained = time.perf_counter(), None
+    for lo in tqdm(range(0, n - n_single, BULK), desc=f"{config.kind} {n:.0e}", leave=False):
+        c0 = time.process_time()
+        index.add(descs[lo : min(lo + BULK, n - n_single)])
+        if index.last_training is not trained:
+            trained = index.last_training
+            print(f"  ivf training at {trained.keyframes:,} keyframes: {trained.nlist} lists, "
+                  f"k-means on {trained.sample:,}: {trained.seconds:.1f} s wall, "
+                  f"{time.process_time() - c0:.1f} s CPU (all threads)", flush=True)  # fmt: skip
     bulk = time.perf_counter() - t0
     t0 = time.perf_counter()
     for row in descs[n - n_single :]:
@@ -134,7 +76,8 @@ def build(descs: np.ndarray, config: IndexConfig, single_adds: int) -> tuple:
 
 
 def bench_size(n, descs, queries, args) -> list[dict]:
-    """Flat (exact) then one HNSW graph per M searched at every efSearch -> result rows."""
+    """Flat (exact), then one HNSW graph per M searched at every efSearch, then one ivf index
+    per nlist searched at every nprobe -> result rows."""
     flat, build_s, single = build(descs[:n], IndexConfig(kind="flat"), args.single_adds)
     exact, lat = time_searches(flat, queries, args.k, None)
     rows = [row(n, "flat", 0, 0, build_s, single, lat, 1.0, 1.0, flat)]
@@ -142,67 +85,50 @@ def bench_size(n, descs, queries, args) -> list[dict]:
     for m in args.hnsw_m if n <= args.hnsw_max else ():
         config = IndexConfig(kind="hnsw", hnsw_m=m, ef_construction=args.ef_construction,
                              ef_search=args.ef_search[0], exact_below=0)  # fmt: skip
-        index, build_s, single = build(descs[:n], config, args.single_adds)
-        for ef in args.ef_search:
-            index.config = replace(config, ef_search=ef)
-            ids, lat = time_searches(index, queries, args.k, None)
-            hits = [len(set(a) & set(b)) for a, b in zip(ids, exact, strict=True)]
-            recall, top1 = float(np.mean(hits)) / args.k, float(np.mean(ids[:, 0] == exact[:, 0]))
-            rows.append(row(n, "hnsw", m, ef, build_s, single, lat, recall, top1, index))
-        del index
+        rows += sweep(descs[:n], queries, exact, config, "ef_search", args.ef_search, args)
     for nlist in args.ivf_nlist:
-        rows += bench_ivf(descs[:n], queries, exact, nlist or int(np.sqrt(n)), args)
+        config = IndexConfig(kind="ivf", nlist=nlist, nprobe=args.nprobe[0],
+                             train_at=args.train_at, exact_below=0)  # fmt: skip
+        rows += sweep(descs[:n], queries, exact, config, "nprobe", args.nprobe, args)
     return rows
 
 
-def bench_ivf(descs, queries, exact, nlist: int, args) -> list[dict]:
-    """FAISS IVF-Flat (k-means coarse quantizer, inner product) searched at every nprobe: not a
-    place-map index (it needs training on the map's own descriptors), measured for comparison."""
-    t0 = time.perf_counter()
-    index = faiss.IndexIVFFlat(faiss.IndexFlatIP(descs.shape[1]), descs.shape[1], nlist,
-                               faiss.METRIC_INNER_PRODUCT)  # fmt: skip
-    index.cp.niter = 10  # k-means iterations (FAISS's default 25 triples the training time)
-    sample = np.random.default_rng(args.seed).permutation(len(descs))[: 40 * nlist]
-    index.train(descs[np.sort(sample)])
-    index.add(descs)
-    build_s, rows = time.perf_counter() - t0, []
-    threads = faiss.omp_get_max_threads()
-    faiss.omp_set_num_threads(1)
-    for nprobe in args.nprobe:
-        index.nprobe = nprobe
-        ids, lat = np.full((len(queries), args.k), -1, np.int64), np.empty(len(queries))
-        for i, q in enumerate(queries):
-            t1 = time.perf_counter()
-            ids[i] = index.search(q[None], args.k)[1][0]
-            lat[i] = time.perf_counter() - t1
+def sweep(descs, queries, exact, config: IndexConfig, field: str, values, args) -> list[dict]:
+    """Build one index, then search it with `field` (ef_search / nprobe) at each value."""
+    index, build_s, single = build(descs, config, args.single_adds)
+    shape = config.hnsw_m if config.kind == "hnsw" else "flat"
+    if config.kind == "ivf" and index.last_training:
+        shape = index._index.nlist  # lists of the last training
+    rows = []
+    for value in values:
+        index.config = replace(config, **{field: value})
+        ids, lat = time_searches(index, queries, args.k, None)
         hits = [len(set(a) & set(b)) for a, b in zip(ids, exact, strict=True)]
         recall, top1 = float(np.mean(hits)) / args.k, float(np.mean(ids[:, 0] == exact[:, 0]))
-        size = faiss.serialize_index(index).nbytes / len(descs)
-        rows.append(dict(n=len(descs), kind=f"ivf{nlist}", m="-", ef=nprobe, build=build_s,
-                         single_us=float("nan"), med=np.median(lat) * 1e3,
-                         p95=np.percentile(lat, 95) * 1e3, recall=recall, top1=top1,
-                         bytes=size))  # fmt: skip
-    faiss.omp_set_num_threads(threads)
+        rows.append(row(len(descs), config.kind, shape, value, build_s, single, lat, recall,
+                        top1, index))  # fmt: skip
     return rows
 
 
 def row(n, kind, m, ef, build_s, single_us, lat, recall, top1, index) -> dict:
     size = faiss.serialize_index(index._index).nbytes / max(len(index), 1)
     return dict(n=n, kind=kind, m=m, ef=ef, build=build_s, single_us=single_us,
-                med=np.median(lat) * 1e3, p95=np.percentile(lat, 95) * 1e3, recall=recall,
-                top1=top1, bytes=size)  # fmt: skip
+                med=np.median(lat[:, 0]) * 1e3, p95=np.percentile(lat[:, 0], 95) * 1e3,
+                cpu=np.median(lat[:, 1]) * 1e3, cpu95=np.percentile(lat[:, 1], 95) * 1e3,
+                recall=recall, top1=top1, bytes=size)  # fmt: skip
 
 
 def print_rows(rows: list[dict], k: int, header: bool) -> None:
     if header:
-        print(f"| keyframes | index | M | efSearch (IVF: nprobe) | build s | add µs (single) "
-              f"| search ms median | p95 | recall@{k} | top-1 = exact "
-              "| index B/keyframe |")  # fmt: skip
-        print("|---|---|---|---|---|---|---|---|---|---|---|")
+        print(f"| keyframes | index | M (ivf: lists) | efSearch (ivf: nprobe) | build s "
+              "| add µs (single) | search ms median | p95 | CPU ms median | CPU p95 "
+              f"| recall@{k} | top-1 = exact | index B/keyframe |")  # fmt: skip
+        print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         m, ef = (r["m"], r["ef"]) if r["kind"] != "flat" else ("-", "-")
         print(f"| {r['n']:.0e} | {r['kind']} | {m} | {ef} | {r['build']:.1f} | "
-              f"{r['single_us']:.0f} | {r['med']:.3f} | {r['p95']:.3f} | {r['recall']:.3f} | "
+              f"{r['single_us']:.0f} | {r['med']:.3f} | {r['p95']:.3f} | {r['cpu']:.3f} | "
+              f"{r['cpu95']:.3f} | {r['recall']:.3f} | "
               f"{r['top1']:.3f} | {r['bytes']:,.0f} |", flush=True)  # fmt: skip
 
 
@@ -222,13 +148,15 @@ def extrapolate(rows: list[dict], target: int) -> None:
 
 
 def bytes_per_keyframe(args, dim: int, shape: tuple[int, int]) -> dict[str, float]:
-    """Save a small map with full-size dense tokens; -> bytes per keyframe of each file."""
+    """Save a small map with full-size dense tokens; -> bytes per keyframe of each file (ivf
+    trained at 39 keyframes, one list: its centroids cost nlist x dim x 4 B more in all)."""
     rng = np.random.default_rng(args.seed + 1)
     n = args.mem_keyframes
     out: dict[str, float] = {}
+    kinds = {"flat": "flat", "hnsw": "hnsw", "ivf": IndexConfig(kind="ivf", train_at=39)}
     with tempfile.TemporaryDirectory(dir=args.work_dir) as tmp:
-        for kind in ("flat", "hnsw"):
-            with PlaceMap(dim, shape, "bench", index=kind, work_dir=tmp) as m:
+        for kind, config in kinds.items():
+            with PlaceMap(dim, shape, "bench", index=config, work_dir=tmp) as m:
                 descs = lowrank(n, dim, rng, rng.standard_normal((64, dim), np.float32))
                 dense = rng.standard_normal(shape, dtype=np.float32)
                 pose = (1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0)
@@ -272,9 +200,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     )
     p.add_argument("--ef-construction", type=int, default=80, help="HNSW efConstruction")
     p.add_argument("--ef-search", type=ints, default=[64, 128, 256], help="HNSW efSearch values")
-    p.add_argument("--ivf-nlist", type=ints, default=[], help="IVF-Flat list counts to compare "
-                   "(0: sqrt(n)); none by default")  # fmt: skip
-    p.add_argument("--nprobe", type=ints, default=[16, 32, 64], help="IVF lists searched")
+    p.add_argument("--ivf-nlist", type=lambda v: ints(v) if v else [], default=[0],
+                   help="ivf list counts, one build each (0: the map's default, 4 sqrt(n) at "
+                   "each training; '': no ivf)")  # fmt: skip
+    p.add_argument("--nprobe", type=ints, default=[16, 32, 64], help="ivf lists searched")
+    p.add_argument("--train-at", type=lambda v: int(float(v)), default=25_000,
+                   help="ivf: exact search below this many keyframes, then trained")  # fmt: skip
     p.add_argument("--single-adds", type=int, default=200, help="adds timed one at a time")
     p.add_argument("--city-km", type=float, default=5.0, help="trajectory data: city side, km")
     p.add_argument("--extrapolate", type=lambda v: int(float(v)), help="fit recall / time to "
@@ -324,11 +255,11 @@ def main(argv: list[str] | None = None) -> int:
     mem = bytes_per_keyframe(args, args.dim, shape)
     print(f"\nBytes per keyframe (saved map of {args.mem_keyframes}, dense {shape} float16):\n")
     print("| file | bytes/keyframe |\n|---|---|")
-    for key in ("dense", "dense_crc", "index_flat", "index_hnsw", "meta"):
+    for key in ("dense", "dense_crc", "index_flat", "index_hnsw", "index_ivf", "meta"):
         print(f"| {key} | {mem.get(key, 0):,.0f} |")
     total = mem["dense"] + mem["dense_crc"] + mem["meta"]
-    print(f"| total (flat / hnsw M=32) | {total + mem['index_flat']:,.0f} / "
-          f"{total + mem['index_hnsw']:,.0f} |")  # fmt: skip
+    print(f"| total (flat / hnsw M=32 / ivf) | {total + mem['index_flat']:,.0f} / "
+          f"{total + mem['index_hnsw']:,.0f} / {total + mem['index_ivf']:,.0f} |")  # fmt: skip
     return 0
 
 

@@ -64,8 +64,8 @@ PARAMS: tuple[ParamSpec, ...] = (
        "= static int8 calibrated at start-up)", choices=("torch", "openvino"), **RO),
     _p("image_size", 0, "network input side in pixels, a multiple of 14; 0: the checkpoint's",
        0, 1022, **RO),
-    _p("index", "flat", "map index: flat (exact) or hnsw (approximate, very large maps)",
-       choices=("flat", "hnsw"), **RO),
+    _p("index", "flat", "map index: flat (exact), ivf (exact below 25,000 keyframes, then k-means "
+       "lists: large maps) or hnsw (graph)", choices=("flat", "hnsw", "ivf"), **RO),
     # ---- inputs (start-up only)
     _p("image_topic", "image", "sensor_msgs/Image input topic ('' = none)", **RO),
     _p("compressed_image_topic", "", "sensor_msgs/CompressedImage input topic ('' = none)", **RO),

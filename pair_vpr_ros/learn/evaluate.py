@@ -317,8 +317,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--index",
         default="flat",
-        choices=("flat", "hnsw"),
-        help="FAISS index of the map: exact flat or approximate hnsw (default flat)",
+        choices=("flat", "hnsw", "ivf"),
+        help="FAISS index of the map: exact flat, or approximate ivf (trained lists, exact "
+        "below 25,000 images) or hnsw (default flat)",
     )
     p.add_argument(
         "--work-dir",

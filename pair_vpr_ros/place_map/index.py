@@ -7,6 +7,8 @@ come back even when thousands of newer frames are closer.
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,8 +16,12 @@ import faiss
 import numpy as np
 
 from pair_vpr_ros.errors import ConfigError, MapError
+from pair_vpr_ros.place_map.ivf import IvfIndex, Training, check_loaded
 
-INDEX_KINDS = ("flat", "hnsw")
+INDEX_KINDS = ("flat", "hnsw", "ivf")
+# Smallest value of each integer IndexConfig field (39: FAISS's k-means minimum for one list).
+LOWEST = dict(hnsw_m=1, ef_construction=1, ef_search=1, nlist=0, nprobe=1, train_at=39,
+              exact_below=0, search_threads=0)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -23,11 +29,19 @@ class IndexConfig:
     """How descriptors are searched.
 
     kind: "flat" = exact inner product (`IndexFlatIP`); "hnsw" = approximate graph search
-        (`IndexHNSWFlat`, inner product) for maps of ~1e5-1e6 keyframes.
+        (`IndexHNSWFlat`, inner product); "ivf" = exact until `train_at` keyframes, then an
+        inverted file of k-means lists trained on the map (`IndexIVFFlat`, see ivf.py): the
+        kind for maps of ~1e5-1e6 keyframes (README "Place map").
     hnsw_m: HNSW neighbours per node (M); memory ~ 2*M*4 bytes per keyframe on top of the vector.
     ef_construction: HNSW candidate list while inserting; higher = better graph, slower add.
     ef_search: HNSW candidate list while searching (raised to k when k is larger); recall vs time.
-    exact_below: with "hnsw", a search with at most this many eligible ids scans them
+    nlist: "ivf" lists; 0 = 4 sqrt(n) at each training (n = keyframes then, at most n/39).
+    nprobe: "ivf" lists scanned per search; recall vs time (32: 0.98 at 1e6, README).
+    train_at: "ivf" is exact (flat) below this many keyframes and trained on the add that
+        reaches it (or 39 x nlist with a fixed nlist, if more).
+    retrain_growth: "ivf" trains again each time the map grows this factor past the last
+        training (> 1; 0 = never again).
+    exact_below: with "hnsw" or "ivf", a search with at most this many eligible ids scans them
         exactly instead (cheap at that size, and a filtered graph search can miss a few).
     search_threads: OpenMP threads for one search (0 = FAISS default). 1 by default: a single
         query is latency-bound, and on a 2-core machine FAISS's fan-out made a flat search of
@@ -38,18 +52,30 @@ class IndexConfig:
     hnsw_m: int = 32
     ef_construction: int = 80
     ef_search: int = 64
+    nlist: int = 0
+    nprobe: int = 32
+    train_at: int = 25_000
+    retrain_growth: float = 4.0
     exact_below: int = 4096
     search_threads: int = 1
 
     def __post_init__(self) -> None:
         if self.kind not in INDEX_KINDS:
             raise ConfigError(f"place map index must be one of {INDEX_KINDS}, got {self.kind!r}")
-        for name in ("hnsw_m", "ef_construction", "ef_search"):
-            if int(getattr(self, name)) < 1:
-                raise ConfigError(f"IndexConfig.{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("exact_below", "search_threads"):
-            if int(getattr(self, name)) < 0:
-                raise ConfigError(f"IndexConfig.{name} must be >= 0, got {getattr(self, name)}")
+        for name, low in LOWEST.items():
+            value = getattr(self, name)
+            if not isinstance(value, numbers.Integral) or isinstance(value, bool) or value < low:
+                raise ConfigError(f"IndexConfig.{name} must be an integer >= {low}, got {value!r}")
+        growth = self.retrain_growth
+        if (
+            isinstance(growth, bool)
+            or not isinstance(growth, numbers.Real)
+            or not (growth == 0 or 1 < growth < math.inf)
+        ):
+            raise ConfigError(
+                f"IndexConfig.retrain_growth must be a number > 1 (retrain when the map has "
+                f"grown that factor) or 0 (never retrain), got {growth!r}"
+            )
 
 
 class DescriptorIndex:
@@ -58,25 +84,52 @@ class DescriptorIndex:
     def __init__(self, dim: int, config: IndexConfig | None = None) -> None:
         self.dim = int(dim)
         self.config = config or IndexConfig()
-        self._index = self._new_index()
+        self._set(self._new_index())
 
     def _new_index(self) -> faiss.Index:
-        if self.config.kind == "flat":
+        if self.config.kind in ("flat", "ivf"):  # ivf starts exact: IvfIndex trains it later
             return faiss.IndexFlatIP(self.dim)
         index = faiss.IndexHNSWFlat(self.dim, self.config.hnsw_m, faiss.METRIC_INNER_PRODUCT)
         index.hnsw.efConstruction = self.config.ef_construction
         index.hnsw.efSearch = self.config.ef_search
         return index
 
+    @property
+    def config(self) -> IndexConfig:
+        return self._config
+
+    @config.setter
+    def config(self, config: IndexConfig) -> None:
+        """Search settings may change on a live index (benchmarks sweep nprobe / efSearch)."""
+        self._config = config
+        if getattr(self, "_ivf", None) is not None:
+            self._ivf.config = config
+
+    def _set(self, index: faiss.Index) -> None:
+        self._ivf = IvfIndex(self.dim, self.config, index) if self.config.kind == "ivf" else None
+        self._faiss = index
+
+    @property
+    def _index(self) -> faiss.Index:
+        """The FAISS index now (an "ivf" index replaces its own when it trains)."""
+        return self._faiss if self._ivf is None else self._ivf.index
+
+    @property
+    def last_training(self) -> Training | None:
+        """The last "ivf" training in this process (None: none, or another kind)."""
+        return None if self._ivf is None else self._ivf.last_training
+
     def __len__(self) -> int:
         return int(self._index.ntotal)
 
     def add(self, desc: np.ndarray) -> None:
-        """desc [B, dim] float32 (already validated and normalised)."""
-        self._index.add(np.ascontiguousarray(desc, dtype=np.float32).reshape(-1, self.dim))
+        """desc [B, dim] float32 (already validated and normalised). With "ivf", the add that
+        reaches a training size trains the index first (a pause: see ivf.py)."""
+        desc = np.ascontiguousarray(desc, dtype=np.float32).reshape(-1, self.dim)
+        (self._index if self._ivf is None else self._ivf).add(desc)
 
     def reset(self) -> None:
-        self._index = self._new_index()
+        self._set(self._new_index())
 
     def search(
         self,
@@ -128,6 +181,8 @@ class DescriptorIndex:
     ) -> tuple[np.ndarray, np.ndarray]:
         if self.config.kind == "flat":
             sims, ids = self._flat_search(self._index, query, k, selector)
+        elif self._ivf is not None:
+            sims, ids = self._ivf.search(query, k, count, selector)
         elif count <= self.config.exact_below:
             sims, ids = self._flat_search(self._storage(), query, k, selector)
         else:
@@ -165,7 +220,8 @@ class DescriptorIndex:
     def read(cls, path: Path, dim: int, config: IndexConfig) -> DescriptorIndex:
         """Load a file written by `write`; the stored kind must be `config.kind`."""
         index = _read_bounded(path)
-        want = faiss.IndexFlatIP if config.kind == "flat" else faiss.IndexHNSWFlat
+        want = {"flat": faiss.IndexFlatIP, "hnsw": faiss.IndexHNSWFlat}.get(config.kind)
+        want = want or (faiss.IndexFlatIP, faiss.IndexIVFFlat)  # ivf: before / after training
         if not isinstance(index, want) or index.d != dim:
             raise MapError(
                 f"FAISS index {path} is a {type(index).__name__} of dim {index.d}, but the "
@@ -173,8 +229,11 @@ class DescriptorIndex:
             )
         if index.metric_type != faiss.METRIC_INNER_PRODUCT:
             raise MapError(f"FAISS index {path} does not use inner product: rebuild the map")
+        if isinstance(index, faiss.IndexIVFFlat):
+            index = check_loaded(index, path)
         obj = cls.__new__(cls)
-        obj.dim, obj.config, obj._index = int(dim), config, index
+        obj.dim, obj.config = int(dim), config
+        obj._set(index)
         if config.kind == "hnsw":
             index.hnsw.efConstruction = config.ef_construction
             index.hnsw.efSearch = config.ef_search

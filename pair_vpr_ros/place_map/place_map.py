@@ -35,7 +35,8 @@ class PlaceMap:
 
     desc_dim: global descriptor size (512). dense_shape: (N, D) tokens per keyframe.
     fingerprint: opaque model identity (checkpoint hash + input size + desc dim), stored on save.
-    index: "flat" (exact) | "hnsw" (approximate, ~1e6 keyframes) | an IndexConfig.
+    index: "flat" (exact) | "ivf" (exact below 25,000 keyframes, then k-means lists: ~1e6
+        keyframes; training pauses an add, see place_map/ivf.py) | "hnsw" | an IndexConfig.
     dense_cache_size: dense entries kept in memory (LRU). verify_dense_reads: CRC32-check
     entries read from disk. work_dir: parent of the temporary working folder (default: $TMPDIR);
     put it on the disk of the map directory so the first save moves the dense file, not copies it.

@@ -139,7 +139,7 @@ CORRUPTIONS = {
         r"has missing or invalid fields \(bad file name for meta: '../meta.db'\)",
     ),
     "index settings": (
-        lambda d: _rewrite_manifest(d, lambda m: m["index"].update(kind="ivf")),
+        lambda d: _rewrite_manifest(d, lambda m: m["index"].update(kind="pq")),
         r"manifest index settings .* are invalid .*must be one of",
     ),
     "more keyframes than stored": (

@@ -12,6 +12,7 @@ from pair_vpr_ros.place_map.index import DescriptorIndex
 
 DIM, SHAPE = 8, (4, 8)
 HNSW_NO_SHORTCUT = IndexConfig(kind="hnsw", exact_below=0)  # always walk the HNSW graph
+IVF_EARLY = IndexConfig(kind="ivf", train_at=39, exact_below=0)  # lists from 39 keyframes on
 
 
 def unit(i: int) -> np.ndarray:
@@ -34,9 +35,9 @@ def fill(m: PlaceMap, descs: np.ndarray) -> None:
         assert m.add(d, dense_for(i), KeyframeMeta(stamp=float(i), frame_id="cam")) == i
 
 
-@pytest.fixture(params=["flat", "hnsw"])
+@pytest.fixture(params=["flat", "hnsw", "ivf"])
 def kind(request) -> str | IndexConfig:
-    return "flat" if request.param == "flat" else HNSW_NO_SHORTCUT
+    return {"flat": "flat", "hnsw": HNSW_NO_SHORTCUT, "ivf": IVF_EARLY}[request.param]
 
 
 def test_search_exact_ids_and_similarities(kind) -> None:
@@ -51,7 +52,7 @@ def test_search_exact_ids_and_similarities(kind) -> None:
 
 
 def test_max_id_excludes_recent_frames(kind, monkeypatch) -> None:
-    if kind != "flat":  # prove the HNSW graph walk itself honours the selector (no exact scan)
+    if kind == HNSW_NO_SHORTCUT:  # the HNSW graph walk itself honours the selector (no exact scan)
         monkeypatch.setattr(DescriptorIndex, "_storage", lambda self: pytest.fail("exact scan"))
     descs = random_descs(60)
     with PlaceMap(DIM, SHAPE, "fp", index=kind) as m:
@@ -95,8 +96,8 @@ def test_hnsw_shortcut_and_config_validation() -> None:
         assert [i for i, _ in m.search(descs[35], 4, max_id=30)] == expect
         assert m.index_config.hnsw_m == 32
     with pytest.raises(ConfigError, match="must be one of"):
-        PlaceMap(DIM, SHAPE, "fp", index="ivf")
-    with pytest.raises(ConfigError, match="ef_search must be >= 1"):
+        PlaceMap(DIM, SHAPE, "fp", index="pq")
+    with pytest.raises(ConfigError, match="ef_search must be an integer >= 1"):
         IndexConfig(kind="hnsw", ef_search=0)
 
 
@@ -198,7 +199,9 @@ def test_hnsw_walk_missing_eligible_ids_falls_back_to_exact(monkeypatch) -> None
         assert calls  # the exact scan answered
 
 
-@pytest.mark.parametrize("config", ["flat", HNSW_NO_SHORTCUT, IndexConfig(kind="hnsw")])
+@pytest.mark.parametrize(
+    "config", ["flat", HNSW_NO_SHORTCUT, IndexConfig(kind="hnsw"), IVF_EARLY, "ivf"]
+)
 def test_search_only_among_allowed_ids(config) -> None:
     descs = random_descs(60, seed=7)
     allowed = np.zeros(50, bool)

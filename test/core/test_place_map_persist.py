@@ -60,7 +60,10 @@ def files(d: Path) -> list[str]:
     return sorted(os.listdir(d))
 
 
-@pytest.mark.parametrize("index", ["flat", IndexConfig(kind="hnsw", exact_below=0)])
+@pytest.mark.parametrize(
+    "index",
+    ["flat", IndexConfig(kind="hnsw", exact_below=0), IndexConfig(kind="ivf", train_at=39)],
+)
 def test_save_load_gives_identical_results(tmp_path: Path, index) -> None:
     queries = [desc_for(i) + 0.3 * desc_for(i + 50) for i in range(8)]
     with PlaceMap(DIM, SHAPE, "fp-a", index=index) as m:
