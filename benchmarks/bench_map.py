@@ -55,7 +55,10 @@ BULK = 25_000  # adds of this many: ivf then trains at its own sizes (25,000 x 4
 
 def build(descs: np.ndarray, config: IndexConfig, single_adds: int) -> tuple:
     """Index over descs (the last `single_adds` one at a time, as the live map adds) ->
-    (index, build s, µs per single add); prints each ivf training."""
+    (index, build s, µs per single add); prints each ivf training. index.rss_growth: bytes per
+    keyframe by which the process's resident memory grew (allocator slack and list capacity
+    included; approximate: freed memory is not always returned to the system)."""
+    rss0 = resident_bytes()
     index, n = DescriptorIndex(descs.shape[1], config), len(descs)
     n_single = min(single_adds, n)
     t0, trained = time.perf_counter(), None
@@ -72,14 +75,26 @@ def build(descs: np.ndarray, config: IndexConfig, single_adds: int) -> tuple:
     for row in descs[n - n_single :]:
         index.add(row[None])
     single = (time.perf_counter() - t0) / max(n_single, 1)
+    index.rss_growth = (resident_bytes() - rss0) / max(n, 1)
     return index, bulk + single * n_single, single * 1e6
+
+
+def resident_bytes() -> int:
+    """This process's resident memory (VmRSS of /proc/self/status; 0 where there is none)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
 
 
 def bench_size(n, descs, queries, args) -> list[dict]:
     """Flat (exact), then one HNSW graph per M searched at every efSearch, then one ivf index
     per nlist searched at every nprobe -> result rows."""
     flat, build_s, single = build(descs[:n], IndexConfig(kind="flat"), args.single_adds)
-    exact, lat = time_searches(flat, queries, args.k, None)
+    exact, lat = time_searches(flat, queries, args.k, newest(n, args))
     rows = [row(n, "flat", 0, 0, build_s, single, lat, 1.0, 1.0, flat)]
     del flat
     for m in args.hnsw_m if n <= args.hnsw_max else ():
@@ -102,7 +117,7 @@ def sweep(descs, queries, exact, config: IndexConfig, field: str, values, args) 
     rows = []
     for value in values:
         index.config = replace(config, **{field: value})
-        ids, lat = time_searches(index, queries, args.k, None)
+        ids, lat = time_searches(index, queries, args.k, newest(len(descs), args))
         hits = [len(set(a) & set(b)) for a, b in zip(ids, exact, strict=True)]
         recall, top1 = float(np.mean(hits)) / args.k, float(np.mean(ids[:, 0] == exact[:, 0]))
         rows.append(row(len(descs), config.kind, shape, value, build_s, single, lat, recall,
@@ -110,26 +125,32 @@ def sweep(descs, queries, exact, config: IndexConfig, field: str, values, args) 
     return rows
 
 
+def newest(n: int, args) -> int | None:
+    """max_id of the searches: the newest `--exclude-recent` keyframes are not eligible."""
+    return n - 1 - args.exclude_recent if args.exclude_recent else None
+
+
 def row(n, kind, m, ef, build_s, single_us, lat, recall, top1, index) -> dict:
     size = faiss.serialize_index(index._index).nbytes / max(len(index), 1)
     return dict(n=n, kind=kind, m=m, ef=ef, build=build_s, single_us=single_us,
                 med=np.median(lat[:, 0]) * 1e3, p95=np.percentile(lat[:, 0], 95) * 1e3,
                 cpu=np.median(lat[:, 1]) * 1e3, cpu95=np.percentile(lat[:, 1], 95) * 1e3,
-                recall=recall, top1=top1, bytes=size)  # fmt: skip
+                recall=recall, top1=top1, bytes=size, rss=index.rss_growth)  # fmt: skip
 
 
 def print_rows(rows: list[dict], k: int, header: bool) -> None:
     if header:
         print(f"| keyframes | index | M (ivf: lists) | efSearch (ivf: nprobe) | build s "
               "| add µs (single) | search ms median | p95 | CPU ms median | CPU p95 "
-              f"| recall@{k} | top-1 = exact | index B/keyframe |")  # fmt: skip
-        print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+              f"| recall@{k} | top-1 = exact | index B/keyframe (file) | RAM growth B/keyframe "
+              "|")  # fmt: skip
+        print("|---" * 14 + "|")
     for r in rows:
         m, ef = (r["m"], r["ef"]) if r["kind"] != "flat" else ("-", "-")
         print(f"| {r['n']:.0e} | {r['kind']} | {m} | {ef} | {r['build']:.1f} | "
               f"{r['single_us']:.0f} | {r['med']:.3f} | {r['p95']:.3f} | {r['cpu']:.3f} | "
               f"{r['cpu95']:.3f} | {r['recall']:.3f} | "
-              f"{r['top1']:.3f} | {r['bytes']:,.0f} |", flush=True)  # fmt: skip
+              f"{r['top1']:.3f} | {r['bytes']:,.0f} | {r['rss']:,.0f} |", flush=True)  # fmt: skip
 
 
 def extrapolate(rows: list[dict], target: int) -> None:
@@ -206,6 +227,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--nprobe", type=ints, default=[16, 32, 64], help="ivf lists searched")
     p.add_argument("--train-at", type=lambda v: int(float(v)), default=25_000,
                    help="ivf: exact search below this many keyframes, then trained")  # fmt: skip
+    p.add_argument("--exclude-recent", type=int, default=0, help="searches exclude the newest "
+                   "N keyframes (max_id, a range selector, as the loop detector's recency "
+                   "window); 0: no selector")  # fmt: skip
     p.add_argument("--single-adds", type=int, default=200, help="adds timed one at a time")
     p.add_argument("--city-km", type=float, default=5.0, help="trajectory data: city side, km")
     p.add_argument("--extrapolate", type=lambda v: int(float(v)), help="fit recall / time to "

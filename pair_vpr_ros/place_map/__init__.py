@@ -1,7 +1,7 @@
 """The keyframe place map: FAISS descriptor index, float16 dense-token store, SQLite metadata.
 
 ```python
-m = PlaceMap(desc_dim=512, dense_shape=(529, 768), fingerprint=model.fingerprint, index="hnsw")
+m = PlaceMap(desc_dim=512, dense_shape=(529, 768), fingerprint=model.fingerprint, index="ivf")
 kf_id = m.add(desc, dense, KeyframeMeta(stamp=t, frame_id="cam"))   # ids 0, 1, 2, ...
 hits = m.search(desc, k=10, max_id=kf_id - 50)                      # [(id, similarity)]
 m.save("maps/site")                                                 # atomic

@@ -16,7 +16,7 @@ import faiss
 import numpy as np
 
 from pair_vpr_ros.errors import ConfigError, MapError
-from pair_vpr_ros.place_map.ivf import IvfIndex, Training, check_loaded
+from pair_vpr_ros.place_map.ivf import IvfIndex, Training, check_loaded, omp_threads
 
 INDEX_KINDS = ("flat", "hnsw", "ivf")
 # Smallest value of each integer IndexConfig field (39: FAISS's k-means minimum for one list).
@@ -43,9 +43,9 @@ class IndexConfig:
         training (> 1; 0 = never again).
     exact_below: with "hnsw" or "ivf", a search with at most this many eligible ids scans them
         exactly instead (cheap at that size, and a filtered graph search can miss a few).
-    search_threads: OpenMP threads for one search (0 = FAISS default). 1 by default: a single
-        query is latency-bound, and on a 2-core machine FAISS's fan-out made a flat search of
-        1e5 keyframes 4x slower (63 ms vs 17 ms, see benchmarks/bench_map.py).
+    search_threads: OpenMP threads for one search and one "ivf" add (0 = FAISS default). 1 by
+        default: a single query is latency-bound, and on a 2-core machine FAISS's fan-out made
+        a flat search of 1e5 keyframes 4x slower (63 ms vs 17 ms, see benchmarks/bench_map.py).
     """
 
     kind: str = "flat"
@@ -149,13 +149,8 @@ class DescriptorIndex:
         if k <= 0:
             return np.empty(0, np.int64), np.empty(0, np.float32)
         query = np.ascontiguousarray(desc, dtype=np.float32).reshape(1, self.dim)
-        threads = faiss.omp_get_max_threads()
-        if self.config.search_threads:
-            faiss.omp_set_num_threads(self.config.search_threads)  # this thread only (ICV)
-        try:
+        with omp_threads(self.config.search_threads):
             ids, sims = self._search(query, k, count, selector)
-        finally:
-            faiss.omp_set_num_threads(threads)
         keep = ids[0] >= 0
         return ids[0][keep].astype(np.int64), sims[0][keep].astype(np.float32)
 

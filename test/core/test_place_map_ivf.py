@@ -172,3 +172,24 @@ def test_schedule_and_list_count() -> None:
     auto = DescriptorIndex(DIM, IndexConfig(kind="ivf"))._ivf
     assert [auto.nlist_for(n) for n in (25_000, 100_000, 400_000)] == [632, 1265, 2530]
     assert auto.nlist_for(1000) == 25  # at most n / 39 points per list
+
+
+def test_single_adds_run_on_search_threads(monkeypatch) -> None:
+    """A one-keyframe add to a trained index runs on `search_threads` OpenMP threads (the
+    fan-out only waits on a busy machine); the caller's setting is restored."""
+    seen = []
+    index = DescriptorIndex(DIM, IndexConfig(kind="ivf", train_at=200, search_threads=1))
+    index.add(clustered(300))
+    add = faiss.IndexIVFFlat.add
+    monkeypatch.setattr(
+        faiss.IndexIVFFlat,
+        "add",
+        lambda s, x: seen.append(faiss.omp_get_max_threads()) or add(s, x),
+    )
+    before = faiss.omp_get_max_threads()
+    faiss.omp_set_num_threads(3)
+    try:
+        index.add(clustered(1, seed=1))
+        assert seen == [1] and faiss.omp_get_max_threads() == 3 and len(index) == 301
+    finally:
+        faiss.omp_set_num_threads(before)
