@@ -34,8 +34,10 @@ import torch
 
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, load_pairvpr, quantize_int8
 from pair_vpr_ros.model.config import PATCH
+from pair_vpr_ros.offline.replay import ReplayOptions
 
 AGREEMENT_QUERIES = 100  # demo-world queries, each re-ranking its 10 nearest frames
+SAME_PLACE_M = ReplayOptions().gt_radius  # what the replay report counts as one place
 
 
 def interleaved(
@@ -83,33 +85,54 @@ def variants(model, device: str) -> dict:
         from pair_vpr_ros.model.openvino_backend import OpenVINOModel
 
         out["openvino"] = OpenVINOModel(model, "int8")
+        out["openvino-bf16"] = OpenVINOModel(model, "bf16")
         out["openvino-fp32"] = OpenVINOModel(model, "fp32")
     else:
         print("openvino: skipped (pip install 'pair_vpr_ros[openvino]')")
     return out
 
 
-def agreement(models: dict, images: torch.Tensor, k: int) -> dict[str, dict[str, float]]:
-    """Per path: fraction of queries whose top-1 after re-ranking is the same as fp32's (each
-    image a query, its k nearest others by fp32 descriptor the candidates of every path), and
-    mean descriptor cosine with fp32."""
+def agreement(
+    models: dict, images: torch.Tensor, k: int, places: np.ndarray | None = None
+) -> dict[str, dict[str, float]]:
+    """Per path, against fp32 (each image a query, its k nearest others by fp32 descriptor the
+    candidates of every path): `top1`, the fraction of queries whose top-1 after re-ranking is
+    the same candidate; `same_place`, whose top-1 is within `SAME_PLACE_M` of fp32's (with
+    `places` [n, 2] m: the loop closure a back end would get is the same); `regret_max`, the
+    largest fp32 score lost by taking the path's top-1 instead of fp32's; `cosine`, the mean
+    descriptor cosine."""
     base = models["fp32"]
     with torch.inference_mode():
         dense, desc = base.encode(images)
         sims = (desc @ desc.T).fill_diagonal_(-2.0)
-        nearest = sims.topk(k, dim=1).indices.tolist()
+        nearest = sims.topk(k, dim=1).indices
+        want = torch.stack([base.pair_scores(dense[i], dense[o]) for i, o in enumerate(nearest)])
+        top2 = want.topk(2, dim=1).values
+        margin = float((top2[:, 0] - top2[:, 1]).median())
+        spread = float((want.max(1).values - want.min(1).values).median())
+        print(
+            f"fp32 scores: top-1 vs top-2 margin median {margin:.4f}, spread median {spread:.2f}"
+        )
         out = {}
         for name, model in models.items():
             if name in ("fp32", "reference"):
                 continue
             mdense, mdesc = model.encode(images)
-            same = []
-            for i, others in enumerate(nearest):
-                s = base.pair_scores(dense[i], dense[others])
-                ms = model.pair_scores(mdense[i], mdense[others])
-                same.append(int(s.argmax()) == int(ms.argmax()))
-            cosine = float((desc.float() * mdesc.float()).sum(-1).mean())
-            out[name] = {"top1": float(np.mean(same)), "cosine": cosine}
+            got = torch.stack(
+                [model.pair_scores(mdense[i], mdense[o]) for i, o in enumerate(nearest)]
+            )
+            best, pick = want.argmax(1), got.argmax(1)
+            regret = want.max(1).values - want.gather(1, pick[:, None])[:, 0]
+            out[name] = {
+                "top1": float((best == pick).float().mean()),
+                "cosine": float((desc.float() * mdesc.float()).sum(-1).mean()),
+                "regret_max": float(regret.max()),
+            }
+            if places is not None:
+                chosen = [places[nearest[i, j]] for i, j in enumerate(pick.tolist())]
+                truth = [places[nearest[i, j]] for i, j in enumerate(best.tolist())]
+                dist = np.linalg.norm(np.array(chosen) - np.array(truth), axis=1)
+                out[name]["same_place"] = float(np.mean(dist <= SAME_PLACE_M))
     return out
 
 
@@ -124,8 +147,9 @@ def descriptor_cosine(models: dict, images: torch.Tensor) -> dict[str, float]:
         }
 
 
-def agreement_images(size: int, count: int) -> torch.Tensor:
-    """`count` consecutive-ish demo-world frames (revisits included), preprocessed."""
+def agreement_images(size: int, count: int) -> tuple[torch.Tensor, np.ndarray | None]:
+    """`count` demo-world frames spread over its laps (revisits included), preprocessed, and
+    their camera positions [count, 2] m (random images and None without the demo world)."""
     from pair_vpr_ros.model import preprocess_batch
 
     try:
@@ -134,13 +158,16 @@ def agreement_images(size: int, count: int) -> torch.Tensor:
 
         world = generate_world(seed=1234)
         step = max(1, len(world.poses) // count)
-        rgb = [render_frame(world, i) for i in range(0, step * count, step)]
+        frames = list(range(0, step * count, step))
+        rgb = [render_frame(world, i) for i in frames]
+        places = world.poses[frames, :2]
     except Exception:  # demo world unavailable: random images
         rgb = [
             np.random.default_rng(i).integers(0, 256, (240, 320, 3), np.uint8)
             for i in range(count)
         ]
-    return preprocess_batch(rgb, size)
+        places = None
+    return preprocess_batch(rgb, size), places
 
 
 def default_demo_weights() -> Path | None:
@@ -217,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"peak resident memory: {peak:.0f} MiB")
     if torch.cuda.is_available() and args.device.startswith("cuda"):
         print(f"peak GPU memory: {torch.cuda.max_memory_allocated() / 2**20:.0f} MiB")
-    cos = descriptor_cosine(models, agreement_images(size, 8))
+    cos = descriptor_cosine(models, agreement_images(size, 8)[0])
     print(f"descriptor cosine with fp32, {model.config.arch}/{size}px, 8 demo-world images: "
           + ", ".join(f"{n} {c:.5f}" for n, c in cos.items()))  # fmt: skip
     figures = {
@@ -233,12 +260,14 @@ def main(argv: list[str] | None = None) -> int:
         print("agreement: skipped (no --agreement-weights and no shipped demo model)")
     else:
         amodel = load_pairvpr(weights)
-        images = agreement_images(amodel.config.image_size, AGREEMENT_QUERIES)
-        figures["agreement"] = agreement(variants(amodel, "cpu"), images, k=10)
+        images, places = agreement_images(amodel.config.image_size, AGREEMENT_QUERIES)
+        figures["agreement"] = agreement(variants(amodel, "cpu"), images, 10, places)
         print(f"agreement with fp32 ({Path(weights).name}, {len(images)} demo-world queries x "
               "10 candidates):")  # fmt: skip
         for name, a in figures["agreement"].items():
-            print(f"  {name}: top-1 after re-ranking {a['top1']:.1%}, cosine {a['cosine']:.5f}")
+            place = f", same place {a['same_place']:.1%}" if "same_place" in a else ""
+            print(f"  {name}: top-1 after re-ranking {a['top1']:.1%}{place}, fp32 score lost at "
+                  f"most {a['regret_max']:.4f}, cosine {a['cosine']:.5f}")  # fmt: skip
     if args.json:
         args.json.write_text(json.dumps(figures, indent=2) + "\n")
         print(f"wrote {args.json}")
