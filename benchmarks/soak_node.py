@@ -158,7 +158,7 @@ class Soak:
         from std_msgs.msg import String
 
         self.rclpy, self.Image = rclpy, Image
-        rclpy.init()
+        rclpy.init(args=[])  # not sys.argv: rcl would read `--param a:=b` as a remap
         self.node = rclpy.create_node("vpr_soak")
         self.pub = self.node.create_publisher(Image, f"{NS}/image", qos_profile_sensor_data)
         self.diag: dict[str, str] = {}
