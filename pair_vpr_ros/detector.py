@@ -182,9 +182,11 @@ class LoopDetector:
         rerank: Callable[[list[Candidate]], np.ndarray],
         verify: Verifier | None = None,
         step: int = 2,
+        first: int = 1,
     ) -> LoopRecord | None:
         """Re-rank `candidates` (global order) and accept or reject the best one. `rerank`
-        scores a list of candidates ([k] scores); with a budget it is called `step` at a time."""
+        scores a list of candidates ([k] scores); with a budget it is called for the first
+        `first`, then `step` at a time."""
         if not candidates:
             self._recent_matches.clear()
             return None
@@ -195,7 +197,7 @@ class LoopDetector:
             record = self._record(query_stamp, query_frame_id, best_global, "below global floor")
             record.candidates = len(candidates)
             return record
-        scored = self.score(candidates, rerank, step)
+        scored = self.score(candidates, rerank, step, first)
         best = scored[0]
         reason = "" if best.pair_score >= c.score_threshold else "score below threshold"
         record = self._record(query_stamp, query_frame_id, best, reason)
@@ -223,20 +225,23 @@ class LoopDetector:
         candidates: list[Candidate],
         rerank: Callable[[list[Candidate]], np.ndarray],
         step: int,
+        first: int = 1,
     ) -> list[Candidate]:
         """Pair-score `candidates` (global order, at least one) best-global first; return the
         scored ones, best pair score first. The rest keep a NaN score.
 
-        No budget (`rerank_budget_ms` 0): all in one `rerank` call. With a budget: the global
-        best alone, then `step` candidates at a time while the time spent so far plus the next
-        step's predicted cost (this query's mean per candidate) stays within the budget. The
-        global best is always scored, so re-ranking takes at most max(budget, one candidate)."""
+        No budget (`rerank_budget_ms` 0): all in one `rerank` call. With a budget: the `first`
+        best-global candidates (the global best alone by default; a back end that pads every
+        call to a fixed chunk scores a whole chunk for the price of one), then `step` at a time
+        while the time spent so far plus the next step's predicted cost (this query's mean per
+        candidate) stays within the budget. The first call always runs, so re-ranking takes at
+        most max(budget, one call)."""
         budget_ms = self.config.rerank_budget_ms
         if budget_ms <= 0:
             return rank_by_pair_score(candidates, rerank(candidates))
         start, done, parts = self.clock(), 0, []
         while done < len(candidates):
-            size = 1 if done == 0 else min(step, len(candidates) - done)
+            size = min(first if done == 0 else step, len(candidates) - done)
             spent_ms = (self.clock() - start) * 1e3
             if done and spent_ms + spent_ms / done * size > budget_ms:
                 break

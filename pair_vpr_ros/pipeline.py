@@ -337,9 +337,11 @@ class LoopClosurePipeline:
         def verify(match_id: int) -> tuple[int, float]:
             return self.geometry.verify(features, self._stored_features(match_id))
 
-        step = self.rerank_chunk or default_chunk(torch.device(self.model.device))
+        # A back end compiled for a fixed chunk (OpenVINO) pads shorter calls: whole chunks.
+        fixed = getattr(self.model, "chunk_size", None)
+        step = fixed or self.rerank_chunk or default_chunk(torch.device(self.model.device))
         record = self.detector.decide(
-            frame.stamp, frame.frame_id, candidates, rerank, verify, step=step
+            frame.stamp, frame.frame_id, candidates, rerank, verify, step=step, first=fixed or 1
         )
         if record is not None:
             self.counts.candidates_scored += record.scored

@@ -3,6 +3,10 @@
 The pipeline, the map builder, the replay and evaluation use only these members, so a back end
 other than PyTorch's `PairVPR` (an OpenVINO or ONNX runtime, a remote model) plugs in by
 implementing them. Training and the checkpoint code use `PairVPR` itself.
+
+Optional member: `chunk_size` (int), for a back end compiled for a fixed number of candidates
+per `pair_scores` call that pads shorter calls (`OpenVINOModel`); the re-rank budget then scores
+whole chunks.
 """
 
 from __future__ import annotations

@@ -39,13 +39,15 @@ def costly_scorer(clock: FakeClock, ms_per_candidate: float, scores: list[float]
     return rerank
 
 
-def decide(budget_ms: float, n: int, ms_per_candidate: float, scores=None, step: int = 2):
+def decide(
+    budget_ms: float, n: int, ms_per_candidate: float, scores=None, step: int = 2, first: int = 1
+):
     clock, calls = FakeClock(), []
     det = LoopDetector(DetectorConfig(rerank_budget_ms=budget_ms, top_k=n), clock=clock)
     scores = scores if scores is not None else [0.0] * n
     candidates = cands(n)
     rerank = costly_scorer(clock, ms_per_candidate, scores, calls)
-    record = det.decide(1.0, "cam", candidates, rerank, step=step)
+    record = det.decide(1.0, "cam", candidates, rerank, step=step, first=first)
     return record, calls, candidates, clock
 
 
@@ -86,6 +88,17 @@ def test_large_budget_scores_all_in_steps():
     assert (record.candidates, record.scored) == (10, 10)
 
 
+def test_a_fixed_chunk_back_end_scores_whole_chunks_from_the_first_call():
+    # first=2 (a back end that pads every call to 2): the first call scores the two global
+    # best; a budget below one call still gets that call, never a padded single candidate.
+    _, calls, _, _ = decide(100.0, 10, 30.0, step=2, first=2)
+    assert calls == [[1, 2]]  # 60 ms spent, the next pair predicts 120 > 100
+    record, calls, _, _ = decide(1.0, 10, 500.0, [0.0, 5.0] + [0.0] * 8, step=2, first=2)
+    assert calls == [[1, 2]] and (record.scored, record.rank_before) == (2, 2)
+    _, calls, _, _ = decide(1.0, 1, 500.0, step=2, first=2)
+    assert calls == [[1]]
+
+
 def test_below_global_floor_scores_nothing():
     det = LoopDetector(DetectorConfig(global_floor=0.95, rerank_budget_ms=50.0))
     record = det.decide(1.0, "cam", cands(4), lambda cs: pytest.fail("must not re-rank"))
@@ -124,3 +137,25 @@ def test_pipeline_counts_and_records_the_budget(tiny_model):
     pipe.set_config(pipe.config.updated(rerank_budget_ms=0.0))  # run-time change: no budget
     more = list(pipe.process_many([Frame(8.0, places[2], "cam")], batch_size=1))
     assert (more[0].loop.candidates, more[0].loop.scored) == (5, 5)
+
+
+def test_pipeline_steps_by_a_fixed_chunk_back_end(tiny_model, monkeypatch):
+    """A back end with `chunk_size` (OpenVINO pads every call to it) is scored a whole chunk
+    at a time from the first call, whatever `rerank_chunk` says."""
+    rng = np.random.default_rng(3)
+    places = [rng.integers(0, 256, (48, 64, 3), dtype=np.uint8) for _ in range(6)]
+    config = DetectorConfig(**{**EXACT_MATCH, "top_k": 5, "rerank_budget_ms": 1e6})
+    monkeypatch.setattr(tiny_model, "chunk_size", 3, raising=False)  # as OpenVINOModel has
+    pipe = LoopClosurePipeline(tiny_model, config.updated(global_floor=-1.0), rerank_chunk=2)
+    sizes = []
+    score = pipe.pair_scores
+
+    def logged(dense, ids):
+        sizes.append(len(ids))
+        return score(dense, ids)
+
+    pipe.pair_scores = logged
+    frames = [Frame(float(t), places[p], "cam") for t, p in enumerate([0, 1, 2, 3, 4, 5, 0])]
+    out = list(pipe.process_many(frames, batch_size=1))
+    assert (out[-1].loop.candidates, out[-1].loop.scored) == (4, 4)
+    assert sizes[-2:] == [3, 1]  # the last query's 4 eligible keyframes, in chunks of 3
