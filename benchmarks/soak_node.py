@@ -143,7 +143,8 @@ def start_node(args: argparse.Namespace, log_path: Path) -> subprocess.Popen:
     for extra in args.param:
         cmd += ["-p", extra]
     log = open(log_path, "w")  # noqa: SIM115 - the node writes to it until it exits
-    return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+    # Its own session: a terminal's Ctrl-C reaches the soak only, which drains and stops it.
+    return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
 
 
 class Soak:
@@ -244,12 +245,19 @@ def run(args: argparse.Namespace) -> int:
 def soak_loop(args: argparse.Namespace, soak: Soak, node: subprocess.Popen) -> int:
     threading.Thread(target=soak.publish_forever, daemon=True).start()
     t0, samples = time.monotonic(), []
+    # Ctrl-C ends the run early with its summary (a KeyboardInterrupt raised while the executor
+    # threads spin crashed the interpreter on shutdown).
+    interrupted = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: interrupted.set())
     keys = ("frames_received", "frames_processed", "frames_dropped", "map_size", "loops",
             "queue_depth")  # fmt: skip
     print(f"{'t_s':>6} {'sent':>7} {'recv':>7} {'proc':>7} {'drop':>6} {'map':>6} {'loops':>5} "
           f"{'rss_MiB':>8} {'map_MiB':>8} {'lat_p50':>8} {'lat_p95':>8}")  # fmt: skip
-    while (elapsed := time.monotonic() - t0) < args.minutes * 60:
-        time.sleep(min(args.sample, args.minutes * 60 - elapsed))
+    while (elapsed := time.monotonic() - t0) < args.minutes * 60 and not interrupted.is_set():
+        interrupted.wait(min(args.sample, args.minutes * 60 - elapsed))
+        if interrupted.is_set():
+            args.minutes = (time.monotonic() - t0) / 60
+            print(f"interrupted after {args.minutes:.1f} min: summary of the run so far")
         if node.poll() is not None:
             print(f"error: the node exited with {node.returncode}", file=sys.stderr)
             return 1
@@ -307,7 +315,8 @@ def summarise(args: argparse.Namespace, soak: Soak, samples: list[dict]) -> int:
     map_growth = last["map_mb"] - base["map_mb"]
     bounded = rss_growth <= map_growth + args.slack_mb
     frames, problems = accounting(soak.published, d)
-    cut = [(c, k) for c, k in soak.scored if k < c]
+    # Records below the global floor score nothing (0 < k): not cut by the budget.
+    cut = [(c, k) for c, k in soak.scored if args.budget_ms > 0 and 0 < k < c]
     summary = {
         "minutes": args.minutes, "weights": args.weights, "vitb": args.vitb,
         "device": args.device, "precision": args.precision, "rate_hz": args.rate,
