@@ -33,7 +33,7 @@ import numpy as np
 from pair_vpr_ros.errors import MapError
 
 TRAIN_POINTS_PER_LIST = 50  # k-means sample per list (FAISS warns below 39); bounds train time
-KMEANS_ITERATIONS = 10  # FAISS's default 25 costs 2.5x for no recall gain measured
+KMEANS_ITERATIONS = 10  # FAISS's default 25 costs 2.5x the k-means time
 MOVE_CHUNK = 65536  # descriptors copied at a time when (re)building: peak = old + new index
 SMALL_ADD = 256  # adds of at most this many run on `search_threads` threads (see add)
 _log = logging.getLogger(__name__)
