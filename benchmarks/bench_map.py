@@ -103,7 +103,8 @@ def bench_size(n, descs, queries, args) -> list[dict]:
         rows += sweep(descs[:n], queries, exact, config, "ef_search", args.ef_search, args)
     for nlist in args.ivf_nlist:
         config = IndexConfig(kind="ivf", nlist=nlist, nprobe=args.nprobe[0],
-                             train_at=args.train_at, exact_below=0)  # fmt: skip
+                             train_at=args.train_at, retrain_growth=args.retrain_growth,
+                             exact_below=0)  # fmt: skip
         rows += sweep(descs[:n], queries, exact, config, "nprobe", args.nprobe, args)
     return rows
 
@@ -227,6 +228,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--nprobe", type=ints, default=[16, 32, 64], help="ivf lists searched")
     p.add_argument("--train-at", type=lambda v: int(float(v)), default=25_000,
                    help="ivf: exact search below this many keyframes, then trained")  # fmt: skip
+    p.add_argument("--retrain-growth", type=float, default=4.0,
+                   help="ivf: train again at this factor of growth (0: never)")  # fmt: skip
     p.add_argument("--exclude-recent", type=int, default=0, help="searches exclude the newest "
                    "N keyframes (max_id, a range selector, as the loop detector's recency "
                    "window); 0: no selector")  # fmt: skip

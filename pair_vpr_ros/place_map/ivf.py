@@ -12,7 +12,7 @@ descriptors, and the map grows one keyframe at a time, so the index goes through
   ... by default): trained again, so the lists follow the map (nlist 4 sqrt(n) grows with it).
 
 The training runs inside `add`, so that one add pauses the caller: measured with
-benchmarks/bench_map.py (README "Place map"); `last_training` and the log say how long it took.
+benchmarks/bench_map.py (README "Place map"); `last_training` and a logged warning say how long.
 Ids stay insertion positions: IVF adds number vectors ntotal, ntotal + 1, ... and a direct map
 (id -> list slot) keeps `reconstruct` working. Every list holds its ids in increasing order
 (vectors are always added in id order), which lets a range selector bisect each list.
@@ -133,9 +133,10 @@ class IvfIndex:
         new.add(extra)
         self.index = new
         self.last_training = Training(n, nlist, size, time.perf_counter() - t0)
-        _log.info(
-            "place map ivf index trained at %d keyframes: %d lists, k-means on %d, %.1f s",
-            n, nlist, size, self.last_training.seconds,
+        # A warning: the add that trained paused its caller (the node's frames) this long.
+        _log.warning(
+            "place map ivf index trained at %d keyframes: %d lists, k-means on %d; this add "
+            "paused %.1f s", n, nlist, size, self.last_training.seconds,
         )  # fmt: skip
         return self.last_training
 

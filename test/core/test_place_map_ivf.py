@@ -3,6 +3,7 @@ save/load before and after training, the training schedule, an add that fails wh
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import faiss
@@ -193,3 +194,13 @@ def test_single_adds_run_on_search_threads(monkeypatch) -> None:
         assert seen == [1] and faiss.omp_get_max_threads() == 3 and len(index) == 301
     finally:
         faiss.omp_set_num_threads(before)
+
+
+def test_training_is_logged_as_a_warning(caplog) -> None:
+    """The add that trains pauses its caller: a warning says how long (the node shows it)."""
+    index = DescriptorIndex(DIM, SMALL)
+    with caplog.at_level(logging.WARNING, logger="pair_vpr_ros.place_map.ivf"):
+        index.add(clustered(250))
+    assert "ivf index trained at 250 keyframes: 6 lists, k-means on 250; this add paused" in (
+        caplog.text
+    )
