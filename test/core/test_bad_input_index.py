@@ -127,3 +127,13 @@ def test_ivf_file_in_a_flat_map_is_refused(saved: Path) -> None:  # noqa: F811
         MapError, match=r"is a IndexIVFFlat of dim 8, but the manifest says 'flat'"
     ):
         PlaceMap.load(saved)
+
+
+def test_map_saved_before_ivf_existed_loads_with_defaults(saved: Path) -> None:  # noqa: F811
+    """Manifests written before the ivf fields existed hold none of them: defaults apply."""
+    _rewrite_manifest(
+        saved,
+        lambda m: [m["index"].pop(f) for f in ("nlist", "nprobe", "train_at", "retrain_growth")],
+    )
+    with PlaceMap.load(saved) as m:
+        assert m.index_config == IndexConfig() and len(m) == 12

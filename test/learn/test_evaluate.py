@@ -152,6 +152,8 @@ def test_cli_writes_table_and_json(tmp_path: Path, capsys: pytest.CaptureFixture
         "0",
         "--device",
         "cpu",
+        "--index",
+        "ivf",  # exact below 25,000 images, as flat
     ]
     assert main(argv) == 0
     table = capsys.readouterr().out.splitlines()
