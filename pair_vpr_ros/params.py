@@ -61,7 +61,12 @@ PARAMS: tuple[ParamSpec, ...] = (
        "or GPU); fp16 (autocast, GPU only)", choices=("fp32", "int8", "bf16", "fp16"), **RO),
     _p("backend", "torch", "inference runtime: torch (the reference); openvino (CPU only, "
        "optional package: pip install 'pair_vpr_ros[openvino]'; precision fp32, bf16 or int8 "
-       "= static int8 calibrated at start-up)", choices=("torch", "openvino"), **RO),
+       "= static int8 calibrated at the first start, see openvino_cache_dir)",
+       choices=("torch", "openvino"), **RO),
+    _p("openvino_cache_dir", "auto", "backend openvino: folder that keeps the converted (int8: "
+       "quantized) model, so later starts skip export and calibration; auto = "
+       "$XDG_CACHE_HOME/pair_vpr_ros/openvino (default ~/.cache/pair_vpr_ros/openvino); '' = no "
+       "cache", **RO),
     _p("image_size", 0, "network input side in pixels, a multiple of 14; 0: the checkpoint's",
        0, 1022, **RO),
     _p("index", "flat", "map index: flat (exact), ivf (exact below 25,000 keyframes, then k-means "

@@ -139,10 +139,13 @@ def load_model(
     explicit_name: str = "--weights",
     params_rule: bool = True,
     backend: str = "torch",
+    openvino_cache_dir: str | os.PathLike | None = "auto",
 ) -> PairVPRModel:
     """The network to run -> ``PairVPR`` in eval mode on ``device`` (int8: a quantized CPU copy),
     or with ``backend`` openvino the same weights compiled by OpenVINO for the CPU
-    (``OpenVINOModel``: fp32, bf16, or int8 calibrated on synthetic scenes).
+    (``OpenVINOModel``: fp32, bf16, or int8 calibrated on synthetic scenes), its converted graphs
+    kept in ``openvino_cache_dir`` for the next start (``auto``: the per-user cache folder;
+    '' or None: no cache; ``model/openvino_cache.py``).
 
     ``weights`` (else the other places: ``resolve_weights`` and its options; or what it
     returned) is a checkpoint path or ``random-<preset>`` (e.g. ``random-tiny``: a tiny random
@@ -169,6 +172,7 @@ def load_model(
             raise CheckpointError(f"{err} (weights from {found.origin})") from err
     if backend == "openvino":
         from pair_vpr_ros.model.openvino_backend import OpenVINOModel  # optional dependency
+        from pair_vpr_ros.model.openvino_cache import resolve_cache_dir
 
-        return OpenVINOModel(model, precision)
+        return OpenVINOModel(model, precision, cache_dir=resolve_cache_dir(openvino_cache_dir))
     return quantize_int8(model) if precision == "int8" else model

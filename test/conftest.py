@@ -25,6 +25,20 @@ os.environ.pop("PAIRVPR_WEIGHTS", None)
 os.environ["XDG_DATA_HOME"] = str(Path(__file__).resolve().parent / "no-user-data")
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _user_cache(tmp_path_factory):
+    """The OpenVINO back end keeps converted models in $XDG_CACHE_HOME/pair_vpr_ros/ (the node's
+    and the replay's default): the tests' go to a temporary folder, never the user's ~/.cache
+    (also in the node processes the tests start, which inherit the environment)."""
+    before = os.environ.get("XDG_CACHE_HOME")
+    os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("xdg-cache"))
+    yield
+    if before is None:
+        os.environ.pop("XDG_CACHE_HOME", None)
+    else:
+        os.environ["XDG_CACHE_HOME"] = before
+
+
 @pytest.fixture(scope="session")
 def tiny_model():
     """The tiny random-init network (seed 0) that core, ros, offline and learn tests run.

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import os
+from pathlib import Path
 from types import ModuleType
 
 import numpy as np
@@ -27,6 +29,7 @@ from pair_vpr_ros.model.calibration import synthetic_calibration
 from pair_vpr_ros.model.config import ModelConfig
 from pair_vpr_ros.model.export import Graphs, example_inputs, export_graphs
 from pair_vpr_ros.model.network import PairVPR, fingerprint
+from pair_vpr_ros.model.openvino_cache import CacheEntry, entry_parts, shared_core
 
 PRECISIONS = ("fp32", "bf16", "int8")
 PACKAGES = {"fp32": ("openvino",), "bf16": ("openvino",), "int8": ("openvino", "nncf")}
@@ -65,9 +68,12 @@ class OpenVINOModel:
         precision: str = "fp32",
         calibration: Tensor | None = None,
         chunk: int = 2,
+        cache_dir: str | os.PathLike | None = None,
     ) -> None:
         """`model`: the torch network to compile; `calibration` [B,3,S,S] preprocessed images for
-        int8 (default: `CALIBRATION_IMAGES` synthetic scenes)."""
+        int8 (default: `CALIBRATION_IMAGES` synthetic scenes); `cache_dir`: a folder that keeps
+        the converted (int8: quantized) graphs for the next start (`openvino_cache.py`; None:
+        no cache). `from_cache` says whether they came from there."""
         if precision not in PRECISIONS:
             raise ConfigError(
                 f"backend openvino runs precision {', '.join(PRECISIONS)}, not {precision!r}"
@@ -80,21 +86,47 @@ class OpenVINOModel:
         self._fingerprint = fingerprint(model.weights_id + suffix, model.config)
         self.precision = precision
         self.chunk_size = chunk
-        graphs = export_graphs(model, chunk)
-        converted = convert(ov, graphs, model)
-        if precision == "int8":
-            if calibration is None:
-                calibration = synthetic_calibration(CALIBRATION_IMAGES, model.config.image_size)
-            converted = quantize(converted, model, calibration, chunk)
+        if precision == "int8" and calibration is None:
+            calibration = synthetic_calibration(CALIBRATION_IMAGES, model.config.image_size)
+        self.from_cache = False
+        self.cache_path: Path | None = None
+        converted = self._graphs(ov, model, calibration, cache_dir)
         # int8 runs its float layers in f32: as fast as in bf16 here (0.18x vs 0.19x encode),
         # and the logits do not get bf16's 8-bit mantissa.
         hint = {"INFERENCE_PRECISION_HINT": "f32"} if precision != "bf16" else {}
         config = {**hint, "INFERENCE_NUM_THREADS": torch.get_num_threads()}
-        core = ov.Core()
+        core = shared_core(ov)
         self._requests = {
             name: core.compile_model(graph, "CPU", config).create_infer_request()
             for name, graph in converted.items()
         }
+
+    def _graphs(
+        self, ov: ModuleType, model: PairVPR, calibration: Tensor | None, cache_dir
+    ) -> dict:
+        """The OpenVINO graphs to compile: from the cache entry when it has them, else built
+        (and stored there)."""
+        entry, shapes = None, {}
+        if cache_dir is not None:
+            parts = entry_parts(model, self.precision, self.chunk_size, calibration)
+            entry = CacheEntry(cache_dir, parts)
+            self.cache_path = entry.path
+            shapes = {
+                name: [tuple(x.shape) for x in inputs]
+                for name, inputs in example_inputs(model, self.chunk_size).items()
+            }
+            converted = entry.load(ov, shapes)
+            if converted is not None:
+                self.from_cache = True
+                return converted
+        converted = convert(ov, export_graphs(model, self.chunk_size), model)
+        if self.precision == "int8":
+            converted = quantize(converted, model, calibration, self.chunk_size)
+        if entry is not None and entry.save(ov, converted):
+            # Compile what later starts will read: the first start then computes the same bits
+            # (a graph read back from IR compiles to kernels that differ by ~1e-8).
+            converted = entry.load(ov, shapes) or converted
+        return converted
 
     # ---- PairVPRModel --------------------------------------------------------------------
     @property

@@ -68,6 +68,7 @@ class ReplayOptions:
     device: str = "cpu"
     precision: str = "fp32"  # and backend: as the node's parameters
     backend: str = "torch"
+    openvino_cache_dir: str = "auto"  # '' = no cache
     write_bag: bool = False
     map_dir: str | Path | None = None
     save_map: bool = True
@@ -265,7 +266,10 @@ def replay_bag(
         truth = poses if chosen.gt == chosen.pose else _read_pose_topic(reader, summary, chosen.gt)
         bag_out = prepare_out(out, o.write_bag)
         if model is None:
-            model = load_model(weights, device=o.device, precision=o.precision, backend=o.backend)
+            model = load_model(
+                weights, device=o.device, precision=o.precision, backend=o.backend,
+                openvino_cache_dir=o.openvino_cache_dir,
+            )  # fmt: skip
         pipe = LoopClosurePipeline(model, config, geometry=geometry)
         summary.config = asdict(config)
         summary.model = pipe.model.fingerprint

@@ -28,7 +28,8 @@ from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
 from pair_vpr_ros.params import SPECS, detector_config, flag_help, flag_type, read_params_file
 from pair_vpr_ros.weights import resolve_weights
 
-NONE = "none"  # --pose-topic none / --map-dir none
+NONE = "none"  # --pose-topic none / --map-dir none / --openvino-cache-dir none
+RUNTIME = ("precision", "backend", "openvino_cache_dir")  # flags that mirror node parameters
 DEPTH_TOLERANCE = float_flag("a number of seconds in [0, 1]", lambda v: 0 <= v <= 1)
 
 POSITIVE_METRES = float_flag("a finite number of metres > 0", lambda v: v > 0)
@@ -109,6 +110,11 @@ def build_parser() -> argparse.ArgumentParser:
             help=flag_help(name) + f" (default: --params-file's, else {default})",
         )
     p.add_argument(
+        "--openvino-cache-dir",
+        metavar="DIR",
+        help=flag_help("openvino_cache_dir") + " or none (default: --params-file's, else auto)",
+    )
+    p.add_argument(
         "--batch-size",
         type=positive_int,
         default=8,
@@ -182,7 +188,7 @@ def _run(args: argparse.Namespace) -> int:
         "rerank_budget_ms": args.rerank_budget_ms,
     }
     overrides = {k: v for k, v in overrides.items() if v is not None}
-    max_pixels, runtime = MAX_PIXELS, {n: SPECS[n].default for n in ("precision", "backend")}
+    max_pixels, runtime = MAX_PIXELS, {n: SPECS[n].default for n in RUNTIME}
     if args.params_file is not None:
         values = read_params_file(args.params_file)
         config = detector_config(values).updated(**overrides)
@@ -190,7 +196,12 @@ def _run(args: argparse.Namespace) -> int:
         runtime = {name: values[name] for name in runtime}
     else:
         config = DetectorConfig(**overrides)
-    runtime = {name: getattr(args, name) or value for name, value in runtime.items()}
+    if args.openvino_cache_dir == NONE:
+        args.openvino_cache_dir = ""
+    runtime = {
+        name: value if getattr(args, name) is None else getattr(args, name)
+        for name, value in runtime.items()
+    }
     weights = resolve_weights(args.weights, args.params_file)
     options = ReplayOptions(
         topic=args.topic, pose_topic=args.pose_topic, gt_topic=args.gt_topic,

@@ -105,7 +105,7 @@ class VprNode(Node):
         model = load_model(
             v["weights"], device=device, precision=v["precision"], image_size=v["image_size"],
             explicit_name="parameter weights (-p weights:=PATH)", params_rule=False,
-            backend=v["backend"],
+            backend=v["backend"], openvino_cache_dir=v["openvino_cache_dir"],
         )  # fmt: skip
         # OpenVINO runs its own precision; torch autocast would only wrap the glue around it.
         autocast = v["precision"] if v["backend"] == "torch" else "fp32"

@@ -52,6 +52,14 @@ CASES = {
         section("backend: onnx").encode(),
         "backend='onnx' must be one of torch, openvino",
     ),
+    "cache dir number": (
+        section("openvino_cache_dir: 3").encode(),
+        "openvino_cache_dir must be a string, got 3",
+    ),
+    "cache dir bool": (
+        section("openvino_cache_dir: false").encode(),
+        "openvino_cache_dir must be a string, got False",
+    ),
     "image size": (section("image_size: 300").encode(), "image_size=300 must be 0 or a multiple"),
     "negative budget": (
         section("rerank_budget_ms: -1.0").encode(),

@@ -26,6 +26,7 @@ from rosbags.highlevel import AnyReader
 from pair_vpr_ros import loop_messages
 from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.model import save_pairvpr
+from pair_vpr_ros.offline import replay
 from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
 from pair_vpr_ros.offline.replay_cli import main
 from pair_vpr_ros.pipeline import LoopClosurePipeline
@@ -304,3 +305,35 @@ def test_weights_from_the_environment_and_nothing_else(tmp_path, weights, capsys
     summary = json.loads((tmp_path / "replay_out" / "summary.json").read_text())
     assert summary["frames"] == 17 and summary["model"].startswith("sha256:")
     assert (tmp_path / "replay_out" / "map").is_dir()
+
+
+@pytest.mark.parametrize(
+    "flags, in_params_file, want",
+    [
+        ([], None, "auto"),
+        (["--openvino-cache-dir", "none"], None, ""),
+        (["--openvino-cache-dir", "/ov"], None, "/ov"),
+        ([], "/from/file", "/from/file"),
+        (["--openvino-cache-dir", ""], "/from/file", ""),
+    ],
+)
+def test_cli_openvino_cache_dir(tmp_path, monkeypatch, tiny_model, flags, in_params_file, want):
+    """--openvino-cache-dir (else the parameter file's openvino_cache_dir, else auto) reaches
+    the model loader: 'none' or '' turn the cache off."""
+    seen = {}
+
+    def loader(weights, **kwargs):
+        seen.update(kwargs)
+        return tiny_model
+
+    monkeypatch.setattr(replay, "load_model", loader)
+    bag = write_rosbag2(tmp_path / "bag", revisit_world()[0][:2])
+    argv = [str(bag), "--weights", "random-tiny", "--out", str(tmp_path / "o"), "--quiet"]
+    if in_params_file is not None:
+        params = tmp_path / "p.yaml"
+        params.write_text(
+            f"/**:\n  ros__parameters:\n    openvino_cache_dir: '{in_params_file}'\n"
+        )
+        argv += ["--params-file", str(params)]
+    assert main([*argv, "--backend", "openvino", *flags]) == 0
+    assert seen["openvino_cache_dir"] == want and seen["backend"] == "openvino"
