@@ -175,10 +175,10 @@ class DescriptorIndex:
     def _search(
         self, query: np.ndarray, k: int, count: int, selector: faiss.IDSelector | None
     ) -> tuple[np.ndarray, np.ndarray]:
-        if self.config.kind == "flat":
-            sims, ids = self._flat_search(self._index, query, k, selector)
-        elif self._ivf is not None:
+        if self._ivf is not None and self._ivf.trained:
             sims, ids = self._ivf.search(query, k, count, selector)
+        elif self.config.kind != "hnsw":  # flat, and ivf before its first training
+            sims, ids = self._flat_search(self._index, query, k, selector)
         elif count <= self.config.exact_below:
             sims, ids = self._flat_search(self._storage(), query, k, selector)
         else:

@@ -144,12 +144,11 @@ class IvfIndex:
         self, query: np.ndarray, k: int, count: int, selector: faiss.IDSelector | None
     ) -> tuple[np.ndarray, np.ndarray]:
         """query [1, dim] -> (similarities [1, k], ids [1, k], -1 padded); `count` eligible ids.
+        Trained indexes only (before, DescriptorIndex searches the flat index as "flat" does).
 
         Probes `nprobe` lists; scans all of them (exact) when count <= exact_below or when the
         probed lists held fewer than k eligible ids (a selector that excludes most of them)."""
-        if not self.trained:
-            params = None if selector is None else faiss.SearchParameters(sel=selector)
-            return self.index.search(query, k, params=params)
+        assert self.trained, "an untrained ivf index is searched as a flat one"
         if isinstance(selector, faiss.IDSelectorRange):
             selector.assume_sorted = True  # ids rise within each list: bisect, not test each
         nlist = int(self.index.nlist)
