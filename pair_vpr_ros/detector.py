@@ -93,6 +93,11 @@ class LoopRecord:
     match_id: int
     match_stamp: float
     match_frame_id: str
+    # Who recorded each keyframe (identity.py); keyword-only so positional use stays as it was.
+    query_robot: str = field(default="", kw_only=True)
+    query_session: str = field(default="", kw_only=True)
+    match_robot: str = field(default="", kw_only=True)
+    match_session: str = field(default="", kw_only=True)
     pair_score: float  # NaN when re-ranking was skipped
     global_similarity: float
     rank_before: int  # 1-based rank of the match in the global (FAISS) list
@@ -137,6 +142,14 @@ class Candidate:
     global_similarity: float
     rank_before: int
     pair_score: float = float("nan")
+    robot: str = ""  # who recorded it (identity.py)
+    session: str = ""
+    prior: int = -1  # -1: the live map; i >= 0: the pipeline's i-th prior map (read-only)
+
+    @property
+    def group(self) -> tuple[int, str, str]:
+        """(map, robot, session): ids are comparable only within one group."""
+        return self.prior, self.robot, self.session
 
 
 def rank_by_pair_score(candidates: list[Candidate], scores: np.ndarray) -> list[Candidate]:
@@ -148,7 +161,7 @@ def rank_by_pair_score(candidates: list[Candidate], scores: np.ndarray) -> list[
     return sorted(candidates, key=lambda c: (-c.pair_score, c.rank_before))
 
 
-Verifier = Callable[[int], tuple[int, float]]  # match id -> (inliers, inlier ratio)
+Verifier = Callable[[Candidate], tuple[int, float]]  # match -> (inliers, inlier ratio)
 
 
 @dataclass
@@ -159,7 +172,7 @@ class LoopDetector:
     clock: Callable[[], float] = time.perf_counter  # s, for the re-rank budget (tests fake it)
 
     def __post_init__(self) -> None:
-        self._recent_matches: deque[int] = deque(maxlen=self.config.temporal_consistency)
+        self._recent_matches: deque[tuple] = deque(maxlen=self.config.temporal_consistency)
 
     def reset(self) -> None:
         self._recent_matches.clear()
@@ -183,34 +196,36 @@ class LoopDetector:
         verify: Verifier | None = None,
         step: int = 2,
         first: int = 1,
+        query_identity: tuple[str, str] = ("", ""),
     ) -> LoopRecord | None:
         """Re-rank `candidates` (global order) and accept or reject the best one. `rerank`
         scores a list of candidates ([k] scores); with a budget it is called for the first
-        `first`, then `step` at a time."""
+        `first`, then `step` at a time. `query_identity`: (robot, session) of the query."""
         if not candidates:
             self._recent_matches.clear()
             return None
         c = self.config
+        query = (query_stamp, query_frame_id, *query_identity)
         best_global = candidates[0]
         if best_global.global_similarity < c.global_floor:
             self._recent_matches.clear()
-            record = self._record(query_stamp, query_frame_id, best_global, "below global floor")
+            record = self._record(*query, best_global, "below global floor")
             record.candidates = len(candidates)
             return record
         scored = self.score(candidates, rerank, step, first)
         best = scored[0]
         reason = "" if best.pair_score >= c.score_threshold else "score below threshold"
-        record = self._record(query_stamp, query_frame_id, best, reason)
+        record = self._record(*query, best, reason)
         record.candidates, record.scored = len(candidates), len(scored)
         if reason:
             self._recent_matches.clear()
             return record
-        if not self._temporally_consistent(best.id):
+        if not self._temporally_consistent(best):
             seen = len(self._recent_matches)
             record.reason = f"awaiting temporal consistency ({seen}/{c.temporal_consistency})"
             return record
         if c.geometric_verification and verify is not None:
-            record.inliers, record.inlier_ratio = verify(best.id)
+            record.inliers, record.inlier_ratio = verify(best)
             if record.inliers < 0:
                 record.reason = "geometric verification impossible (no features for the match)"
                 return record
@@ -249,15 +264,21 @@ class LoopDetector:
             done += size
         return rank_by_pair_score(candidates[:done], np.concatenate(parts))
 
-    def _temporally_consistent(self, match_id: int) -> bool:
+    def _temporally_consistent(self, match: Candidate) -> bool:
+        """Agreeing: matches of one map, robot and session whose ids lie within
+        `temporal_tolerance` (ids of different robots or sessions say nothing about place)."""
         recent = self._recent_matches
-        if recent and abs(match_id - recent[-1]) > self.config.temporal_tolerance:
-            recent.clear()
-        recent.append(match_id)
+        if recent:
+            group, last = recent[-1]
+            if group != match.group or abs(match.id - last) > self.config.temporal_tolerance:
+                recent.clear()
+        recent.append((match.group, match.id))
         return len(recent) >= self.config.temporal_consistency
 
     @staticmethod
-    def _record(stamp: float, frame_id: str, cand: Candidate, reason: str) -> LoopRecord:
+    def _record(
+        stamp: float, frame_id: str, robot: str, session: str, cand: Candidate, reason: str
+    ) -> LoopRecord:
         """The record of `cand` as the best candidate (rank 1 after re-ranking)."""
         return LoopRecord(
             query_id=-1,
@@ -266,6 +287,10 @@ class LoopDetector:
             match_id=cand.id,
             match_stamp=cand.stamp,
             match_frame_id=cand.frame_id,
+            query_robot=robot,
+            query_session=session,
+            match_robot=cand.robot,
+            match_session=cand.session,
             pair_score=cand.pair_score,
             global_similarity=cand.global_similarity,
             rank_before=cand.rank_before,

@@ -26,6 +26,13 @@ twist.covariance                all zeros
 
 A consumer adds ``BetweenFactor(X(match), X(query), T_match_query, covariance)`` after moving it
 from the camera frame to its body frame (camera extrinsics).
+
+Robot and session of both keyframes (``LoopFactor.query_robot`` ... ``match_session``, issue 22)
+are NOT in this encoding: ``nav_msgs/Odometry`` has two strings, both taken by the frame ids,
+and packing text into the float fields would break its readers. A factor decoded from this
+message names "" for all four (the single robot and session of the old format); the JSON,
+CSV, ``loops.json`` and the detail topic carry them, and the typed ``LoopClosure`` message
+(issue 22 part 2) carries them as string fields.
 """
 
 from __future__ import annotations
@@ -55,6 +62,7 @@ FACTOR_MSG_TYPES = (  # every message type `factor_msg` constructs
     FACTOR_TYPE,
 )
 STATUS_CODES = {"metric": 1.0, "scale-free": 2.0, "metric-odometry": 3.0}
+IDENTITY = ("query_robot", "query_session", "match_robot", "match_session")
 
 
 @dataclass(frozen=True)
@@ -74,6 +82,11 @@ class LoopFactor:
     match_id: int = -1
     # metric, but the length comes from the odometry next to the match keyframe, not from depth
     scale_from_odometry: bool = False
+    # who recorded each keyframe ("": the single robot and session of the old format)
+    query_robot: str = ""
+    query_session: str = ""
+    match_robot: str = ""
+    match_session: str = ""
 
     def matrix(self) -> np.ndarray:
         """[4, 4] homogeneous T_match_query (maps query-camera points into the match camera)."""
@@ -101,6 +114,12 @@ def _get(record: Any, name: str) -> Any:
     return record[name] if isinstance(record, Mapping) else getattr(record, name)
 
 
+def _text(record: Any, name: str) -> str:
+    """A text field that older records (loops.json / loops.csv before issue 22) lack: ""."""
+    value = record.get(name) if isinstance(record, Mapping) else getattr(record, name, "")
+    return "" if value is None else str(value)
+
+
 def factor_from_record(record: Any) -> LoopFactor | None:
     """The factor of a ``LoopRecord`` (or its ``record_dict`` / JSON object); None when the
     record has no relative pose (not accepted, or the geometry failed)."""
@@ -123,6 +142,7 @@ def factor_from_record(record: Any) -> LoopFactor | None:
         query_id=int(_get(record, "query_id")),
         match_id=int(_get(record, "match_id")),
         scale_from_odometry=status == "metric-odometry",
+        **{name: _text(record, name) for name in IDENTITY},
     )
 
 

@@ -8,9 +8,11 @@ both publish identical data; the pose-graph tools decode them here too. One acce
     ``data = [t_current, t_previous]``: exactly 2 float64, the query and match keyframes' image
     header stamps in seconds. ``layout`` is empty. LIO-SAM listens on
     ``lio_loop/loop_closure_detection``: remap this topic there. Every accepted loop, with or
-    without a relative pose, whose match is older than the query (``t_previous < t_current``);
-    a loop to a keyframe stamped later (a map from another clock, a bag played again) has no
-    pair message (``pair`` None): LIO-SAM would take it for a loop into its future.
+    without a relative pose, whose match is older than the query (``t_previous < t_current``)
+    and of the same robot and session; a loop to a keyframe stamped later (a map from another
+    clock, a bag played again) or recorded by another robot or in another session (a prior
+    map) has no pair message (``pair`` None): LIO-SAM would take it for a loop into its own
+    trajectory at ``t_previous``.
 
 ``loop_closure/detail`` — ``std_msgs/Float64MultiArray``, every numeric field of the record,
     one value per field, labelled: ``DETAIL_LABELS`` = ``NUMERIC_FIELDS`` (query_id,
@@ -18,7 +20,9 @@ both publish identical data; the pose-graph tools decode them here too. One acce
     candidates, scored, inliers, inlier_ratio, accepted, pose_inliers, tx, ty, tz, qx, qy, qz,
     qw), then ``pose_status`` (0 no pose, 1 metric, 2 scale-free, 3 metric with the length from
     odometry), then the covariance ``cov_00`` .. ``cov_55`` (row, column in x, y, z, rx, ry, rz
-    order; NaN without a pose).
+    order; NaN without a pose), then four text fields carried by their labels, each
+    ``<field>=<text>`` with the value NaN: ``query_robot``, ``query_session``, ``match_robot``,
+    ``match_session`` (``detail_text``).
     ``layout.dim`` has one ``MultiArrayDimension(label=<name>, size=1, stride=1)`` per value,
     ``layout.data_offset = 0``: look values up by label (``detail_to_dict``).
 
@@ -62,6 +66,10 @@ LOOP_RECORD_FIELDS = (
     "match_id",
     "match_stamp",
     "match_frame_id",
+    "query_robot",
+    "query_session",
+    "match_robot",
+    "match_session",
     "pair_score",
     "global_similarity",
     "rank_before",
@@ -84,7 +92,10 @@ LOOP_RECORD_FIELDS = (
     "qw",
     "covariance",
 )
-TEXT_FIELDS = ("query_frame_id", "match_frame_id", "reason", "pose_status", "pose_reason")
+IDENTITY_FIELDS = ("query_robot", "query_session", "match_robot", "match_session")
+TEXT_FIELDS = (
+    "query_frame_id", "match_frame_id", *IDENTITY_FIELDS, "reason", "pose_status", "pose_reason",
+)  # fmt: skip
 POSE_AXES = ("x", "y", "z", "rx", "ry", "rz")  # ROS PoseWithCovariance order
 NUMERIC_FIELDS = tuple(f for f in LOOP_RECORD_FIELDS if f not in (*TEXT_FIELDS, "covariance"))
 COVARIANCE_LABELS = tuple(f"cov_{r}{c}" for r in range(6) for c in range(6))
@@ -93,6 +104,7 @@ POSE_STATUS_CODES = {"": 0, "metric": 1, "scale-free": 2, "metric-odometry": 3}
 
 __all__ = [
     "DETAIL_LABELS",
+    "IDENTITY_FIELDS",
     "FACTOR_MSG_TYPES",
     "FACTOR_TOPIC",
     "FACTOR_TYPE",
@@ -116,11 +128,22 @@ class LoopMessages:
     factor: LoopFactor | None = None
 
 
+def identity(record: Any) -> dict[str, str]:
+    """The record's robot and session of both sides ("" when it has none: the old format)."""
+    return {name: str(getattr(record, name, "") or "") for name in IDENTITY_FIELDS}
+
+
+def same_session(record: Any) -> bool:
+    """Are query and match of the same robot and session (so on one clock and trajectory)?"""
+    who = identity(record)
+    return (who["query_robot"], who["query_session"]) == (who["match_robot"], who["match_session"])
+
+
 def pair_data(record: Any) -> list[float] | None:
     """``[t_current, t_previous]``: the query and match header stamps, s (LIO-SAM layout);
-    None unless ``t_previous < t_current``."""
+    None unless ``t_previous < t_current`` and both are of one robot and session."""
     current, previous = float(record.query_stamp), float(record.match_stamp)
-    return [current, previous] if previous < current else None
+    return [current, previous] if previous < current and same_session(record) else None
 
 
 def covariance_values(record: Any) -> list[float]:
@@ -130,10 +153,16 @@ def covariance_values(record: Any) -> list[float]:
 
 
 def detail_data(record: Any) -> list[float]:
-    """Values in ``DETAIL_LABELS`` order, booleans as 1.0 / 0.0."""
+    """Values in ``detail_labels(record)`` order, booleans as 1.0 / 0.0; the identity
+    fields (text in their labels) NaN."""
     values = [float(getattr(record, name)) for name in NUMERIC_FIELDS]
     values.append(float(POSE_STATUS_CODES.get(record.pose_status, 0)))
-    return values + covariance_values(record)
+    return values + covariance_values(record) + [math.nan] * len(IDENTITY_FIELDS)
+
+
+def detail_labels(record: Any) -> tuple[str, ...]:
+    """``DETAIL_LABELS``, then ``<field>=<text>`` for each of ``IDENTITY_FIELDS``."""
+    return (*DETAIL_LABELS, *(f"{k}={v}" for k, v in identity(record).items()))
 
 
 def _json_value(value: Any) -> Any:
@@ -155,6 +184,8 @@ def record_dict(record: Any) -> dict[str, Any]:
         if name == "covariance":
             cov = tuple(getattr(record, name) or ())
             out[name] = [_json_value(v) for v in cov] if len(cov) == 36 else None
+        elif name in IDENTITY_FIELDS:
+            out[name] = identity(record)[name]
         else:
             out[name] = _json_value(getattr(record, name))
     return out
@@ -170,7 +201,7 @@ def csv_row(record: Any) -> list[Any]:
     space-separated numbers (empty without a pose)."""
     row = []
     for name in LOOP_RECORD_FIELDS:
-        value = getattr(record, name)
+        value = identity(record)[name] if name in IDENTITY_FIELDS else getattr(record, name)
         if name == "covariance":
             value = " ".join(repr(float(v)) for v in value) if len(value) == 36 else ""
         row.append(value)
@@ -181,7 +212,7 @@ def loop_messages(record: Any) -> LoopMessages:
     """All payloads of one loop closure."""
     return LoopMessages(
         pair=pair_data(record),
-        detail_labels=DETAIL_LABELS,
+        detail_labels=detail_labels(record),
         detail=detail_data(record),
         json=record_json(record),
         factor=factor_from_record(record),
@@ -189,7 +220,15 @@ def loop_messages(record: Any) -> LoopMessages:
 
 
 def detail_to_dict(labels: list[str] | tuple[str, ...], data: Any) -> dict[str, float]:
-    """Decode a detail message: ``{label: value}`` from its dimension labels and data."""
+    """Decode a detail message: ``{label: value}`` of its numeric values from its dimension
+    labels and data (the text fields: ``detail_text``)."""
     if len(labels) != len(data):
         raise ValueError(f"detail message has {len(labels)} labels but {len(data)} values")
-    return {label: float(value) for label, value in zip(labels, data, strict=True)}
+    pairs = zip(labels, data, strict=True)
+    return {label: float(value) for label, value in pairs if "=" not in label}
+
+
+def detail_text(labels: list[str] | tuple[str, ...]) -> dict[str, str]:
+    """The text fields of a detail message, ``{field: text}`` (the identity; {} from a node
+    older than issue 22)."""
+    return dict(label.split("=", 1) for label in labels if "=" in label)

@@ -22,10 +22,12 @@ import yaml
 from pair_vpr_ros.detector import DetectorConfig, preset
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
+from pair_vpr_ros.identity import DEFAULT_ROBOT, RULE, name_problem
 from pair_vpr_ros.imaging import MAX_PIXELS
 from pair_vpr_ros.model.config import PATCH
 
-Value = bool | int | float | str | tuple[float, ...]  # a tuple default: a fixed-size double array
+# A tuple default: a fixed-size double array, or (ParamSpec.strings) a string array of any size.
+Value = bool | int | float | str | tuple[float, ...] | tuple[str, ...]
 INSTALLED_CONFIG = "$(ros2 pkg prefix pair_vpr_ros)/share/pair_vpr_ros/config/vpr_node.yaml"
 RANDOM_TINY = "random-tiny"  # test-only weights value: a tiny random network (finds nothing real)
 TYPE_NAMES = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
@@ -42,6 +44,7 @@ class ParamSpec:
     high: float | None = None
     choices: tuple[str, ...] = ()
     read_only: bool = False
+    strings: bool = False  # a string array (default ()): ROS STRING_ARRAY
 
 
 def _p(name: str, default: Value, description: str, *bounds: float, **kw: Any) -> ParamSpec:
@@ -109,6 +112,15 @@ PARAMS: tuple[ParamSpec, ...] = (
     _p("autosave_period", 0.0, "seconds between saves of a changed map to map_dir (0 = off)",
        0.0, 86400.0, **RO),
     _p("load_map_on_start", False, "load the map in map_dir at start-up (empty if none yet)",
+       **RO),
+    # ---- identity and prior maps (start-up only; docs/fleet.md)
+    _p("robot_id", "", "robot of every keyframe and loop ('' = the node's namespace without "
+       f"slashes, else '{DEFAULT_ROBOT}'); {RULE}", **RO),
+    _p("session_id", "", "session of every keyframe and loop ('' = the start time, UTC, "
+       f"YYYYMMDDTHHMMSSZ); {RULE}; must not name a session of this robot in a prior map",
+       **RO),
+    _p("prior_map_dirs", (), "saved place maps loaded read-only at start-up and searched with "
+       "the live map (e.g. earlier sessions or other robots); never written", strings=True,
        **RO),
     # ---- run time
     _p("save_on_shutdown", False, "save the map to map_dir when the node stops"),
@@ -178,6 +190,8 @@ def check_value(name: str, value: Any, specs: Mapping[str, ParamSpec] | None = N
     spec = (SPECS if specs is None else specs).get(name)
     if spec is None:
         return f"unknown parameter {name!r}"
+    if spec.strings:
+        return _check_strings(name, value)
     if isinstance(spec.default, tuple):
         return _check_array(name, value, len(spec.default))
     kind = type(spec.default)
@@ -194,6 +208,8 @@ def check_value(name: str, value: Any, specs: Mapping[str, ParamSpec] | None = N
         return f"{name}={value!r} must be one of {', '.join(spec.choices)}"
     if name == "image_size" and value % PATCH:
         return f"image_size={value} must be 0 or a multiple of {PATCH} (e.g. 224, 322)"
+    if name in ("robot_id", "session_id") and value:
+        return name_problem(name, value)
     if name == "camera_distortion":
         try:
             [float(x) for x in value.replace(",", " ").split()]
@@ -228,6 +244,12 @@ def flag_help(name: str) -> str:
     spec = SPECS[name]
     bounds = f" [{spec.low:g}, {spec.high:g}]" if spec.low is not None else ""
     return f"{spec.description}{bounds}".replace("%", "%%")
+
+
+def _check_strings(name: str, value: Any) -> str | None:
+    if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) and v for v in value):
+        return f"{name} must be a list of non-empty strings, got {value!r}"
+    return None
 
 
 def _check_array(name: str, value: Any, size: int) -> str | None:
@@ -335,11 +357,15 @@ def read_params_file(
                 f"mapping of parameter names to values ({layout})"
             )
         for name, value in given.items():
+            if name in specs and specs[name].strings and value is None:
+                value = ()  # `name: []` in YAML (rcl reads it as unset: the default, empty)
             reason = check_value(name, value, specs)
             if reason is not None:
                 raise ConfigError(f"parameter file {path}: {reason}")
             default = specs[name].default
-            if isinstance(default, tuple):
+            if specs[name].strings:
+                value = tuple(value)
+            elif isinstance(default, tuple):
                 value = tuple(float(v) for v in value)
             values[name] = float(value) if isinstance(default, float) else value
     return values
@@ -347,7 +373,8 @@ def read_params_file(
 
 def _yaml_scalar(value: Value) -> str:
     if isinstance(value, tuple):
-        return "[" + ", ".join(repr(float(v)) for v in value) + "]"
+        items = (f'"{v}"' if isinstance(v, str) else repr(float(v)) for v in value)
+        return "[" + ", ".join(items) + "]"
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, str):

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable, Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -29,10 +29,14 @@ from pair_vpr_ros.geometry.camera import CameraModel
 from pair_vpr_ros.geometry.features import Features
 from pair_vpr_ros.geometry.keyframes import GeometryConfig, KeyframeGeometry
 from pair_vpr_ros.geometry.odometry_scale import Neighbour
+from pair_vpr_ros.identity import LEGACY_SESSION, Identity
+from pair_vpr_ros.map_search import MapSearch
 from pair_vpr_ros.model import PairVPRModel, preprocess_batch
 from pair_vpr_ros.model.decoder import default_chunk
 from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
-from pair_vpr_ros.recency import ClockWatch, StampBuffer
+from pair_vpr_ros.prior_maps import refuse_prior_target
+from pair_vpr_ros.recency import ClockWatch
+from pair_vpr_ros.scoring import dense_pair_scores, encode_for_map, map_pair_scores
 from pair_vpr_ros.types import Pose
 
 
@@ -105,14 +109,22 @@ class LoopClosurePipeline:
         index: str = "flat",
         rerank_chunk: int | None = None,
         geometry: GeometryConfig | None = None,
+        *,
+        identity: Identity | None = None,
+        prior_maps: list[PlaceMap] | None = None,
     ) -> None:
+        """identity: the robot and session of every frame (default `Identity()`). prior_maps:
+        read-only maps searched with the live one (`map_search`); the pipeline closes them."""
         self.model = model
         self.detector = LoopDetector(config or DetectorConfig())
         self.index_kind = index
         self.rerank_chunk = rerank_chunk
+        self.identity = identity or Identity()
         self._place_map = place_map if place_map is not None else self._new_map()
-        self._check_fingerprint(self._place_map)
-        self._stamps = StampBuffer()  # keyframe stamps by id, for recent-frame exclusion
+        for checked in (self._place_map, *(prior_maps or ())):
+            self._check_fingerprint(checked)
+        # every map's stamps by robot-session, for recent-frame exclusion
+        self.maps = MapSearch(self._place_map, prior_maps or ())
         self._clock = ClockWatch()
         self._jump_s = 0.0  # a clock jump not yet reported in an outcome
         self._last_encoded: float | None = None
@@ -165,7 +177,7 @@ class LoopClosurePipeline:
         return cfg.desc_dim, (self.model.num_patches, cfg.embed_dim)
 
     def _reset_tracking(self) -> None:
-        self._stamps = StampBuffer(m.stamp for m in self._place_map.all_meta())
+        self.maps.reset(self._place_map)
         self._clock.reset()
         self._new_session()
 
@@ -177,6 +189,7 @@ class LoopClosurePipeline:
         self.detector.reset()
 
     def save_map(self, directory: str | Path) -> Path:
+        refuse_prior_target(directory, self.maps.priors)  # a prior map is never written
         return self._place_map.save(directory)
 
     def load_map(self, directory: str | Path) -> int:
@@ -184,13 +197,17 @@ class LoopClosurePipeline:
 
         Reloading the folder the current map was saved to discards its unsaved keyframes (the
         folder is locked by the current map, so that one is closed first)."""
+        refuse_prior_target(directory, self.maps.priors)  # it is searched already, read-only
         current = self._place_map
         same = current.directory is not None and current.directory == Path(directory).resolve()
         if same:
             current.close()
         loaded = None
         try:
-            loaded = PlaceMap.load(directory, expected_fingerprint=self.model.fingerprint)
+            loaded = PlaceMap.load(
+                directory, expected_fingerprint=self.model.fingerprint,
+                legacy_identity=(self.identity.robot, LEGACY_SESSION),
+            )  # fmt: skip
             self._check_fingerprint(loaded)
         except Exception:
             if loaded is not None:
@@ -211,6 +228,7 @@ class LoopClosurePipeline:
 
     def close(self) -> None:
         self._place_map.close()
+        self.maps.close_priors()
 
     # ---- processing ------------------------------------------------------------------------
     def due(self, stamp: float) -> bool:
@@ -290,16 +308,19 @@ class LoopClosurePipeline:
         outcome.loop = self._query(frame, dense, desc, outcome, features)
         loop = outcome.loop
         if loop is not None and loop.accepted and self.geometry.config.relative_pose:
-            match = self._stored_features(loop.match_id)
-            near = self._scale_neighbours(loop.match_id)
+            best = match_candidate(outcome)
+            match = self._stored_features(best)
+            near = self._scale_neighbours(best)
             outcome.timings_ms["pose"] = self.geometry.pose(loop, features, match, near)
         if self.config.mode == "mapping":
+            who = self.identity
             meta = KeyframeMeta(
-                stamp=frame.stamp, frame_id=frame.frame_id, pose=frame.pose, source=frame.source
-            )
+                stamp=frame.stamp, frame_id=frame.frame_id, pose=frame.pose, source=frame.source,
+                robot=who.robot, session=who.session,
+            )  # fmt: skip
             packed = self.geometry.pack(features)
             outcome.keyframe_id = self._place_map.add(desc, dense, meta, packed)
-            self._stamps.append(frame.stamp)
+            self.maps.added(replace(meta, id=outcome.keyframe_id))
             if outcome.loop is not None:
                 outcome.loop.query_id = outcome.keyframe_id
         self._last_desc = desc
@@ -311,63 +332,65 @@ class LoopClosurePipeline:
         return outcome
 
     def _query(self, frame: Frame, dense, desc, outcome: FrameOutcome, features: Features | None):
-        c = self.config
-        allowed = self._stamps.eligible(
-            frame.stamp, c.exclude_recent_s, c.exclude_recent_keyframes
-        )
-        if allowed is None:
-            return None
         timings = outcome.timings_ms
         t0 = time.perf_counter()
-        if isinstance(allowed, int):  # ids below it: a prefix
-            hits = self._place_map.search(desc, c.top_k, max_id=allowed - 1)
-        else:
-            hits = self._place_map.search(desc, c.top_k, allowed=allowed)
+        found = self.maps.search(desc, frame.stamp, self.identity, self.config)
+        if found is None:
+            return None
         timings["search"] = (time.perf_counter() - t0) * 1e3
-        outcome.candidates = candidates = [
-            self._candidate(kf_id, sim, rank) for rank, (kf_id, sim) in enumerate(hits, start=1)
-        ]
+        outcome.candidates = candidates = found
 
         def rerank(cands: list[Candidate]) -> np.ndarray:  # called once per step with a budget
             t1 = time.perf_counter()
-            scores = self.pair_scores(dense, [c.id for c in cands])
+            if all(c.prior < 0 for c in cands):  # the live map only: as before prior maps
+                scores = self.pair_scores(dense, [c.id for c in cands])
+            else:  # each candidate scored with its own map's dense tokens
+                stored = self.maps.dense(cands)
+                scores = dense_pair_scores(self.model, dense, stored, self.rerank_chunk)
             timings["rerank"] = timings.get("rerank", 0.0) + (time.perf_counter() - t1) * 1e3
             return scores
 
-        def verify(match_id: int) -> tuple[int, float]:
-            return self.geometry.verify(features, self._stored_features(match_id))
+        def verify(match: Candidate) -> tuple[int, float]:
+            return self.geometry.verify(features, self._stored_features(match))
 
         # A back end compiled for a fixed chunk (OpenVINO) pads shorter calls: whole chunks.
         fixed = getattr(self.model, "chunk_size", None)
         step = fixed or self.rerank_chunk or default_chunk(torch.device(self.model.device))
         record = self.detector.decide(
-            frame.stamp, frame.frame_id, candidates, rerank, verify, step=step, first=fixed or 1
-        )
+            frame.stamp, frame.frame_id, candidates, rerank, verify, step=step, first=fixed or 1,
+            query_identity=(self.identity.robot, self.identity.session),
+        )  # fmt: skip
         if record is not None:
             self.counts.candidates_scored += record.scored
             self.counts.rerank_budget_cut += int(0 < record.scored < record.candidates)
         return record
 
-    def _stored_features(self, kf_id: int) -> Features | None:
-        return self.geometry.unpack(self._place_map.features(kf_id))
+    def _stored_features(self, match: Candidate) -> Features | None:
+        return self.geometry.unpack(self.maps.map_of(match).features(match.id))
 
-    def _scale_neighbours(self, match_id: int) -> list[Neighbour]:
-        """Map keyframes next to the match (by id: recorded just before or after it) with an
-        odometry baseline, for the scale of a monocular loop."""
-        span = self.geometry.config.pose.scale_neighbours
-        ids = [i for i in range(match_id - span, match_id + span + 1)
-               if i != match_id and 0 <= i < len(self._place_map)]  # fmt: skip
-        near = [self._place_map.meta(i) for i in ids]
-        meta = self._place_map.meta(match_id)
-        return self.geometry.neighbours(meta, near, self._stored_features)
+    def _scale_neighbours(self, match: Candidate) -> list[Neighbour]:
+        """Keyframes recorded next to the match, with an odometry baseline, for the scale of a
+        monocular loop (`MapSearch.near`)."""
+        meta, near = self.maps.near(match, self.geometry.config.pose.scale_neighbours)
+        load = lambda i: self._stored_features(replace(match, id=i))  # noqa: E731
+        return self.geometry.neighbours(meta, near, load)
 
-    def _candidate(self, kf_id: int, sim: float, rank: int) -> Candidate:
-        meta = self._place_map.meta(kf_id)
-        return Candidate(kf_id, meta.stamp, meta.frame_id, float(sim), rank)
+    def match_meta(self, outcome: FrameOutcome) -> KeyframeMeta | None:
+        """The metadata of the outcome's loop match, from whichever map holds it."""
+        best = match_candidate(outcome)
+        return None if best is None else self.maps.map_of(best).meta(best.id)
 
     def pair_scores(self, dense: np.ndarray, ids: list[int]) -> np.ndarray:
         """Query dense [N,D] against map keyframes `ids` -> bidirectional scores [K]."""
         return map_pair_scores(self.model, self._place_map, dense, ids, self.rerank_chunk)
+
+
+def match_candidate(outcome: FrameOutcome) -> Candidate | None:
+    """The candidate an outcome's loop record names (its rank before re-ranking is unique)."""
+    loop = outcome.loop
+    if loop is None:
+        return None
+    return next(c for c in outcome.candidates if c.rank_before == loop.rank_before)
 
 
 def frame_due(stamp: float, last: float | None, interval: float) -> bool:
@@ -375,28 +398,3 @@ def frame_due(stamp: float, last: float | None, interval: float) -> bool:
     let through, at `last` (None: none yet)? The pipeline asks it before encoding; the node
     asks it before queueing, so frames the pipeline would skip never wait in its queue."""
     return last is None or abs(stamp - last) >= interval
-
-
-def encode_for_map(model: PairVPRModel, images: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
-    """Preprocessed images [B,3,S,S] -> what the map stores: dense tokens float16 [B,N,D] and
-    descriptors float32 [B,desc_dim]. Queries are rounded to float16 too, so a query scores
-    exactly like the same image stored in the map."""
-    with torch.inference_mode():
-        dense, desc = model.encode(images.to(model.device, non_blocking=True))
-    return dense.to(torch.float16).cpu().numpy(), desc.float().cpu().numpy()
-
-
-def map_pair_scores(
-    model: PairVPRModel,
-    place_map: PlaceMap,
-    dense: np.ndarray,
-    ids: list[int],
-    chunk: int | None = None,
-) -> np.ndarray:
-    """Query dense [N,D] against the dense tokens of map keyframes ``ids`` -> bidirectional
-    pair scores float32 [K] (the node's re-ranking, and ``pairvpr-eval``'s)."""
-    device, dtype = model.device, model.dense_dtype
-    q = torch.from_numpy(np.asarray(dense)).to(device=device, dtype=dtype)
-    c = torch.from_numpy(place_map.get_dense(ids)).to(device=device, dtype=dtype)
-    with torch.inference_mode():
-        return model.pair_scores(q, c, chunk=chunk).float().cpu().numpy()

@@ -6,11 +6,18 @@ clock puts keyframes stamped at, near or after the query's stamp into the map. S
 keyframes are excluded by stamp distance over the whole map (never by walking back along ids,
 which assumed growing stamps and let a replayed bag match its own first pass at the same stamp),
 and a stamp well before the newest one starts a new session (`ClockWatch`).
+
+Stamps are compared only within one robot and one session (`GroupedRecency`): another robot or
+session ran on another clock, so its keyframes are candidates at once whatever their stamps.
+The live session's keyframes are the newest ids, so the eligible ids stay one prefix (a FAISS
+`IDSelectorRange`, found by bisection); a session whose ids sit in the middle of the map excludes
+one id range (`Eligible.exclude`), and only unsorted stamps or scattered ids need a mask.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -71,6 +78,82 @@ def eligible_keyframes(
     near = stamps[:limit] - stamp
     mask = (np.abs(near) >= exclude_s) & (near != 0.0)
     return mask if mask.any() else None
+
+
+@dataclass(frozen=True)
+class Eligible:
+    """The ids a query may match, one of three forms (`count` ids in all, >= 1):
+    `prefix` ids 0..prefix-1; all ids but `exclude` = (lo, hi), i.e. lo..hi-1; or `mask`
+    (bool [m], ids >= m not eligible). `PlaceMap.search` takes each form."""
+
+    count: int
+    prefix: int | None = None
+    exclude: tuple[int, int] | None = None
+    mask: np.ndarray | None = None
+
+
+class _Group:
+    """The keyframes of one robot-session: ids (growing) and stamps, by insertion."""
+
+    def __init__(self) -> None:
+        self.ids: list[int] = []
+        self.stamps = StampBuffer()
+        self.contiguous = True  # ids[i] == ids[0] + i
+
+    def append(self, kf_id: int, stamp: float) -> None:
+        if self.ids and kf_id != self.ids[-1] + 1:
+            self.contiguous = False
+        self.ids.append(kf_id)
+        self.stamps.append(stamp)
+
+
+class GroupedRecency:
+    """Keyframe stamps of a map by robot-session, for `eligible` (recent-keyframe exclusion
+    within the query's own robot and session only)."""
+
+    def __init__(self, keyframes: Iterable[tuple[int, float, str, str]] = ()) -> None:
+        """keyframes: (id, stamp, robot, session), ids 0, 1, 2, ... in order."""
+        self._groups: dict[tuple[str, str], _Group] = {}
+        self._size = 0
+        for kf_id, stamp, robot, session in keyframes:
+            self.append(kf_id, stamp, robot, session)
+
+    def __len__(self) -> int:
+        return self._size
+
+    def append(self, kf_id: int, stamp: float, robot: str, session: str) -> None:
+        self._groups.setdefault((robot, session), _Group()).append(int(kf_id), float(stamp))
+        self._size = max(self._size, int(kf_id) + 1)
+
+    def sessions(self) -> dict[tuple[str, str], int]:
+        """{(robot, session): keyframes}."""
+        return {key: len(g.ids) for key, g in self._groups.items()}
+
+    def eligible(
+        self, stamp: float, robot: str, session: str, exclude_s: float, exclude_n: int
+    ) -> Eligible | None:
+        """What a query at `stamp` of (robot, session) may match: every keyframe of another
+        robot or session, and those of its own that `eligible_keyframes` lets through; None
+        when nothing is eligible."""
+        n, group = self._size, self._groups.get((robot, session))
+        if group is None or not group.ids:
+            return Eligible(n, prefix=n) if n else None
+        own = group.stamps.eligible(stamp, exclude_s, exclude_n)
+        first, m = group.ids[0], len(group.ids)
+        if isinstance(own, int) or own is None:  # own eligible: positions 0..own-1 of the group
+            kept = own or 0
+            if group.contiguous:
+                lo, hi = first + kept, first + m
+                if hi == n:  # the newest ids: a prefix (a live session)
+                    return Eligible(lo, prefix=lo) if lo else None
+                return Eligible(n - (hi - lo), exclude=(lo, hi))
+            own = np.arange(m) < kept
+        mask = np.ones(n, dtype=bool)
+        ids = np.asarray(group.ids, dtype=np.int64)
+        mask[ids[: len(own)][~own]] = False
+        mask[ids[len(own) :]] = False
+        count = int(mask.sum())
+        return Eligible(count, mask=mask) if count else None
 
 
 class ClockWatch:

@@ -14,6 +14,7 @@ from pathlib import Path
 from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
+from pair_vpr_ros.identity import Identity
 from pair_vpr_ros.imaging import MAX_PIXELS
 from pair_vpr_ros.model import PairVPRModel
 from pair_vpr_ros.offline.sources import FrameCounts, source_frames
@@ -59,16 +60,18 @@ def build_map(
     max_pixels: int = MAX_PIXELS,
     geometry: GeometryConfig | None = None,
     result: BuildResult | None = None,
+    identity: Identity | None = None,
 ) -> tuple[LoopClosurePipeline, BuildResult]:
     """Map every frame of `source` in mapping mode -> (the pipeline holding the unsaved map,
     what was read). `stop` cancels between frames (`result.cancelled`). Raises `ConfigError`
     for a missing source or one without a usable image, `BagError` for an unreadable bag.
-    `result`: filled in as the build goes (another thread may read its counts: progress)."""
+    `result`: filled in as the build goes (another thread may read its counts: progress).
+    `identity`: robot and session of the keyframes (default: `Identity()`)."""
     result = result if result is not None else BuildResult(source=str(source))
     t0 = time.perf_counter()
     frames = source_frames(source, result.counts, image_topic, image_period, max_pixels)
     pipe = LoopClosurePipeline(
-        model, config.updated(mode="mapping"), index=index, geometry=geometry
+        model, config.updated(mode="mapping"), index=index, geometry=geometry, identity=identity
     )
     try:
         for outcome in pipe.process_many(frames, batch_size=batch_size):

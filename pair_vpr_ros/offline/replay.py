@@ -28,6 +28,7 @@ from tqdm import tqdm
 from pair_vpr_ros.detector import Candidate, DetectorConfig, LoopRecord
 from pair_vpr_ros.errors import ConfigError, OutputError, PairVPRError
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
+from pair_vpr_ros.identity import resolve_identity
 from pair_vpr_ros.imaging import MAX_PIXELS
 from pair_vpr_ros.model import PairVPRModel
 from pair_vpr_ros.offline import bag_io
@@ -38,6 +39,7 @@ from pair_vpr_ros.offline.pose_topics import choose_pose_topics
 from pair_vpr_ros.offline.report import KeyframeInfo, write_report
 from pair_vpr_ros.offline.sources import FrameCounts, bag_frames
 from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
+from pair_vpr_ros.prior_maps import open_prior_maps
 from pair_vpr_ros.types import PoseTrack
 from pair_vpr_ros.weights import Weights, check_runtime, load_model
 
@@ -74,6 +76,9 @@ class ReplayOptions:
     save_map: bool = True
     overwrite: bool = False
     progress: bool = True
+    robot_id: str = ""  # '' = "robot" (identity.py; a replay has no namespace)
+    session_id: str = ""  # '' = the start time, UTC
+    prior_maps: tuple[str | Path, ...] = ()  # read-only maps searched with the live one
 
     def check(self) -> None:
         """ConfigError naming the first value out of range."""
@@ -115,6 +120,10 @@ class ReplaySummary:
     evaluation: dict[str, Any] | None = None
     config: dict[str, Any] = field(default_factory=dict)  # the DetectorConfig used
     model: str = ""  # the model's fingerprint (weights, input size, descriptor size)
+    robot: str = ""  # the query side of every loop: this replay's robot and session
+    session: str = ""
+    prior_maps: list[dict[str, Any]] = field(default_factory=list)  # dir, keyframes, sessions
+    loops_by_match: dict[str, int] = field(default_factory=dict)  # "robot/session" -> loops
     warnings: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)  # how each topic was picked
     error: str | None = None
@@ -159,6 +168,7 @@ def _global_top1(record: LoopRecord, best: Candidate) -> LoopRecord:
     """The record ranking by global similarity alone would give: the top FAISS candidate."""
     return replace(
         record, match_id=best.id, match_stamp=best.stamp, match_frame_id=best.frame_id,
+        match_robot=best.robot, match_session=best.session,
         global_similarity=best.global_similarity, pair_score=float("nan"), rank_before=1,
         rank_after=1, accepted=False, reason="global top-1",
     )  # fmt: skip
@@ -216,6 +226,8 @@ def _drive(
                     run.global_top1.append(_global_top1(outcome.loop, outcome.candidates[0]))
                 if outcome.loop.accepted:
                     summary.loops += 1
+                    key = f"{outcome.loop.match_robot}/{outcome.loop.match_session}"
+                    summary.loops_by_match[key] = summary.loops_by_match.get(key, 0) + 1
                     if writer is not None:
                         writer.write_loop(outcome.loop, bf.log_time_ns)
             bar.update(run.counts.frames - bar.n)
@@ -254,6 +266,7 @@ def replay_bag(
     if o.save_map:
         check_writable(o.map_path(out), "map folder")
         check_map_dir(o.map_path(out), o.overwrite)
+    identity = resolve_identity(o.robot_id, o.session_id)
     if model is None:
         check_runtime(o.device, o.precision, o.backend)
     with bag_io.open_bag(bag) as reader:
@@ -270,15 +283,21 @@ def replay_bag(
                 weights, device=o.device, precision=o.precision, backend=o.backend,
                 openvino_cache_dir=o.openvino_cache_dir,
             )  # fmt: skip
-        pipe = LoopClosurePipeline(model, config, geometry=geometry)
+        save_to = o.map_path(out) if o.save_map else None
+        priors = open_prior_maps(o.prior_maps, model.fingerprint, identity, "--prior-map", save_to)
+        pipe = LoopClosurePipeline(
+            model, config, geometry=geometry, identity=identity, prior_maps=priors.maps
+        )
         summary.config = asdict(config)
         summary.model = pipe.model.fingerprint
+        summary.robot, summary.session = identity.robot, identity.session
+        summary.prior_maps = priors.summary()
         run = _Run(summary)
         geo, summary.depth_topic, summary.camera_info_topic, notes = open_geometry(
             reader, o.depth_topic, o.camera_info_topic, o.depth_tolerance,
             run.counts.geometry_skips,
         )  # fmt: skip
-        summary.notes = [*notes, *chosen.notes]
+        summary.notes = [*notes, *chosen.notes, *priors.notes]
         frames = bag_io.iter_frames(
             reader, topic, poses, o.pose_tolerance, o.max_frames, keep_cdr=o.write_bag,
             max_pixels=o.max_image_pixels,

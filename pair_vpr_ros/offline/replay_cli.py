@@ -23,6 +23,7 @@ from pair_vpr_ros.cli import (
 from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.geometry.features import KINDS
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
+from pair_vpr_ros.identity import DEFAULT_ROBOT, RULE, name_problem
 from pair_vpr_ros.imaging import MAX_PIXELS
 from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
 from pair_vpr_ros.params import SPECS, detector_config, flag_help, flag_type, read_params_file
@@ -167,8 +168,35 @@ def build_parser() -> argparse.ArgumentParser:
         help="skip (and count) images larger than N pixels, width x height, before decoding "
         f"(default: --params-file's max_image_pixels, else {MAX_PIXELS:,})",
     )
+    p.add_argument(
+        "--robot-id", metavar="NAME", type=identity_flag("robot_id"),
+        help=f"robot of every keyframe and loop (default: --params-file's robot_id, else "
+        f"'{DEFAULT_ROBOT}'); {RULE}",
+    )  # fmt: skip
+    p.add_argument(
+        "--session-id", metavar="NAME", type=identity_flag("session_id"),
+        help="session of every keyframe and loop (default: --params-file's session_id, else the "
+        f"start time, UTC, YYYYMMDDTHHMMSSZ); {RULE}",
+    )  # fmt: skip
+    p.add_argument(
+        "--prior-map", metavar="DIR", action="append", default=[],
+        help="a saved place map loaded read-only and searched with the live map (repeat for "
+        "several; added to --params-file's prior_map_dirs); never written",
+    )  # fmt: skip
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
+
+
+def identity_flag(name: str):
+    """argparse type of --robot-id / --session-id: the identity rule (identity.py)."""
+
+    def parse(text: str) -> str:
+        problem = name_problem(name, text)
+        if problem:
+            raise argparse.ArgumentTypeError(problem)
+        return text
+
+    return parse
 
 
 def _fmt(value: float | None) -> str:
@@ -189,11 +217,13 @@ def _run(args: argparse.Namespace) -> int:
     }
     overrides = {k: v for k, v in overrides.items() if v is not None}
     max_pixels, runtime = MAX_PIXELS, {n: SPECS[n].default for n in RUNTIME}
+    fleet = {name: SPECS[name].default for name in ("robot_id", "session_id", "prior_map_dirs")}
     if args.params_file is not None:
         values = read_params_file(args.params_file)
         config = detector_config(values).updated(**overrides)
         max_pixels = values["max_image_pixels"]
         runtime = {name: values[name] for name in runtime}
+        fleet = {name: values[name] for name in fleet}
     else:
         config = DetectorConfig(**overrides)
     if args.openvino_cache_dir == NONE:
@@ -211,7 +241,9 @@ def _run(args: argparse.Namespace) -> int:
         max_image_pixels=args.max_image_pixels or max_pixels, device=args.device,
         write_bag=args.write_bag, map_dir=None if args.map_dir == NONE else args.map_dir,
         save_map=args.map_dir != NONE, overwrite=args.overwrite, progress=not args.quiet,
-        **runtime,
+        robot_id=args.robot_id or fleet["robot_id"],
+        session_id=args.session_id or fleet["session_id"],
+        prior_maps=(*fleet["prior_map_dirs"], *args.prior_map), **runtime,
     )  # fmt: skip
     summary = replay_bag(
         args.bag, args.out, options, weights=weights, config=config,

@@ -7,7 +7,8 @@ Ground truth, when keyframes carry poses (positions ``x, y, z`` in metres):
   exclusion window ``DetectorConfig.exclude_recent_s``, so the detector could have returned it)
   and the 3-D distance between their positions is ``<= gt_radius`` (default 10 m);
 * a loop record is **true** when its match is a true match for its query, **false** otherwise,
-  and **unlabelled** when either keyframe has no pose (unlabelled records are left out);
+  and **unlabelled** when either keyframe has no pose or the match is of another robot or
+  session (a prior map: its keyframes are not this run's; unlabelled records are left out);
 * **positives** = the number of query keyframes that have at least one true match;
 * **precision** = true accepted loops / labelled accepted loops;
   **recall** = query keyframes whose accepted loop is true / positives.
@@ -31,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.loop_messages import LOOP_RECORD_FIELDS, csv_row, record_dict
+from pair_vpr_ros.loop_messages import LOOP_RECORD_FIELDS, csv_row, record_dict, same_session
 from pair_vpr_ros.types import Pose
 
 
@@ -221,7 +222,12 @@ class LoopEvaluation:
 def _labelled_curve(
     records: Sequence[Any], by_id: dict[int, KeyframeInfo], positives: int, score: str, **gt: float
 ) -> tuple[PRCurve, list[bool | None]]:
-    labels = [is_true_loop(by_id.get(r.query_id), by_id.get(r.match_id), **gt) for r in records]
+    labels = [
+        is_true_loop(by_id.get(r.query_id), by_id.get(r.match_id), **gt)
+        if same_session(r)
+        else None
+        for r in records
+    ]
     keep = [i for i, label in enumerate(labels) if label is not None]
     curve = pr_curve(
         [getattr(records[i], score) for i in keep], [labels[i] for i in keep], positives
@@ -328,7 +334,7 @@ def plot_trajectory(
     segments: dict[bool | None, list] = {True: [], False: [], None: []}
     for record, label in zip(records, labels, strict=True):
         q, m = by_id.get(record.query_id), by_id.get(record.match_id)
-        if record.accepted and q is not None and m is not None:
+        if record.accepted and q is not None and m is not None and same_session(record):
             segments[label].append(((q[0], q[1]), (m[0], m[1])))
     for label, lines in segments.items():  # one artist per kind: thousands of loops stay cheap
         if lines:

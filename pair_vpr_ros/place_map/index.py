@@ -1,7 +1,8 @@
 """FAISS inner-product index over L2-normalised global descriptors; ids are insertion positions.
 
-Recent keyframes are excluded with an `IDSelectorRange` (an id prefix) or an `IDSelectorBitmap`
-(any set of ids) passed as search parameters, so FAISS only ever ranks eligible ids: k results
+Recent keyframes are excluded with an `IDSelectorRange` (an id prefix), an `IDSelectorNot` of one
+(all ids but one range: another session's recent keyframes) or an `IDSelectorBitmap` (any set of
+ids) passed as search parameters, so FAISS only ever ranks eligible ids: k results
 come back even when thousands of newer frames are closer.
 """
 
@@ -138,14 +139,19 @@ class DescriptorIndex:
         k: int,
         max_id: int | None = None,
         allowed: np.ndarray | None = None,
+        exclude: tuple[int, int] | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """desc [dim] -> (ids [k'] int64, similarities [k'] float32), best first, ids <= max_id
-        and, with `allowed` (bool [m]), only ids i < m with allowed[i].
+        and, with `allowed` (bool [m]), only ids i < m with allowed[i]; with `exclude` (lo, hi)
+        (and neither of the others) no id in lo..hi-1.
 
         k' = min(k, number of eligible ids); never returns FAISS's -1 padding.
         """
         limit = len(self) if max_id is None else min(len(self), int(max_id) + 1)
-        count, selector = self._selector(limit, allowed)
+        if exclude is not None and max_id is None and allowed is None:
+            count, selector = _not_range(len(self), *exclude)
+        else:
+            count, selector = self._selector(limit, allowed)
         k = min(int(k), count)
         if k <= 0:
             return np.empty(0, np.int64), np.empty(0, np.float32)
@@ -234,6 +240,17 @@ class DescriptorIndex:
             index.hnsw.efConstruction = config.ef_construction
             index.hnsw.efSearch = config.ef_search
         return obj
+
+
+def _not_range(size: int, lo: int, hi: int) -> tuple[int, faiss.IDSelector | None]:
+    """(eligible count, selector) of every id in 0..size-1 except lo..hi-1."""
+    lo, hi = max(0, int(lo)), min(size, int(hi))
+    if hi <= lo:
+        return size, None
+    inner = faiss.IDSelectorRange(lo, hi)
+    selector = faiss.IDSelectorNot(inner)
+    selector.referenced_objects = [inner]  # FAISS keeps a pointer, not the object
+    return size - (hi - lo), selector
 
 
 def _read_bounded(path: Path) -> faiss.Index:

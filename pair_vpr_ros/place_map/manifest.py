@@ -19,7 +19,8 @@ from pair_vpr_ros.place_map.files import TMP_SUFFIX, remove_quietly, write_bytes
 
 MANIFEST_NAME = "manifest.json"
 FORMAT_NAME = "pair_vpr_ros.place_map"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: keyframes carry robot and session (issue 22)
+READABLE_VERSIONS = (1, 2)  # a version-1 map loads with its keyframes named at load
 # Files a save may create; anything else in the directory is left alone.
 MAP_FILE_RE = re.compile(r"^(index-\d+\.faiss|meta-\d+\.sqlite|dense-\d+\.(f16|crc))")
 _CHECKED = ("index", "meta", "dense_crc")  # small files: size + sha256 in the manifest
@@ -90,11 +91,12 @@ def read_manifest(directory: Path) -> Manifest:
         raise MapError(f"{path} is not valid JSON ({err}): the map is damaged, rebuild") from err
     if not isinstance(raw, dict) or raw.get("format") != FORMAT_NAME:
         raise MapError(f"{path} is not a pair_vpr_ros place map manifest (no format field)")
-    if raw.get("format_version") != FORMAT_VERSION:
+    version = raw.get("format_version")
+    if version not in READABLE_VERSIONS or isinstance(version, bool):
         raise MapError(
-            f"{path} has format_version {raw.get('format_version')!r}, this version of "
-            f"pair_vpr_ros reads version {FORMAT_VERSION}: use a matching pair_vpr_ros release "
-            "or rebuild the map"
+            f"{path} has format_version {version!r}, this version of pair_vpr_ros reads "
+            f"versions {', '.join(map(str, READABLE_VERSIONS))}: use a matching pair_vpr_ros "
+            "release or rebuild the map"
         )
     try:
         manifest = Manifest(**raw)

@@ -1,4 +1,8 @@
-"""Keyframe metadata (stamp, frame, optional pose, source) and features in SQLite.
+"""Keyframe metadata (stamp, frame, optional pose, source, robot, session) and features in SQLite.
+
+Maps of format version 1 have no robot / session columns: loading one adds them to the working
+copy, filled with the identity the loader names (`from_saved(..., legacy=...)`); the next save
+writes version 2. The saved files are never changed by a load.
 
 Features (keypoints, descriptors, depth at keypoints, intrinsics: opaque bytes packed by
 `geometry.features.pack_features`) live in a second table, one row per keyframe that has them,
@@ -23,11 +27,13 @@ from pair_vpr_ros.types import Pose
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS keyframes (
     id INTEGER PRIMARY KEY, stamp REAL NOT NULL, frame_id TEXT NOT NULL, source TEXT NOT NULL,
-    x REAL, y REAL, z REAL, qx REAL, qy REAL, qz REAL, qw REAL
+    x REAL, y REAL, z REAL, qx REAL, qy REAL, qz REAL, qw REAL,
+    robot TEXT NOT NULL DEFAULT '', session TEXT NOT NULL DEFAULT ''
 )"""
 _FEATURES_SCHEMA = """
 CREATE TABLE IF NOT EXISTS features (id INTEGER PRIMARY KEY, crc INTEGER NOT NULL, data BLOB)"""
-_COLUMNS = "id, stamp, frame_id, source, x, y, z, qx, qy, qz, qw"
+_COLUMNS_V1 = "id, stamp, frame_id, source, x, y, z, qx, qy, qz, qw"  # format version 1
+_COLUMNS = _COLUMNS_V1 + ", robot, session"
 # Feature rows that belong to no keyframe or are not (integer crc, blob data).
 _CHECK_FEATURES = """SELECT COUNT(*) FROM features WHERE id < 0 OR id >= ?
     OR typeof(id) != 'integer' OR typeof(crc) != 'integer' OR typeof(data) != 'blob'"""
@@ -36,7 +42,7 @@ _NUMBER = "IN ('real', 'integer')"
 # column types); fails on a table without these columns.
 _CHECK = f"""SELECT COUNT(*), MIN(id), MAX(id), SUM(
     typeof(id) != 'integer' OR typeof(stamp) NOT {_NUMBER} OR typeof(frame_id) != 'text'
-    OR typeof(source) != 'text' OR NOT (
+    OR typeof(source) != 'text' OR typeof(robot) != 'text' OR typeof(session) != 'text' OR NOT (
         (x IS NULL AND y IS NULL AND z IS NULL AND qx IS NULL AND qy IS NULL AND qz IS NULL
          AND qw IS NULL) OR (typeof(x) {_NUMBER} AND typeof(y) {_NUMBER} AND typeof(z) {_NUMBER}
          AND typeof(qx) {_NUMBER} AND typeof(qy) {_NUMBER} AND typeof(qz) {_NUMBER}
@@ -50,7 +56,8 @@ class KeyframeMeta:
 
     stamp: seconds (e.g. header stamp sec + nanosec * 1e-9); frame_id: the image's frame.
     pose: (x, y, z, qx, qy, qz, qw) in the odometry frame, or None when unknown.
-    source: free text (bag name, session) to tell mapping sessions apart.
+    source: free text (bag name, topic).
+    robot, session: who recorded it (identity.py; "" = unnamed, e.g. a library user's map).
     """
 
     id: int = -1
@@ -58,6 +65,8 @@ class KeyframeMeta:
     frame_id: str = ""
     pose: Pose | None = None
     source: str = ""
+    robot: str = ""
+    session: str = ""
 
 
 def validate_meta(meta: KeyframeMeta) -> KeyframeMeta:
@@ -75,13 +84,16 @@ def validate_meta(meta: KeyframeMeta) -> KeyframeMeta:
         raise MapError(
             f"keyframe pose must be 7 finite numbers (x, y, z, qx, qy, qz, qw) or None, got {pose}"
         )
-    return KeyframeMeta(meta.id, stamp, str(meta.frame_id), pose, str(meta.source))
+    return KeyframeMeta(
+        meta.id, stamp, str(meta.frame_id), pose, str(meta.source), str(meta.robot),
+        str(meta.session),
+    )  # fmt: skip
 
 
 class MetadataStore:
     """Keyframe rows in a working SQLite file `path` (created empty when missing)."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, create: bool = True) -> None:
         self.path = Path(path)
         # Callers serialise access (LoopClosurePipeline holds a lock), so the map may be used
         # from the thread that did not open it (the node's worker and service threads).
@@ -89,12 +101,35 @@ class MetadataStore:
         # A working copy: crash durability is the saved map's job, so skip journaling costs.
         self._conn.execute("PRAGMA journal_mode=OFF")
         self._conn.execute("PRAGMA synchronous=OFF")
-        self._conn.execute(_SCHEMA)
+        if create:  # a version-1 copy is upgraded first (its table exists without identity)
+            self._conn.execute(_SCHEMA)
         self._conn.execute(_FEATURES_SCHEMA)
 
+    def _upgrade(self, saved: Path, legacy: tuple[str, str]) -> None:
+        """Add robot / session columns to a copied version-1 table, named `legacy`."""
+        self._check_columns(saved, _COLUMNS_V1)
+        robot, session = (str(v) for v in legacy)
+        for name in ("robot", "session"):
+            self._conn.execute(f"ALTER TABLE keyframes ADD COLUMN {name} TEXT NOT NULL DEFAULT ''")
+        self._conn.execute("UPDATE keyframes SET robot = ?, session = ?", (robot, session))
+
+    def _check_columns(self, saved: Path, expected: str, bad: int | None = None) -> None:
+        columns = [r[1] for r in self._conn.execute("PRAGMA table_info(keyframes)")]
+        if columns != expected.split(", ") or bad:
+            what = f"columns {columns}" if not bad else f"{bad} rows hold values of wrong type"
+            raise MapError(
+                f"keyframe metadata {saved} is not a place map's keyframe table ({what}; "
+                f"expected columns {expected}): the map is damaged or was written by another "
+                "program: restore it from a backup or rebuild it"
+            )
+
     @classmethod
-    def from_saved(cls, saved: Path, work: Path, count: int) -> MetadataStore:
-        """Copy the saved database `saved` to `work`; it must hold exactly ids 0..count-1."""
+    def from_saved(
+        cls, saved: Path, work: Path, count: int, legacy: tuple[str, str] | None = None
+    ) -> MetadataStore:
+        """Copy the saved database `saved` to `work`; it must hold exactly ids 0..count-1.
+        legacy: the (robot, session) of a version-1 table (without those columns); None: the
+        table must be of version 2."""
         store = None
         try:
             src = sqlite3.connect(f"file:{quote(str(saved))}?mode=ro&immutable=1", uri=True)
@@ -104,7 +139,9 @@ class MetadataStore:
                 dst.close()
             finally:
                 src.close()
-            store = cls(work)
+            store = cls(work, create=legacy is None)
+            if legacy is not None:
+                store._upgrade(saved, legacy)
             store._check_saved(saved, count)
         except BaseException as err:
             if store is not None:
@@ -119,17 +156,9 @@ class MetadataStore:
 
     def _check_saved(self, saved: Path, count: int) -> None:
         """The copied table has our columns, value types and exactly ids 0..count-1."""
-        columns = [r[1] for r in self._conn.execute("PRAGMA table_info(keyframes)")]
-        bad = None
-        if columns == _COLUMNS.split(", "):
-            n, lo, hi, bad = self._conn.execute(_CHECK).fetchone()
-        if columns != _COLUMNS.split(", ") or bad:
-            what = f"columns {columns}" if bad is None else f"{bad} rows hold values of wrong type"
-            raise MapError(
-                f"keyframe metadata {saved} is not a place map's keyframe table ({what}; "
-                f"expected columns {_COLUMNS}): the map is damaged or was written by another "
-                "program: restore it from a backup or rebuild it"
-            )
+        self._check_columns(saved, _COLUMNS)
+        n, lo, hi, bad = self._conn.execute(_CHECK).fetchone()
+        self._check_columns(saved, _COLUMNS, bad)
         if (n, lo, hi) != (count, 0 if count else None, count - 1 if count else None):
             raise MapError(
                 f"keyframe metadata {saved} holds {n} rows (ids {lo}..{hi}), the manifest lists "
@@ -146,8 +175,8 @@ class MetadataStore:
         """meta: validated, with its id set; features: packed features ("" = none)."""
         pose = meta.pose if meta.pose is not None else (None,) * 7
         self._conn.execute(
-            f"INSERT INTO keyframes ({_COLUMNS}) VALUES (?,?,?,?,?,?,?,?,?,?,?)",
-            (meta.id, meta.stamp, meta.frame_id, meta.source, *pose),
+            f"INSERT INTO keyframes ({_COLUMNS}) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?)",
+            (meta.id, meta.stamp, meta.frame_id, meta.source, *pose, meta.robot, meta.session),
         )
         if features:
             self._conn.execute(
@@ -208,5 +237,6 @@ class MetadataStore:
 
 
 def _from_row(row: tuple) -> KeyframeMeta:
-    kf_id, stamp, frame_id, source, *pose = row
-    return KeyframeMeta(kf_id, stamp, frame_id, None if pose[0] is None else tuple(pose), source)
+    kf_id, stamp, frame_id, source, *pose, robot, session = row
+    pose_or_none = None if pose[0] is None else tuple(pose)
+    return KeyframeMeta(kf_id, stamp, frame_id, pose_or_none, source, robot, session)

@@ -48,6 +48,8 @@ class MapParts:
     desc_dim: int
     dense_shape: tuple[int, int]
     fingerprint: str
+    format_version: int = 2  # of the save it was opened from (1: upgraded at load)
+    note: str = ""  # what the loader should log (a version-1 map's keyframes named at load)
 
 
 def save(d: Path, parts: MapParts, dense_in_place: bool) -> tuple[Manifest, Path | None]:
@@ -132,8 +134,10 @@ def open_saved(
     ef_search: int | None,
     cache_size: int,
     verify_reads: bool,
+    legacy: tuple[str, str] = ("", ""),
 ) -> MapParts:
-    """Check and open the saved map in `d`; metadata is copied to `work` (a working file)."""
+    """Check and open the saved map in `d`; metadata is copied to `work` (a working file).
+    legacy: (robot, session) given to the keyframes of a format-version-1 map."""
     m = read_manifest(d)
     if expected_fingerprint is not None and m.fingerprint != expected_fingerprint:
         raise MapFingerprintError(
@@ -150,7 +154,8 @@ def open_saved(
             f"{m.count}: the map is damaged, restore it from a backup or rebuild it"
         )
     crcs = read_crcs(d / m.files["dense_crc"]["name"], m.count)
-    meta = MetadataStore.from_saved(d / m.files["meta"]["name"], work, m.count)
+    old = legacy if m.format_version == 1 else None
+    meta = MetadataStore.from_saved(d / m.files["meta"]["name"], work, m.count, old)
     try:
         dense = DenseStore(
             d / m.files["dense"]["name"],
@@ -164,7 +169,12 @@ def open_saved(
         meta.close()
         raise
     shape = (m.dense_shape[0], m.dense_shape[1])
-    return MapParts(index, meta, dense, m.desc_dim, shape, m.fingerprint)
+    note = "" if old is None else (
+        f"place map {d} was saved before keyframes carried a robot and a session (format "
+        f"version 1): its {m.count} keyframes are named robot {old[0]!r}, session {old[1]!r} "
+        "(the next save stores these names)"
+    )  # fmt: skip
+    return MapParts(index, meta, dense, m.desc_dim, shape, m.fingerprint, m.format_version, note)
 
 
 def _index_config(m: Manifest, ef_search: int | None) -> IndexConfig:

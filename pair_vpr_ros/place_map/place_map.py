@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from pair_vpr_ros.errors import ConfigError, MapError
+from pair_vpr_ros.identity import DEFAULT_ROBOT, LEGACY_SESSION
 from pair_vpr_ros.place_map import persist
 from pair_vpr_ros.place_map.checks import dense_tokens, keyframe_ids, unit_descriptor
 from pair_vpr_ros.place_map.dense_store import DenseStore, entry_bytes
@@ -73,6 +74,7 @@ class PlaceMap:
         self._lock: DirLock | None = None
         self._dense_committed = False  # the dense file is the one `_home`'s manifest names
         self._read_only = False
+        self.load_note = ""  # what a caller should log about the load ("" = nothing)
         self._fresh_count = 0
         self._closed = False
         try:
@@ -84,13 +86,8 @@ class PlaceMap:
     def _fresh_dense(self) -> DenseStore:
         self._fresh_count += 1
         path = self._tmp / f"dense-work-{self._fresh_count}.f16"
-        return DenseStore(
-            path,
-            self.dense_shape,
-            cache_size=self._cache_size,
-            verify_reads=self._verify_reads,
-            owned=True,
-        )
+        reads = dict(cache_size=self._cache_size, verify_reads=self._verify_reads)
+        return DenseStore(path, self.dense_shape, owned=True, **reads)
 
     # ----------------------------------------------------------------- mapping and queries
 
@@ -122,14 +119,16 @@ class PlaceMap:
         k: int,
         max_id: int | None = None,
         allowed: np.ndarray | None = None,
+        exclude: tuple[int, int] | None = None,
     ) -> list[tuple[int, float]]:
         """desc [desc_dim] -> up to k (id, inner-product similarity), best first, id <= max_id
-        and, with `allowed` (bool [m]), only ids i < m with allowed[i]."""
+        and, with `allowed` (bool [m]), only ids i < m with allowed[i]; with `exclude`
+        (lo, hi) alone, no id in lo..hi-1."""
         self._check_open()
         if int(k) < 0:
             raise MapError(f"search k must be >= 0, got {k}")
         query = unit_descriptor(desc, self.desc_dim)
-        ids, sims = self._index.search(query, int(k), max_id, allowed)
+        ids, sims = self._index.search(query, int(k), max_id, allowed, exclude)
         return [(int(i), float(s)) for i, s in zip(ids, sims, strict=True)]
 
     def get_dense(self, ids: Iterable[int]) -> np.ndarray:
@@ -271,8 +270,10 @@ class PlaceMap:
         dense_cache_size: int = 128,
         verify_dense_reads: bool = True,
         work_dir: str | os.PathLike | None = None,
+        legacy_identity: tuple[str, str] = (DEFAULT_ROBOT, LEGACY_SESSION),
     ) -> PlaceMap:
         """Open a saved map to continue mapping (or only to query, with read_only=True).
+        legacy_identity: (robot, session) of the keyframes of a format-1 map (`load_note`).
 
         expected_fingerprint: refuse (MapFingerprintError) a map built by another model.
         ef_search: override the saved HNSW ef_search. verify_dense: CRC-check every dense entry
@@ -294,6 +295,7 @@ class PlaceMap:
                 ef_search=ef_search,
                 cache_size=obj._cache_size,
                 verify_reads=obj._verify_reads,
+                legacy=legacy_identity,
             )
             obj._index, obj._meta, obj._dense = parts.index, parts.meta, parts.dense
             if verify_dense:
@@ -304,6 +306,7 @@ class PlaceMap:
         obj.desc_dim, obj.dense_shape = parts.desc_dim, parts.dense_shape
         obj.fingerprint = parts.fingerprint
         obj._home, obj._dense_committed, obj._read_only = d, True, read_only
+        obj.load_note = parts.note
         return obj
 
     # ------------------------------------------------------------------------ life cycle

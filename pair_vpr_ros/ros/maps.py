@@ -24,6 +24,7 @@ from pair_vpr_ros.errors import ConfigError, MapError, PairVPRError
 from pair_vpr_ros.offline.build_map import BuildResult, build_map
 from pair_vpr_ros.offline.sources import check_source
 from pair_vpr_ros.pipeline import Frame, FrameOutcome, LoopClosurePipeline, PipelineCounts
+from pair_vpr_ros.prior_maps import refuse_prior_target
 from pair_vpr_ros.types import Pose
 
 T = TypeVar("T")
@@ -143,7 +144,7 @@ class MapControl:
             loop = outcome.loop
             if loop is None or not loop.accepted:
                 return outcome, None
-            return outcome, self.pipeline.place_map.meta(loop.match_id).pose
+            return outcome, self.pipeline.match_meta(outcome).pose  # live or prior map
 
         return self.call(run)
 
@@ -175,7 +176,10 @@ class MapControl:
         def run() -> Result:
             n = self.pipeline.load_map(_map_dir(map_dir))
             self._saved = self._save_mark()
-            return True, f"loaded {n} keyframes from {_map_dir(map_dir)}"
+            note = self.pipeline.place_map.load_note
+            return True, f"loaded {n} keyframes from {_map_dir(map_dir)}" + (
+                f" ({note})" if note else ""
+            )
 
         return self._result(run)
 
@@ -215,8 +219,9 @@ class MapControl:
                     f"a map build is running already ({self.build_state}): wait for it to finish"
                 )
             target = check_map_target(map_dir)
+            refuse_prior_target(target, self.pipeline.maps.priors)  # fixed since start-up
             check_source(source)
-        except ConfigError as err:
+        except (ConfigError, MapError) as err:
             return False, f"{err} ({SOURCE_HINT})" if "build_source" in str(err) else str(err)
         progress = BuildResult(source=str(source))
         error = self.build.error  # kept until a build succeeds

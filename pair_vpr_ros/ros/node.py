@@ -65,12 +65,14 @@ from pair_vpr_ros.cli import EXIT_ERROR, EXIT_OK
 from pair_vpr_ros.detector import LoopRecord
 from pair_vpr_ros.devices import check_device
 from pair_vpr_ros.errors import ConfigError, ImageConversionError, PairVPRError
+from pair_vpr_ros.identity import resolve_identity
 from pair_vpr_ros.imaging import msg_to_rgb
 from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline, frame_due
+from pair_vpr_ros.prior_maps import open_prior_maps
 from pair_vpr_ros.ros.geometry_inputs import GeometryInputs
 from pair_vpr_ros.ros.maps import MapControl
 from pair_vpr_ros.ros.outputs import MARKER_TOPIC, LoopOutputs, publish_while_up
-from pair_vpr_ros.ros.parameters import descriptor
+from pair_vpr_ros.ros.parameters import declared_default, descriptor, read_value
 from pair_vpr_ros.ros.runtime import (
     FrameQueue,
     NodeStats,
@@ -95,8 +97,8 @@ class VprNode(Node):
     def __init__(self, *, start_worker: bool = True, **kwargs) -> None:
         super().__init__("vpr_node", **kwargs)
         for spec in params.PARAMS:
-            self.declare_parameter(spec.name, spec.default, descriptor(spec))
-        v = {spec.name: self.get_parameter(spec.name).value for spec in params.PARAMS}
+            self.declare_parameter(spec.name, declared_default(spec), descriptor(spec))
+        v = {spec.name: read_value(self, spec) for spec in params.PARAMS}
         reasons = [r for name, value in v.items() if (r := params.check_value(name, value))]
         if reasons:
             raise ConfigError("invalid parameters: " + "; ".join(reasons))
@@ -110,11 +112,18 @@ class VprNode(Node):
         # OpenVINO runs its own precision; torch autocast would only wrap the glue around it.
         autocast = v["precision"] if v["backend"] == "torch" else "fp32"
         config, geometry = params.detector_config(v), params.geometry_config(v)
+        self.identity = resolve_identity(v["robot_id"], v["session_id"], self.get_namespace())
+        priors = open_prior_maps(v["prior_map_dirs"], model.fingerprint, self.identity)
+        for note in priors.notes:
+            self._log("info", note)
         self.maps = MapControl(
-            lambda: LoopClosurePipeline(model, config, index=v["index"], geometry=geometry),
+            lambda: LoopClosurePipeline(
+                model, config, index=v["index"], geometry=geometry, identity=self.identity,
+                prior_maps=priors.maps,
+            ),
             self._log,
             partial(precision_context, device, autocast),
-        )
+        )  # fmt: skip
         self.frames = FrameQueue(v["queue_size"])
         # The frame-rate limit, applied before the queue as well (the image callback's own
         # state): frames the pipeline would skip never fill the queue while a keyframe runs.
@@ -140,7 +149,8 @@ class VprNode(Node):
             self._worker.start()
         self.summary = (
             f"model {model.fingerprint} on {v['device']} ({v['backend']}, {v['precision']}), "
-            f"{self.maps.size()} keyframes, mode {v['mode']}"
+            f"{self.maps.size()} keyframes, mode {v['mode']}, robot {self.identity.robot}, "
+            f"session {self.identity.session}, {len(priors.maps)} prior maps"
         )
 
     @property
@@ -386,6 +396,7 @@ class VprNode(Node):
             index=v["index"],
             max_pixels=v["max_image_pixels"],
             geometry=params.geometry_config(v),
+            identity=self.identity,
         )
 
     def shutdown(self) -> None:

@@ -94,6 +94,12 @@ class LoopOutputs:
                 f"loop closure {content.pair}: keyframe {record.match_id}, "
                 f"score {record.pair_score:.3f}"
             )
+        elif record.accepted and not lm.same_session(record):
+            note = (
+                f"loop closure to keyframe {record.match_id} of robot {record.match_robot!r} "
+                f"session {record.match_session!r} (another trajectory): published on "
+                f"{self.topics['detail']} and json, not on {self.base}"
+            )
         elif record.accepted:
             note = (
                 f"loop closure to keyframe {record.match_id} stamped {record.match_stamp:.3f} s, "

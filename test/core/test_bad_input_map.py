@@ -61,14 +61,15 @@ def _sqlite(d: Path, *statements: str) -> None:
 saved = persist_tests.saved  # fixture: a map of N0 keyframes in tmp_path / "map"
 GOOD_TABLE = (
     "CREATE TABLE keyframes (id INTEGER PRIMARY KEY, stamp REAL NOT NULL, frame_id TEXT NOT "
-    "NULL, source TEXT NOT NULL, x REAL, y REAL, z REAL, qx REAL, qy REAL, qz REAL, qw REAL)"
+    "NULL, source TEXT NOT NULL, x REAL, y REAL, z REAL, qx REAL, qy REAL, qz REAL, qw REAL, "
+    "robot TEXT NOT NULL, session TEXT NOT NULL)"
 )
 
 
 def _rows(count: int, stamp: str = "1.5") -> list[str]:
     return [
         f"INSERT INTO keyframes VALUES ({i}, {stamp}, 'cam', 's', NULL, NULL, NULL, NULL, "
-        "NULL, NULL, NULL)"
+        "NULL, NULL, NULL, 'robot', 'default')"
         for i in range(count)
     ]
 
@@ -112,7 +113,8 @@ CORRUPTIONS = {
     ),
     "version": (
         lambda d: _rewrite_manifest(d, lambda m: m.update(format_version=99)),
-        r"has format_version 99, this version of pair_vpr_ros reads version 1",
+        r"has format_version 99, this version of pair_vpr_ros reads versions 1, 2: use a "
+        r"matching pair_vpr_ros release or rebuild the map",
     ),
     "field": (
         lambda d: _rewrite_manifest(d, lambda m: m.pop("count")),

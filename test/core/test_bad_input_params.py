@@ -77,6 +77,26 @@ CASES = {
         section("max_image_pixels: 0").encode(),
         "max_image_pixels=0 is out of range [1, 1073741824]",
     ),
+    # issue 22: identity and prior maps
+    "robot id with a space": (
+        section('robot_id: "my robot"').encode(),
+        "robot_id 'my robot' must be 1-64 characters of letters, digits, '_', '.' or '-' (it "
+        "names files and pose-graph keys), e.g. robot1",
+    ),
+    "robot id with a slash": (section('robot_id: "/r1"').encode(), "robot_id '/r1' must be 1-64"),
+    "session id too long": (
+        section(f'session_id: "{"s" * 65}"').encode(),
+        f"session_id '{'s' * 65}' must be 1-64 characters",
+    ),
+    "session id number": (section("session_id: 20261125").encode(), "session_id must be a string"),
+    "prior maps a string": (
+        section('prior_map_dirs: "/maps/a"').encode(),
+        "prior_map_dirs must be a list of non-empty strings, got '/maps/a'",
+    ),
+    "prior maps an empty name": (
+        section('prior_map_dirs: ["/maps/a", ""]').encode(),
+        "prior_map_dirs must be a list of non-empty strings, got ['/maps/a', '']",
+    ),
 }
 
 

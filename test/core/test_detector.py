@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -32,7 +33,8 @@ def scorer(*scores):
 
 def test_rerank_picks_best_pair_score_and_keeps_global_rank():
     det = LoopDetector(DetectorConfig(score_threshold=1.0))
-    rec = det.decide(100.0, "cam", cands(0.9, 0.8, 0.7), scorer(0.5, 3.0, 2.0))
+    found = [replace(c, robot="b", session="s2") for c in cands(0.9, 0.8, 0.7)]
+    rec = det.decide(100.0, "cam", found, scorer(0.5, 3.0, 2.0), query_identity=("a", "s1"))
     fields = rec.to_dict()
     assert math.isnan(fields.pop("inlier_ratio"))
     pose = {k: fields.pop(k) for k in ("tx", "ty", "tz", "qx", "qy", "qz", "qw")}
@@ -44,6 +46,10 @@ def test_rerank_picks_best_pair_score_and_keeps_global_rank():
         match_id=11,
         match_stamp=1.0,
         match_frame_id="cam",
+        query_robot="a",
+        query_session="s1",
+        match_robot="b",
+        match_session="s2",
         pair_score=3.0,
         global_similarity=0.8,
         rank_before=2,
@@ -112,6 +118,21 @@ def test_temporal_consistency_needs_agreeing_consecutive_queries():
         "accepted",
         "accepted",
     ]
+
+
+def test_temporal_consistency_agrees_only_within_one_map_robot_and_session():
+    det = LoopDetector(DetectorConfig(temporal_consistency=2, temporal_tolerance=2))
+    reasons = []
+    for match, robot, session, prior in (
+        (50, "a", "s1", -1),
+        (51, "b", "s1", -1),  # close id, other robot: ids say nothing about place
+        (52, "b", "s2", -1),  # other session
+        (53, "b", "s2", 0),  # same names, but a prior map's id space
+        (54, "b", "s2", 0),
+    ):
+        cs = [Candidate(match, 0.0, "c", 0.9, 1, robot=robot, session=session, prior=prior)]
+        reasons.append(det.decide(1.0, "c", cs, scorer(1.0)).reason or "accepted")
+    assert reasons == ["awaiting temporal consistency (1/2)"] * 4 + ["accepted"]
 
 
 def test_geometric_verification_gate():

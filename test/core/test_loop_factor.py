@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from types import SimpleNamespace
 
 import cv2
@@ -44,6 +45,27 @@ def test_factor_from_a_json_dict_equals_the_one_from_the_record():
 
     record = posed_record()
     assert lf.factor_from_record(record_dict(record)) == lf.factor_from_record(record)
+
+
+WHO = dict(query_robot="r1", query_session="s2", match_robot="r0", match_session="s1")
+
+
+def test_factor_carries_both_sides_identity_and_old_records_read_as_empty():
+    from pair_vpr_ros.loop_messages import record_dict
+
+    factor = lf.factor_from_record(posed_record(**WHO))
+    assert {k: getattr(factor, k) for k in WHO} == WHO
+    assert lf.factor_from_record(record_dict(posed_record(**WHO))) == factor
+    old = {k: v for k, v in record_dict(posed_record(**WHO)).items() if k not in WHO}
+    assert {k: getattr(lf.factor_from_record(old), k) for k in WHO} == dict.fromkeys(WHO, "")
+
+
+def test_odometry_encoding_stays_as_it_was_and_does_not_carry_the_identity():
+    factor = lf.factor_from_record(posed_record(**WHO))
+    msg = lf.factor_msg(factor, TS.types)
+    back = TS.deserialize_cdr(TS.serialize_cdr(msg, lf.FACTOR_TYPE), lf.FACTOR_TYPE)
+    assert back.header.frame_id == "cam_m" and back.child_frame_id == "cam_q"
+    assert lf.factor_from_msg(back) == replace(factor, **dict.fromkeys(WHO, ""))
 
 
 @pytest.mark.parametrize("status", ["metric", "scale-free", "metric-odometry"])

@@ -61,16 +61,49 @@ def test_detail_layout_and_values():
         0.5, 0.0, -1.0,
     ]  # fmt: skip
     assert all(math.isnan(v) for v in data[14:21] + data[22:]) and data[21] == 0.0
-    assert lm.detail_to_dict(lm.DETAIL_LABELS, data)["accepted"] == 0.0
-    posed = lm.detail_to_dict(lm.DETAIL_LABELS, lm.detail_data(_posed()))
+    labels = lm.detail_labels(_record())
+    assert lm.detail_to_dict(labels, data)["accepted"] == 0.0
+    posed = lm.detail_to_dict(labels, lm.detail_data(_posed()))
     assert (posed["pose_status"], posed["pose_inliers"], posed["tz"]) == (1.0, 57.0, 3.0)
     assert (posed["cov_00"], posed["cov_12"], posed["cov_55"]) == (0.0, 8.0, 35.0)
-    scale_free = lm.detail_to_dict(
-        lm.DETAIL_LABELS, lm.detail_data(_posed(pose_status="scale-free"))
-    )
+    scale_free = lm.detail_to_dict(labels, lm.detail_data(_posed(pose_status="scale-free")))
     assert scale_free["pose_status"] == 2.0
-    with pytest.raises(ValueError, match="detail message has 58 labels but 2 values"):
-        lm.detail_to_dict(lm.DETAIL_LABELS, [1.0, 2.0])
+    with pytest.raises(ValueError, match="detail message has 62 labels but 2 values"):
+        lm.detail_to_dict(labels, [1.0, 2.0])
+
+
+IDENTITY = dict(query_robot="r1", query_session="s2", match_robot="r0", match_session="s1")
+
+
+def test_detail_carries_both_sides_identity_in_its_labels():
+    record = _record(**IDENTITY)
+    labels, data = lm.detail_labels(record), lm.detail_data(record)
+    assert labels[:58] == lm.DETAIL_LABELS and len(data) == 62
+    assert labels[58:] == (
+        "query_robot=r1", "query_session=s2", "match_robot=r0", "match_session=s1",
+    )  # fmt: skip
+    assert all(math.isnan(v) for v in data[58:])
+    assert lm.detail_text(labels) == IDENTITY
+    assert "query_robot=r1" not in lm.detail_to_dict(labels, data)  # numbers only
+    assert lm.detail_text(lm.DETAIL_LABELS) == {}  # a detail message from an older node
+
+
+def test_json_and_csv_carry_both_sides_identity_after_match_frame_id():
+    record = _record(**IDENTITY)
+    decoded = json.loads(lm.record_json(record))
+    assert list(decoded)[5:10] == ["match_frame_id", *IDENTITY]
+    assert {k: decoded[k] for k in IDENTITY} == IDENTITY
+    assert lm.csv_row(record)[6:10] == list(IDENTITY.values())
+    assert json.loads(lm.record_json(_record()))["query_robot"] == ""  # old duck-typed records
+
+
+@pytest.mark.parametrize(
+    "other", [dict(match_robot="r0"), dict(match_session="s1"), dict(query_robot="x")]
+)
+def test_no_pair_for_a_match_of_another_robot_or_session(other):
+    same = dict(query_robot="r1", query_session="s2", match_robot="r1", match_session="s2")
+    assert lm.pair_data(_record(**same)) == [1700000123.456789, 1700000001.25]
+    assert lm.pair_data(_record(**{**same, **other})) is None
 
 
 def test_json_has_every_field_in_order():
@@ -97,7 +130,7 @@ def test_csv_row_puts_the_covariance_in_one_cell():
 def test_loop_messages_bundle():
     msgs = lm.loop_messages(_record())
     assert msgs.pair == lm.pair_data(_record())
-    assert msgs.detail_labels == lm.DETAIL_LABELS and len(msgs.detail) == 58
+    assert msgs.detail_labels[:58] == lm.DETAIL_LABELS and len(msgs.detail) == 62
     assert json.loads(msgs.json)["match_id"] == 3
     assert msgs.factor is None  # no pose, no factor
     assert lm.loop_messages(_posed()).factor == lm.factor_from_record(_posed())

@@ -18,7 +18,8 @@ def test_config_file_mirrors_the_declared_parameters():
     loaded = yaml.safe_load(CONFIG.read_text())["/**"]["ros__parameters"]
     assert list(loaded) == [p.name for p in params.PARAMS]
     for name, default in params.defaults().items():
-        assert loaded[name] == default and type(loaded[name]) is type(default), name
+        value = tuple(loaded[name]) if isinstance(default, tuple) else loaded[name]  # YAML list
+        assert value == default and type(value) is type(default), name
     assert CONFIG.read_text() == params.yaml_text()
 
 

@@ -13,7 +13,7 @@ import pytest
 from bag_fixtures import textured
 from exact_match import EXACT_MATCH
 
-from pair_vpr_ros.detector import DetectorConfig
+from pair_vpr_ros.detector import Candidate, DetectorConfig
 from pair_vpr_ros.geometry.camera import CameraModel
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
 from pair_vpr_ros.geometry.relpose import PoseConfig
@@ -155,6 +155,11 @@ def test_an_old_map_without_features_loads_and_poses_come_for_new_keyframes(mode
     pipe.close()
 
 
+def _match(kf_id: int) -> Candidate:
+    """A live-map candidate of the pipeline's default identity."""
+    return Candidate(kf_id, 0.0, "cam", 1.0, 1, robot="robot", session="default")
+
+
 def test_monocular_scale_baselines_come_from_the_map_keyframes_next_to_the_match(model):
     # Keyframes 0..4 every 1 m along x; keyframe 3 has no odometry pose (it is not used).
     pipe = pipeline(model)
@@ -163,11 +168,11 @@ def test_monocular_scale_baselines_come_from_the_map_keyframes_next_to_the_match
     order = frames([0, 1, 2, 3, 1], camera=CAMERA)
     batch = [replace(f, pose=p) for f, p in zip(order, poses, strict=True)]
     list(pipe.process_many(batch))
-    near = pipe._scale_neighbours(2)
+    near = pipe._scale_neighbours(_match(2))
     # least turn, then the longest baseline first
     assert [(n.id, n.baseline_m, n.turn_deg) for n in near] == [(0, 2.0, 0.0), (4, 2.0, 0.0),
                                                                 (1, 1.0, 0.0)]  # fmt: skip
     assert near[0].load().kind == "sift" and len(near[0].load()) > 0
     no_scale = pipeline(model, pose=PoseConfig(odometry_scale=False))
     list(no_scale.process_many(batch))
-    assert no_scale._scale_neighbours(2) == []
+    assert no_scale._scale_neighbours(_match(2)) == []

@@ -73,6 +73,16 @@ FLAG_CASES = {
     "unknown flag": (["--radius", "3"], "unrecognized arguments: --radius 3"),
     "backend typo": (["--backend", "openvno"], "argument --backend: invalid choice: 'openvno'"),
     "precision typo": (["--precision", "int4"], "argument --precision: invalid choice: 'int4'"),
+    "robot id with a space": (
+        ["--robot-id", "my robot"],
+        "argument --robot-id: robot_id 'my robot' must be 1-64 characters of letters, digits, "
+        "'_', '.' or '-' (it names files and pose-graph keys), e.g. robot1",
+    ),
+    "session id empty": (["--session-id", ""], "argument --session-id: session_id '' must be"),
+    "session id with a colon": (
+        ["--session-id", "2026-11-25T09:30"],
+        "session_id '2026-11-25T09:30' must be 1-64 characters",
+    ),
 }
 
 

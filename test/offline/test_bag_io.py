@@ -287,7 +287,8 @@ def test_loop_bag_writer_round_trip(tmp_path):
     assert pair.data.tolist() == [120.25, 101.5] and pair.layout.dim == []
     detail = got["/loop_closure/detail"][2]
     labels = [d.label for d in detail.layout.dim]
-    assert labels == list(loop_messages.DETAIL_LABELS)
+    unnamed = [f"{k}=" for k in loop_messages.IDENTITY_FIELDS]  # a record without identity
+    assert labels == [*loop_messages.DETAIL_LABELS, *unnamed]
     assert {(d.size, d.stride) for d in detail.layout.dim} == {(1, 1)}
     values = loop_messages.detail_to_dict(labels, detail.data)
     assert {k: values[k] for k in loop_messages.NUMERIC_FIELDS} == {

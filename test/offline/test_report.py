@@ -173,14 +173,16 @@ def test_no_positives_and_no_accepted_give_none():
 
 
 CSV_TEXT = (
-    "query_id,query_stamp,query_frame_id,match_id,match_stamp,match_frame_id,pair_score,"
+    "query_id,query_stamp,query_frame_id,match_id,match_stamp,match_frame_id,query_robot,"
+    "query_session,match_robot,match_session,pair_score,"
     "global_similarity,rank_before,rank_after,candidates,scored,inliers,inlier_ratio,accepted,"
     "reason,"
     "pose_status,pose_reason,pose_inliers,tx,ty,tz,qx,qy,qz,qw,covariance\r\n"
-    "3,30.0,cam,0,0.0,cam,5.0,0.9,0,0,4,2,-1,0.0,True,,,,-1,nan,nan,nan,nan,nan,nan,nan,\r\n"
-    "5,50.0,cam,1,10.0,cam,3.0,0.5,0,0,4,2,-1,0.0,False,below threshold,,,-1,nan,nan,nan,nan,nan,"
-    "nan,nan,\r\n"
+    "3,30.0,cam,0,0.0,cam,,,,,5.0,0.9,0,0,4,2,-1,0.0,True,,,,-1,nan,nan,nan,nan,nan,nan,nan,\r\n"
+    "5,50.0,cam,1,10.0,cam,,,,,3.0,0.5,0,0,4,2,-1,0.0,False,below threshold,,,-1,nan,nan,nan,"
+    "nan,nan,nan,nan,\r\n"
 )
+NO_IDENTITY = dict(query_robot="", query_session="", match_robot="", match_session="")
 NO_POSE = dict(
     pose_status="",
     pose_reason="",
@@ -204,14 +206,14 @@ def test_csv_and_json_contents(tmp_path):
     assert json.loads((tmp_path / "loops.json").read_text()) == [
         {
             "query_id": 3, "query_stamp": 30.0, "query_frame_id": "cam", "match_id": 0,
-            "match_stamp": 0.0, "match_frame_id": "cam", "pair_score": 5.0,
+            "match_stamp": 0.0, "match_frame_id": "cam", **NO_IDENTITY, "pair_score": 5.0,
             "global_similarity": 0.9, "rank_before": 0, "rank_after": 0, "candidates": 4,
             "scored": 2, "inliers": -1,
             "inlier_ratio": 0.0, "accepted": True, "reason": "", **NO_POSE,
         },
         {
             "query_id": 5, "query_stamp": 50.0, "query_frame_id": "cam", "match_id": 1,
-            "match_stamp": 10.0, "match_frame_id": "cam", "pair_score": 3.0,
+            "match_stamp": 10.0, "match_frame_id": "cam", **NO_IDENTITY, "pair_score": 3.0,
             "global_similarity": 0.5, "rank_before": 0, "rank_after": 0, "candidates": 4,
             "scored": 2, "inliers": -1,
             "inlier_ratio": 0.0, "accepted": False, "reason": "below threshold", **NO_POSE,
