@@ -54,6 +54,7 @@ setup(
             "posegraph_node = pair_vpr_ros.ros.entry:posegraph_node",
             "pairvpr-posegraph = pair_vpr_ros.offline.posegraph:main",
             "pairvpr-bag-replay = pair_vpr_ros.offline.replay_cli:main",
+            "pairvpr-map = pair_vpr_ros.offline.map_cli:main",
             "pairvpr-eval = pair_vpr_ros.learn.evaluate:main",
             "pairvpr-train-stage1 = pair_vpr_ros.learn.train.stage1:main",
             "pairvpr-train-stage2 = pair_vpr_ros.learn.train.stage2:main",

@@ -1,0 +1,171 @@
+"""Merging saved place maps into a new one (`pairvpr-map merge A B ... --out C`).
+
+Every input is opened read-only (never changed) and must come from the same model: fingerprint,
+descriptor size and dense-token shape. Keyframes are copied in input order with new ids
+0, 1, 2, ... (A's first, then B's: no collisions), with their descriptors, dense tokens, metadata
+(robot, session, stamp, pose) and stored features. The result is saved into a temporary folder
+beside `--out` and renamed to `--out` only when complete, so a crash or a failure leaves no
+`--out` at all (and an existing `--out` is refused before any work).
+
+Two inputs with keyframes of the same robot and session are merged with a warning, not refused:
+the pair (robot, session) then names the keyframes of both, which is right when one map
+continues the other's session (saved twice) and harmless otherwise for the search itself
+(recent-keyframe exclusion inside that session works by stamp, so copies of one keyframe never
+match each other); but the pose graph would take them for one trajectory, so the warning says
+which inputs share which session.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+from tqdm import tqdm
+
+from pair_vpr_ros.errors import ConfigError, MapError, MapFingerprintError
+from pair_vpr_ros.identity import DEFAULT_ROBOT, LEGACY_SESSION
+from pair_vpr_ros.place_map.index import IndexConfig
+from pair_vpr_ros.place_map.place_map import PlaceMap
+
+CHUNK = 64  # keyframes whose dense tokens are read at once
+
+
+@dataclass
+class MergeResult:
+    out: str
+    keyframes: int = 0
+    inputs: list[dict] = field(default_factory=list)  # dir, keyframes, first_id (new ids)
+    warnings: list[str] = field(default_factory=list)
+
+    def line(self) -> str:
+        parts = ", ".join(f"{i['dir']} ({i['keyframes']})" for i in self.inputs)
+        return f"merged {self.keyframes} keyframes of {parts} into {self.out}"
+
+
+def merge_maps(
+    inputs: Sequence[str | os.PathLike],
+    out: str | os.PathLike,
+    index: str | IndexConfig | None = None,
+    progress: bool = False,
+) -> MergeResult:
+    """Merge the saved maps `inputs` (at least two) into the new folder `out` -> MergeResult.
+    index: the merged map's index (default: the first input's settings). ConfigError (too few
+    inputs, one given twice, `out` exists), MapError / MapFingerprintError (an input is not a
+    map, is damaged, or comes from another model); `out` is not created then."""
+    target = Path(out).expanduser().resolve()
+    dirs = [Path(d).expanduser().resolve() for d in inputs]
+    _check_arguments(dirs, target)
+    maps: list[PlaceMap] = []
+    try:
+        for d in dirs:
+            maps.append(_open(d))
+        _check_same_model(maps)
+        result = MergeResult(out=str(target))
+        result.warnings += [m.load_note for m in maps if m.load_note]
+        result.warnings += _shared_sessions(maps)
+        merged = _copy(maps, index, result, target.parent, progress)
+        _publish(merged, target)
+    finally:
+        for m in maps:
+            m.close()
+    return result
+
+
+def _check_arguments(dirs: list[Path], target: Path) -> None:
+    if len(dirs) < 2:
+        raise ConfigError(f"merge needs at least two maps, got {len(dirs)}: give A B ... --out C")
+    if len(set(dirs)) < len(dirs):
+        raise ConfigError("a map is given twice: give each input map once")
+    if target.exists():
+        raise ConfigError(
+            f"--out {target} exists: a merge never writes into an existing folder; give a new one"
+        )
+    if not target.parent.is_dir():
+        raise ConfigError(f"--out {target}: its parent folder does not exist; create it first")
+    if target in dirs or any(d in target.parents for d in dirs):
+        raise ConfigError(f"--out {target} lies inside an input map: give a folder elsewhere")
+
+
+def _open(d: Path) -> PlaceMap:
+    if not d.is_dir():
+        raise ConfigError(f"input map {d} does not exist or is not a folder")
+    try:
+        return PlaceMap.load(d, read_only=True, legacy_identity=(DEFAULT_ROBOT, LEGACY_SESSION))
+    except MapError as err:
+        raise type(err)(f"input map {d} cannot be merged: {err}") from err
+
+
+def _check_same_model(maps: list[PlaceMap]) -> None:
+    first = maps[0]
+    for m in maps[1:]:
+        if (m.fingerprint, m.desc_dim, m.dense_shape) != (
+            first.fingerprint, first.desc_dim, first.dense_shape,
+        ):  # fmt: skip
+            raise MapFingerprintError(
+                f"maps of different models cannot be merged: {first.directory} holds model "
+                f"{first.fingerprint!r} (descriptors {first.desc_dim}, dense tokens "
+                f"{list(first.dense_shape)}), {m.directory} holds {m.fingerprint!r} (descriptors "
+                f"{m.desc_dim}, dense tokens {list(m.dense_shape)}): merge only maps built with "
+                "the same weights and image size"
+            )
+
+
+def _shared_sessions(maps: list[PlaceMap]) -> list[str]:
+    seen: dict[tuple[str, str], list[str]] = {}
+    for m in maps:
+        for key in {(k.robot, k.session) for k in m.all_meta()}:
+            seen.setdefault(key, []).append(str(m.directory))
+    return [
+        f"robot {robot!r} session {session!r} has keyframes in {' and '.join(where)}: merged "
+        "under one name (kept; a pose graph would take them for one trajectory)"
+        for (robot, session), where in sorted(seen.items())
+        if len(where) > 1
+    ]
+
+
+def _copy(
+    maps: list[PlaceMap], index, result: MergeResult, work: Path, progress: bool
+) -> PlaceMap:
+    first = maps[0]
+    merged = PlaceMap(
+        first.desc_dim, first.dense_shape, first.fingerprint, index or first.index_config,
+        work_dir=work,
+    )  # fmt: skip
+    total = sum(len(m) for m in maps)
+    try:
+        with tqdm(total=total, unit="keyframe", desc="merge", disable=not progress) as bar:
+            for m in maps:
+                result.inputs.append(
+                    {"dir": str(m.directory), "keyframes": len(m), "first_id": len(merged)}
+                )
+                metas = m.all_meta()
+                for start in range(0, len(m), CHUNK):
+                    ids = list(range(start, min(start + CHUNK, len(m))))
+                    dense, desc = m.get_dense(ids), m.get_desc(ids)
+                    for row, kf_id in enumerate(ids):
+                        meta = replace(metas[kf_id], id=-1)
+                        merged.add(desc[row], dense[row], meta, m.features(kf_id))
+                    bar.update(len(ids))
+        result.keyframes = len(merged)
+    except BaseException:
+        merged.close()
+        raise
+    return merged
+
+
+def _publish(merged: PlaceMap, target: Path) -> None:
+    """Save `merged` into a temporary folder beside `target`, then rename it to `target`."""
+    tmp = target.parent / f".{target.name}.merging-{os.getpid()}"
+    try:
+        merged.save(tmp)
+        merged.close()  # releases the folder's lock before the rename
+        if target.exists():
+            raise ConfigError(f"--out {target} appeared while merging: the merge is not saved")
+        os.rename(tmp, target)
+    except BaseException:
+        merged.close()
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
