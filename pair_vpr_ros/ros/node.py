@@ -116,6 +116,7 @@ class VprNode(Node):
         priors = open_prior_maps(v["prior_map_dirs"], model.fingerprint, self.identity)
         for note in priors.notes:
             self._log("info", note)
+        self._prior_summary = priors.summary()
         self.maps = MapControl(
             lambda: LoopClosurePipeline(
                 model, config, index=v["index"], geometry=geometry, identity=self.identity,
@@ -377,6 +378,9 @@ class VprNode(Node):
             "mode": self.maps.state.mode,
             "map_dir": self.values["map_dir"],
             "build": self.maps.build.to_dict(),
+            "robot": self.identity.robot,
+            "session": self.identity.session,
+            "prior_maps": self._prior_summary,  # dir, keyframes, sessions (fixed at start-up)
         }
         return True, json.dumps(info)
 

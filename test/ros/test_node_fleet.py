@@ -41,6 +41,11 @@ def test_identity_and_a_prior_map(harness, places, tmp_path):
         map_dir=str(tmp_path / "map"),
     )  # fmt: skip
     assert second.node.summary.endswith("robot r3, session tue, 1 prior maps")
+    info = json.loads(second.call(Trigger, "map_info").message)
+    assert (info["robot"], info["session"], info["keyframes"]) == ("r3", "tue", 0)
+    assert info["prior_maps"] == [
+        {"dir": str(tmp_path / "map"), "keyframes": 6, "sessions": {"r3/mon": 6}}
+    ]
     second.publish([places[1]])  # the same stamps as monday's place 1: found at once
     second.processed(1)
     wait_for(lambda: len(second.got["loop_closure/json"]) == 1)
