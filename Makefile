@@ -1,10 +1,11 @@
 # Two entry points (see README): `make demo` and `make test`. Each sets up .venv itself.
+# `make docs` builds the documentation site into site/ (warnings are errors).
 VENV ?= .venv
 PY := $(VENV)/bin/python
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 export MPLBACKEND := Agg
 
-.PHONY: setup demo demo-model test test-quick lint clean
+.PHONY: setup demo demo-model test test-quick lint docs clean
 
 setup:
 	@VENV=$(VENV) bash scripts/setup_env.sh
@@ -18,12 +19,15 @@ test: setup
 test-quick: setup
 	$(PY) -m pytest -q -m "not slow" test
 
+docs: setup
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict
+
 lint: setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
 clean:
-	rm -rf build install log demo_out .pytest_cache
+	rm -rf build install log demo_out site .pytest_cache
 
 demo-model: setup
 	@PY=$(PY) bash scripts/train_demo_model.sh

@@ -19,7 +19,10 @@ setup(
             f"share/{PACKAGE}/config",
             ["config/vpr_node.yaml", "config/demo.yaml", "config/posegraph_node.yaml"],
         ),
-        (f"share/{PACKAGE}/launch", ["launch/vpr_node.launch.py"]),
+        (
+            f"share/{PACKAGE}/launch",
+            ["launch/vpr_node.launch.py", "launch/vpr_posegraph.launch.py"],
+        ),
     ],
     # torch comes first from the CPU/CUDA build the user picked (see README); a bare
     # requirement here would otherwise pull the multi-GB CUDA wheel on a fresh machine.
@@ -40,6 +43,8 @@ setup(
         "slam": ["gtsam>=4.2", "evo>=1.28"],
         # backend openvino (fp32/bf16: openvino; int8: static quantization by nncf), CPU only.
         "openvino": ["openvino>=2025.0", "nncf>=2.16"],
+        # The documentation site (make docs): MkDocs, its theme, the API from docstrings.
+        "docs": ["mkdocs>=1.6", "mkdocs-material>=9.5", "mkdocstrings[python]>=0.26"],
         "test": [
             "pytest>=7",
             "ruff>=0.5",

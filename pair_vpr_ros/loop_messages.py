@@ -31,7 +31,7 @@ both publish identical data; the pose-graph tools decode them here too. One acce
     numbers or ``null``.
 
 ``loop_closure/factor`` — ``nav_msgs/Odometry``, one message per loop that has a relative pose:
-    everything one between-factor needs (layout in ``loop_factor`` and the README).
+    everything one between-factor needs (layout in ``loop_factor`` and docs/node.md).
 """
 
 from __future__ import annotations

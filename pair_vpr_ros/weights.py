@@ -40,7 +40,7 @@ RANDOM_PREFIX = "random-"  # "random-<preset>": a randomly initialised network (
 RELEASED = (
     "get the authors' released checkpoints (pairvpr-vitB.pth, -vitL, -vitG) from the Pair-VPR "
     "repository (csiro-robotics/Pair-VPR on GitHub, or CSIRORobotics/Pair-VPR on Hugging Face), "
-    "see the README's 'Released weights'"
+    "see docs/install.md, 'Released weights'"
 )
 PRECISIONS = ("fp32", "int8", "bf16", "fp16")
 BACKENDS = ("torch", "openvino")  # torch: the reference; openvino: faster on a CPU (optional)

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Create (or update) the project's virtual environment: CPU torch first, then the package with
-# its ROS, training, test, SLAM and OpenVINO extras. Idempotent: re-running only reinstalls when setup.py changed.
+# its ROS, training, test, SLAM, OpenVINO and docs extras. Idempotent: re-running only reinstalls when setup.py changed.
 #   VENV=.venv          where to create it
 #   PYTHON=python3.11   interpreter (the pip ROS Jazzy wheels are cp311)
 #   TORCH_SPEC=...      torch requirement; default is the CPU build used in CI. On a CUDA machine
@@ -26,6 +26,6 @@ fi
 # torch before the package: a bare "torch" requirement on a machine without torch pulls the
 # multi-GB CUDA build.
 "$VENV/bin/python" -c "import torch" 2>/dev/null || "${PIP[@]}" install "$TORCH_SPEC"
-"${PIP[@]}" install -e '.[ros,train,test,slam,openvino]'
+"${PIP[@]}" install -e '.[ros,train,test,slam,openvino,docs]'
 echo "$want" > "$stamp"
 echo "setup: $VENV ready ($("$VENV/bin/python" -c 'import torch; print("torch", torch.__version__)'))"

@@ -4,7 +4,8 @@ would start: package, executable and the `--ros-args` it passes.
 
 Only what our launch files use is modelled: `LaunchDescription`, `DeclareLaunchArgument`,
 `LaunchConfiguration` (also `.perform(context)`), `OpaqueFunction` and `launch_ros.actions.Node`
-(parameters given as file paths or dicts, remappings as pairs). Anything else fails loudly, so
+(parameters given as file paths or dicts of strings, numbers or lists, remappings as pairs).
+Anything else fails loudly, so
 a launch file that grows past this model fails its test instead of passing unchecked.
 """
 
@@ -114,8 +115,8 @@ def declared(description: LaunchDescription) -> dict[str, DeclareLaunchArgument]
     return {e.name: e for e in description.entities if isinstance(e, DeclareLaunchArgument)}
 
 
-def _text(value: Any, context: LaunchContext) -> str:
-    if isinstance(value, str):
+def _text(value: Any, context: LaunchContext) -> Any:
+    if isinstance(value, str | list | float | int):  # a plain value (a list: a ROS array)
         return value
     assert isinstance(value, LaunchConfiguration), f"not modelled: {value!r}"
     return value.perform(context)
@@ -155,6 +156,13 @@ def _performed(node: Node, context: LaunchContext) -> Node:
     )  # fmt: skip
 
 
+def _arg(value: Any) -> str:
+    """A parameter value as launch_ros writes it on the command line (YAML)."""
+    if isinstance(value, list):
+        return "[" + ", ".join(str(v) for v in value) + "]"
+    return str(value)
+
+
 def ros_args(node: Node) -> list[str]:
     """The `--ros-args ...` launch_ros passes to a launched ``node`` (parameters in order)."""
     out = ["--ros-args"]
@@ -164,7 +172,7 @@ def ros_args(node: Node) -> list[str]:
         out += ["-r", f"__ns:={node.namespace}"]
     for entry in node.parameters:
         if isinstance(entry, dict):
-            out += [a for key, value in entry.items() for a in ("-p", f"{key}:={value}")]
+            out += [a for key, value in entry.items() for a in ("-p", f"{key}:={_arg(value)}")]
         else:
             out += ["--params-file", entry]
     return out + [a for source, target in node.remappings for a in ("-r", f"{source}:={target}")]

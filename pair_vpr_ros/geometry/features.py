@@ -2,7 +2,7 @@
 
 SIFT is the default: on the demo world's loop pairs it gives half the pose error of ORB at the
 same success rate, and fewer, better keypoints make matching and RANSAC cheaper; its extraction
-costs more (README, "Relative pose"). SIFT descriptors are integers 0..255 in OpenCV, so both
+costs more (docs/relative-pose.md). SIFT descriptors are integers 0..255 in OpenCV, so both
 kinds are stored as uint8 without loss.
 """
 

@@ -278,7 +278,7 @@ def build_parser() -> argparse.ArgumentParser:
         dest="checkpoint",
         type=Path,
         help="Pair-VPR weights (e.g. pairvpr-vitB.pth); default: $PAIRVPR_WEIGHTS, else the one "
-        ".pth in $XDG_DATA_HOME/pair_vpr_ros/ (README, 'Released weights')",
+        ".pth in $XDG_DATA_HOME/pair_vpr_ros/ (docs/install.md, 'Released weights')",
     )
     p.add_argument(
         "--random-init",

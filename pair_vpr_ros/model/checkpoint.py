@@ -33,7 +33,7 @@ def read_checkpoint(path: str | os.PathLike) -> tuple[dict[str, Tensor], dict | 
     if not path.is_file():
         raise CheckpointError(
             f"checkpoint {path} does not exist (or is not a file): pass the path of a Pair-VPR "
-            "weights file such as pairvpr-vitB.pth (see README: 'Released weights')"
+            "weights file such as pairvpr-vitB.pth (see docs/install.md, 'Released weights')"
         )
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)

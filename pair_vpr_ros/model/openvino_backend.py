@@ -1,7 +1,7 @@
 """OpenVINO back end (`backend: openvino`): the network compiled by OpenVINO for the CPU.
 
-Chosen over ONNX Runtime by measurement (README, "Faster CPU back end"). The graphs come from our
-own modules (`export.py`); `precision` picks what OpenVINO runs:
+Chosen over ONNX Runtime by measurement (docs/performance.md, "Faster CPU back end").
+The graphs come from our own modules (`export.py`); `precision` picks what OpenVINO runs:
 - fp32: f32 kernels throughout (agrees with torch to float rounding);
 - bf16: OpenVINO's default on a CPU with bf16 instructions (f32 elsewhere);
 - int8: static int8 from NNCF (symmetric, per-tensor activations whose ranges are the min/max

@@ -32,13 +32,13 @@ class IndexConfig:
     kind: "flat" = exact inner product (`IndexFlatIP`); "hnsw" = approximate graph search
         (`IndexHNSWFlat`, inner product); "ivf" = exact until `train_at` keyframes, then an
         inverted file of k-means lists trained on the map (`IndexIVFFlat`, see ivf.py): the
-        kind for maps of ~1e5-1e6 keyframes (README "Place map").
+        kind for maps of ~1e5-1e6 keyframes (docs/performance.md "Place map").
     hnsw_m: HNSW neighbours per node (M); memory ~ 2*M*4 bytes per keyframe on top of the vector.
     ef_construction: HNSW candidate list while inserting; higher = better graph, slower add.
     ef_search: HNSW candidate list while searching (raised to k when k is larger); recall vs time.
     nlist: "ivf" lists; 0 = 4 sqrt(n) at each training (n = keyframes then, at most n/39).
     nprobe: "ivf" lists scanned per search; recall vs time (32: recall@10 1.000, 2.5 ms at 1e6
-        trajectory-shaped keyframes, README "Place map").
+        trajectory-shaped keyframes, docs/performance.md "Place map").
     train_at: "ivf" is exact (flat) below this many keyframes and trained on the add that
         reaches it (or 39 x nlist with a fixed nlist, if more).
     retrain_growth: "ivf" trains again each time the map grows this factor past the last

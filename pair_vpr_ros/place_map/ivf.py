@@ -12,7 +12,8 @@ descriptors, and the map grows one keyframe at a time, so the index goes through
   ... by default): trained again, so the lists follow the map (nlist 4 sqrt(n) grows with it).
 
 The training runs inside `add`, so that one add pauses the caller: measured with
-benchmarks/bench_map.py (README "Place map"); `last_training` and a logged warning say how long.
+benchmarks/bench_map.py (docs/performance.md "Place map"); `last_training` and a logged
+warning say how long.
 Ids stay insertion positions: IVF adds number vectors ntotal, ntotal + 1, ... and a direct map
 (id -> list slot) keeps `reconstruct` working. Every list holds its ids in increasing order
 (vectors are always added in id order), which lets a range selector bisect each list.

@@ -1,4 +1,5 @@
-"""The README's ROS section, line by line, against a running `vpr_node` (tiny random network).
+"""The node page (docs/node.md, once the README's ROS section), line by line, against a running
+`vpr_node` (tiny random network).
 
 Every command line in the section's code blocks is carried out: `ros2 run` / `vpr_node` /
 `ros2 launch` start the node with the arguments shown (the launch file through stand-ins),
@@ -25,13 +26,14 @@ from pair_vpr_ros import loop_messages as lm
 from pair_vpr_ros.params import PARAMS, RANDOM_TINY, SPECS
 from pair_vpr_ros.ros.node import MARKER_TOPIC, VprNode
 
-HEADING = "## The ROS 2 node `vpr_node`"
+HEADING = "# The ROS 2 node `vpr_node`"
+PAGE = ROOT / "docs" / "node.md"
 NODE = "/vpr_node"
 OUTPUT_TOPICS = (lm.PAIR_TOPIC, lm.DETAIL_TOPIC, lm.JSON_TOPIC, lm.FACTOR_TOPIC, MARKER_TOPIC)
 
 
 def ros_section() -> str:
-    text = (ROOT / "README.md").read_text()
+    text = PAGE.read_text()
     start = text.index(HEADING)
     end = text.find("\n## ", start + 1)
     return text[start:end]
