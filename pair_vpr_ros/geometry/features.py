@@ -83,14 +83,17 @@ def extract_features(
     """RGB uint8 [H, W, 3] (+ aligned depth [H, W] metres) -> Features; images larger than
     `max_side` are detected on a downscaled copy, keypoints stay in full-size pixels."""
     grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
-    scale = min(1.0, max_side / max(grey.shape))
-    if scale < 1.0:
-        grey = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    h, w = grey.shape
+    scale = min(1.0, max_side / max(h, w))
+    if scale < 1.0:  # each side at least 1 pixel: a 1 x 20000 strip must not become 0 x 640
+        size = (max(1, round(w * scale)), max(1, round(h * scale)))
+        grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
     keypoints, descriptors = _detector(kind, max_features).detectAndCompute(grey, None)
     if descriptors is None or not keypoints:
         out = empty_features(kind)
     else:
-        points = np.array([kp.pt for kp in keypoints], np.float32) / scale
+        to_full = np.array([w / grey.shape[1], h / grey.shape[0]], np.float32)
+        points = np.array([kp.pt for kp in keypoints], np.float32) * to_full
         out = Features(points, np.clip(descriptors, 0, 255).astype(np.uint8), kind)
     out.camera = camera
     if depth is not None:

@@ -205,3 +205,19 @@ def test_bad_image_files(tmp_path: Path, name, content, error, message) -> None:
         (tmp_path / name).write_bytes(content)
     with pytest.raises(error, match=re.escape(message)):
         file_to_rgb(tmp_path / name)
+
+
+@pytest.mark.parametrize("shape", [(1, 20000), (20000, 1), (2, 5000), (1, 641)])
+@pytest.mark.parametrize("kind", ["sift", "orb"])
+def test_extreme_aspect_ratio_gives_features_not_a_cv2_error(shape, kind) -> None:
+    """Issue 25: a 1 x 20000 image scaled to max_side 640 had a height of 0 (cv2 `!dsize.empty()`
+    in resize); each side now keeps at least one pixel, keypoints stay in full-size pixels."""
+    from pair_vpr_ros.geometry.features import extract_features
+
+    rgb = np.random.default_rng(0).integers(0, 256, (*shape, 3), dtype=np.uint8)
+    out = extract_features(rgb, kind=kind)
+    assert out.kind == kind and out.keypoints.shape[1] == 2
+    assert len(out.keypoints) == len(out.descriptors)
+    if len(out.keypoints):
+        assert (out.keypoints >= 0).all()
+        assert (out.keypoints[:, 0] < shape[1]).all() and (out.keypoints[:, 1] < shape[0]).all()

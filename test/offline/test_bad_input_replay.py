@@ -12,10 +12,11 @@ import re
 import tempfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from bad_input import tree_digest
-from bag_fixtures import synthetic_images, write_rosbag2
+from bag_fixtures import TS2, image_msg, synthetic_images, write_rosbag2
 
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, save_pairvpr
 from pair_vpr_ros.offline import replay
@@ -313,3 +314,24 @@ def test_images_over_the_pixel_limit_are_counted_skips(setup, tmp_path, capsys, 
     assert (
         f"warning: no image of /cam/image could be used, e.g.: {reason}" in capsys.readouterr().err
     )
+
+
+def test_a_1_by_20000_mono8_strip_replays_with_outputs(setup, tmp_path, capsys) -> None:
+    """Issue 25 #6: such images ended the replay with a cv2 traceback in the keyframe-feature
+    step (scaled height 0) and nothing written; now they are encoded, and get no features."""
+    _, weights, _ = setup
+    rng = np.random.default_rng(0)
+    grey = [rng.integers(0, 256, (1, 20000), dtype=np.uint8) for _ in range(3)]
+    extra = [
+        ("/cam/image", "sensor_msgs/msg/Image",
+         image_msg(TS2, float(i), np.repeat(g[..., None], 3, 2), False, encoding="mono8",
+                   step=20000, data=g.reshape(-1).copy()), float(i))
+        for i, g in enumerate(grey)
+    ]  # fmt: skip
+    bag = write_rosbag2(tmp_path / "strip", [], extra=extra)
+    out = tmp_path / "out"
+    code = main([str(bag), "--weights", str(weights), "--out", str(out), "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    saved = json.loads((out / "summary.json").read_text())
+    assert (saved["frames"], saved["skipped"]) == (3, 0)
+    assert saved["keyframes"] >= 1 and (out / "loops.json").is_file() and (out / "map").is_dir()
