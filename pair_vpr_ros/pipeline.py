@@ -188,9 +188,9 @@ class LoopClosurePipeline:
         self._last_desc = None
         self.detector.reset()
 
-    def save_map(self, directory: str | Path) -> Path:
+    def save_map(self, directory: str | Path, overwrite: bool = False) -> Path:
         refuse_prior_target(directory, self.maps.priors)  # a prior map is never written
-        return self._place_map.save(directory)
+        return self._place_map.save(directory, overwrite=overwrite)
 
     def load_map(self, directory: str | Path) -> int:
         """Replace the map by a saved one (same model required); returns its keyframe count.

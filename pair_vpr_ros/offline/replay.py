@@ -338,7 +338,7 @@ def _finish(
     summary.pipeline_counts = pipe.counts.to_dict()
     try:
         if o.save_map:
-            summary.map_dir = str(pipe.save_map(o.map_path(out)))
+            summary.map_dir = str(pipe.save_map(o.map_path(out), overwrite=o.overwrite))
         keyframes = _keyframes(pipe, truth, o.pose_tolerance)
         has_poses = any(k.pose is not None for k in keyframes)
         global_top1 = run.global_top1 if has_poses else None

@@ -111,8 +111,15 @@ class DirLock:
                 f"map directory {directory} is open for writing by another PlaceMap "
                 f"(pid {holder}); close that one first, or load this map with read_only=True"
             ) from err
-        os.ftruncate(self._fd, 0)
-        os.pwrite(self._fd, f"{os.getpid()}\n".encode(), 0)
+        try:
+            os.ftruncate(self._fd, 0)
+            os.pwrite(self._fd, f"{os.getpid()}\n".encode(), 0)
+        except OSError as err:  # a full disk: the pid does not fit
+            self.release()
+            raise MapError(
+                f"cannot write the lock file {path} ({err.strerror}): free disk space or pick "
+                "another directory and retry"
+            ) from err
 
     def release(self) -> None:
         if getattr(self, "_fd", None) is not None:

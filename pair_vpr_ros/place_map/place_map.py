@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pair_vpr_ros.errors import ConfigError, MapError
+from pair_vpr_ros.errors import ConfigError, MapError, MapFingerprintError
 from pair_vpr_ros.identity import DEFAULT_ROBOT, LEGACY_SESSION
 from pair_vpr_ros.place_map import persist
 from pair_vpr_ros.place_map.checks import dense_tokens, keyframe_ids, unit_descriptor
@@ -192,25 +192,37 @@ class PlaceMap:
 
     # ----------------------------------------------------------------------- save and load
 
-    def save(self, directory: str | os.PathLike) -> Path:
+    def save(self, directory: str | os.PathLike, overwrite: bool = False) -> Path:
         """Atomically make `directory` hold this map (created if needed) -> its resolved path.
 
         A crash at any moment leaves the previous save in `directory` loadable and intact. After
         a save the map continues in that directory: later saves there only append dense tokens.
+        A map of another model saved there is refused (MapFingerprintError) unless `overwrite`.
+        A failed save into a folder it created leaves no folder behind.
         """
         self._check_writable("save")
         target = Path(directory).expanduser().resolve()
+        if target != self._home and not overwrite:
+            self._refuse_other_model(target)
+        created = not target.exists()
         try:
             target.mkdir(parents=True, exist_ok=True)
         except OSError as err:
             raise MapError(f"cannot create map directory {target}: {err.strerror}") from err
-        new_lock = DirLock(target) if target != self._home else None
+        try:
+            new_lock = DirLock(target) if target != self._home else None
+        except MapError:
+            if created:
+                _remove_new_folder(target)
+            raise
         in_place = self._dense_committed and target == self._home
         try:
             manifest, copied = persist.save(target, self._parts(), in_place)
         except BaseException as err:
             if new_lock is not None:
                 new_lock.release()
+                if created:
+                    _remove_new_folder(target)
             if isinstance(err, (OSError, sqlite3.Error, RuntimeError)):  # RuntimeError: FAISS
                 raise MapError(
                     f"saving the place map to {target} failed ({err}); the previous save there "
@@ -219,6 +231,20 @@ class PlaceMap:
             raise
         self._after_commit(target, manifest, copied, new_lock)
         return target
+
+    def _refuse_other_model(self, target: Path) -> None:
+        if not (target / MANIFEST_NAME).is_file():
+            return
+        try:
+            theirs = read_manifest(target).fingerprint
+        except MapError:
+            return  # a damaged save: the save replaces it as before
+        if self.fingerprint and theirs and theirs != self.fingerprint:
+            raise MapFingerprintError(
+                f"map directory {target} holds a map of another model (fingerprint {theirs!r}, "
+                f"this map's is {self.fingerprint!r}): save into another directory, or pass "
+                "overwrite=True to replace it"
+            )
 
     def _parts(self) -> persist.MapParts:
         return persist.MapParts(
@@ -354,3 +380,12 @@ class PlaceMap:
                 f"cannot {action} a map loaded with read_only=True ({self._home}): load it "
                 "without read_only to change it"
             )
+
+
+def _remove_new_folder(target: Path) -> None:
+    """Undo a folder a failed save created: its lock file, then the folder if it is empty."""
+    (target / LOCK_NAME).unlink(missing_ok=True)
+    try:
+        target.rmdir()
+    except OSError:
+        pass  # not empty: something else wrote there; leave it

@@ -21,7 +21,7 @@ from test_place_map_persist import DIM, N0, SHAPE, add_range, assert_holds, flip
 from pair_vpr_ros.errors import MapError, MapFingerprintError
 from pair_vpr_ros.hashing import sha256_file
 from pair_vpr_ros.pipeline import LoopClosurePipeline
-from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap, dense_store, manifest, persist
+from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap, dense_store, files, manifest, persist
 from pair_vpr_ros.place_map.files import LOCK_NAME
 
 
@@ -398,7 +398,7 @@ def test_full_disk_save_leaves_nothing_behind(saved, tmp_path, monkeypatch, mode
     m = PlaceMap(DIM, SHAPE, "fp-a") if mode == "fresh" else PlaceMap.load(saved)
     start = len(m)
     add_range(m, start, start + 2)
-    listing = sorted(os.listdir(target)) if target.exists() else [LOCK_NAME]
+    listing = sorted(os.listdir(target)) if target.exists() else None  # a new folder
     before = saved_map_digest(saved)
     with monkeypatch.context() as mp:
         FULL_DISK_AT[step](m, mp)
@@ -406,8 +406,58 @@ def test_full_disk_save_leaves_nothing_behind(saved, tmp_path, monkeypatch, mode
             m.save(target)
     assert saved_map_digest(saved) == before
     live = m._dense.path.name if m._dense.path.parent == target else None  # moved, not copied
-    assert sorted(n for n in os.listdir(target) if n != live) == [n for n in listing if n != live]
+    if listing is None:  # issue 25: a failed save into a folder it made leaves no folder
+        assert not target.exists()
+    else:
+        assert sorted(n for n in os.listdir(target) if n != live) == [
+            n for n in listing if n != live
+        ]
     m.save(target)  # and the save can be retried
     m.close()
     with PlaceMap.load(target) as again:
         assert_holds(again, list(range(start + 2)))
+
+
+# ---- Issue 25 #6: a full disk at the lock file, and a save over another model's map
+
+
+def test_full_disk_at_the_lock_file_is_a_map_error_and_leaves_no_folder(tmp_path, monkeypatch):
+    target = tmp_path / "new" / "map"
+    with PlaceMap(DIM, SHAPE, "fp-a") as m:
+        add_range(m, 0, 2)
+        with monkeypatch.context() as mp:
+            mp.setattr(files.os, "pwrite", _enospc)
+            with pytest.raises(MapError) as err:
+                m.save(target)
+        assert str(err.value) == (
+            f"cannot write the lock file {target / LOCK_NAME} (No space left on device): free "
+            "disk space or pick another directory and retry"
+        )
+        assert not target.exists() and (tmp_path / "new").is_dir()
+        m.save(target)  # retried once there is room
+    with PlaceMap.load(target) as again:
+        assert_holds(again, [0, 1])
+
+
+def test_save_over_another_models_map_is_refused_unless_overwrite(saved, tmp_path) -> None:
+    before = saved_map_digest(saved)
+    with PlaceMap(DIM, SHAPE, "fp-b") as other:
+        add_range(other, 0, 1)
+        with pytest.raises(MapFingerprintError) as err:
+            other.save(saved)
+        assert str(err.value) == (
+            f"map directory {saved} holds a map of another model (fingerprint 'fp-a', this "
+            "map's is 'fp-b'): save into another directory, or pass overwrite=True to replace it"
+        )
+        assert saved_map_digest(saved) == before
+        other.save(saved, overwrite=True)
+    with PlaceMap.load(saved) as again:
+        assert again.fingerprint == "fp-b" and len(again) == 1
+
+
+def test_save_over_the_same_models_map_still_replaces_it(saved) -> None:
+    with PlaceMap(DIM, SHAPE, "fp-a") as same:
+        add_range(same, 0, 1)
+        same.save(saved)
+    with PlaceMap.load(saved) as again:
+        assert len(again) == 1
