@@ -298,6 +298,32 @@ def check_change(current: Mapping[str, Any], changes: Mapping[str, Any]) -> str 
     return None
 
 
+class DuplicateKeyError(yaml.YAMLError):
+    """A key given twice in one YAML mapping (PyYAML and rcl keep the last without a word)."""
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """SafeLoader that refuses a key given twice in one mapping."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: dict[Any, int] = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            line = key_node.start_mark.line + 1
+            if key in seen:
+                raise DuplicateKeyError(
+                    f"{key!r} is given twice (lines {seen[key]} and {line}): keep one (YAML "
+                    "would use the last one without a word)"
+                )
+            seen[key] = line
+        return super().construct_mapping(node, deep=deep)
+
+
+def load_yaml(text: str) -> Any:
+    """`yaml.safe_load` that raises DuplicateKeyError for a key given twice in one mapping."""
+    return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
+
+
 def params_file_problem(args: list[str]) -> str | None:
     """Why a `--params-file` of the command line `args` cannot be read (None: all can). rcl
     would raise an RCLError traceback for a missing one."""
@@ -314,6 +340,12 @@ def params_file_problem(args: list[str]) -> str | None:
             )
         if not os.access(where, os.R_OK):
             return f"--params-file {path} cannot be read (permissions): give a readable file"
+        try:
+            load_yaml(where.read_bytes().decode("utf-8"))
+        except DuplicateKeyError as err:
+            return f"--params-file {path}: {err}"
+        except (OSError, UnicodeDecodeError, yaml.YAMLError):
+            pass  # rcl's parser reports these
     return None
 
 
@@ -326,7 +358,9 @@ def read_params_file(
     path = Path(path)
     layout = f"see config/{node_name}.yaml: '/**:' or '{node_name}:', then 'ros__parameters:'"
     try:
-        data = yaml.safe_load(path.read_bytes().decode("utf-8"))
+        data = load_yaml(path.read_bytes().decode("utf-8"))
+    except DuplicateKeyError as err:
+        raise ConfigError(f"parameter file {path}: {err}") from err
     except UnicodeDecodeError as err:
         raise ConfigError(
             f"parameter file {path} is not a text (UTF-8) file ({err.reason} at byte "

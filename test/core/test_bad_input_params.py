@@ -73,6 +73,15 @@ CASES = {
         section('rerank_budget_ms: "250 ms"').encode(),
         "rerank_budget_ms must be a number, got '250 ms'",
     ),
+    "key twice": (
+        section("top_k: 3\nscore_threshold: 1.0\ntop_k: 20").encode(),
+        "'top_k' is given twice (lines 3 and 5): keep one (YAML would use the last one without "
+        "a word)",
+    ),
+    "section twice": (
+        (section("top_k: 3") + section("top_k: 4")).encode(),
+        "'/**' is given twice (lines 1 and 4): keep one",
+    ),
     "zero pixel limit": (
         section("max_image_pixels: 0").encode(),
         "max_image_pixels=0 is out of range [1, 1073741824]",
@@ -146,3 +155,15 @@ def test_node_params_file_flag_is_checked_before_rcl(tmp_path: Path, monkeypatch
         "$(ros2 pkg prefix pair_vpr_ros)/share/pair_vpr_ros/config/vpr_node.yaml"
     )
     assert params_file_problem(["vpr_node", "--params-file"]) is None  # rcl's to report
+
+
+def test_node_refuses_a_params_file_with_a_key_given_twice(tmp_path: Path) -> None:
+    """Issue 25 #6: rcl keeps the last of two values of one key without a word."""
+    path = tmp_path / "twice.yaml"
+    path.write_text(section("top_k: 3\ntop_k: 20"))
+    assert params_file_problem(["vpr_node", "--ros-args", "--params-file", str(path)]) == (
+        f"--params-file {path}: 'top_k' is given twice (lines 3 and 4): keep one (YAML would "
+        "use the last one without a word)"
+    )
+    path.write_text(section("top_k: 3\nmode: mapping"))
+    assert params_file_problem(["vpr_node", "--ros-args", "--params-file", str(path)]) is None

@@ -103,6 +103,11 @@ PARAMS_CASES = {
         b"/**:\n  ros__parameters:\n    - top_k: 3\n",
         "ros__parameters holds a list, not a mapping",
     ),
+    "key given twice": (  # issue 25 #6: the last value won without a word
+        b"/**:\n  ros__parameters:\n    top_k: 3\n    top_k: 20\n",
+        "'top_k' is given twice (lines 3 and 4): keep one (YAML would use the last one without "
+        "a word)",
+    ),
 }
 
 
