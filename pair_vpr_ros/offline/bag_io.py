@@ -402,3 +402,9 @@ class LoopBagWriter:
         for topic, msg in msgs:
             cdr = ts.serialize_cdr(msg, msg.__msgtype__)
             self._write(self._connections[topic], log_time_ns, cdr)
+
+
+def check_bag_path(path: str | Path) -> Path:
+    """The storage path of bag ``path``, or BagError (what is wrong, what to give) when it is
+    none; cheap, so a tool checks it before slow work such as finding and loading weights."""
+    return _resolve(Path(path))

@@ -7,8 +7,10 @@ the evaluation's ground truth (``--gt-topic``) are chosen apart, and every choic
 
 * ``--pose-topic`` not given: the bag's only pose topic (besides ``--gt-topic``) is used; with
   several, none is, and the message lists them.
-* ``--gt-topic`` not given: the keyframe pose topic is the ground truth (the message says that
-  it may drift).
+* ``--gt-topic`` not given: the bag's one pose topic named as ground truth (``ground_truth``,
+  ``groundtruth`` or ``gt`` as its last part, e.g. ``/ground_truth``, ``/robot/gt``) is the
+  ground truth, and the keyframe poses come from the others as if it had been given; without
+  one, the keyframe pose topic is the ground truth (the message says that it may drift).
 * ``none`` for either: not used.
 """
 
@@ -20,6 +22,7 @@ from dataclasses import dataclass
 from pair_vpr_ros.errors import BagError
 
 NONE = "none"
+GT_NAMES = ("ground_truth", "groundtruth", "gt")  # last part of a topic named as ground truth
 KINDS = "Odometry, PoseStamped or PoseWithCovarianceStamped"
 
 
@@ -49,6 +52,11 @@ def choose_pose_topics(
     the ``--pose-topic`` / ``--gt-topic`` values (None: not given). BagError for a given topic
     the bag does not hold as a pose topic."""
     warning = None
+    by_name = None
+    if gt is None:
+        named = [t for t in found if t.rstrip("/").rsplit("/", 1)[-1].lower() in GT_NAMES]
+        by_name = named[0] if len(named) == 1 and len(found) > 1 else None
+        gt = by_name
     gt_given = gt not in (None, NONE)
     if gt_given:
         gt = _checked(gt, found, bag, "--gt-topic")
@@ -74,7 +82,12 @@ def choose_pose_topics(
             warning = pose_note
         else:
             pose_note = f"keyframe poses: none (the bag has no {KINDS} topic{besides})"
-    if gt_given:
+    if by_name is not None:
+        gt_note = (
+            f"ground truth: {gt}, named as ground truth (choose with --gt-topic, or --gt-topic "
+            "none)"
+        )
+    elif gt_given:
         gt_note = f"ground truth: {gt} (--gt-topic)"
     elif gt == NONE:
         gt, gt_note = None, "ground truth: none (--gt-topic none): no precision / recall"

@@ -16,7 +16,7 @@ import json
 import math
 import time
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -79,6 +79,9 @@ class ReplayOptions:
     robot_id: str = ""  # '' = "robot" (identity.py; a replay has no namespace)
     session_id: str = ""  # '' = the start time, UTC
     prior_maps: tuple[str | Path, ...] = ()  # read-only maps searched with the live one
+    # Called with each choice of topic as soon as it is made, before the model loads (the
+    # command line prints them as the run's first lines); they are in summary.notes either way.
+    announce: Callable[[str], None] | None = None
 
     def check(self) -> None:
         """ConfigError naming the first value out of range."""
@@ -278,6 +281,14 @@ def replay_bag(
         poses = _read_pose_topic(reader, summary, chosen.pose)
         truth = poses if chosen.gt == chosen.pose else _read_pose_topic(reader, summary, chosen.gt)
         bag_out = prepare_out(out, o.write_bag)
+        run = _Run(summary)
+        geo, summary.depth_topic, summary.camera_info_topic, notes = open_geometry(
+            reader, o.depth_topic, o.camera_info_topic, o.depth_tolerance,
+            run.counts.geometry_skips,
+        )  # fmt: skip
+        summary.notes = [*notes, *chosen.notes]
+        for note in summary.notes if o.announce is not None else ():
+            o.announce(note)
         if model is None:
             model = load_model(
                 weights, device=o.device, precision=o.precision, backend=o.backend,
@@ -292,12 +303,9 @@ def replay_bag(
         summary.model = pipe.model.fingerprint
         summary.robot, summary.session = identity.robot, identity.session
         summary.prior_maps = priors.summary()
-        run = _Run(summary)
-        geo, summary.depth_topic, summary.camera_info_topic, notes = open_geometry(
-            reader, o.depth_topic, o.camera_info_topic, o.depth_tolerance,
-            run.counts.geometry_skips,
-        )  # fmt: skip
-        summary.notes = [*notes, *chosen.notes, *priors.notes]
+        summary.notes += priors.notes
+        for note in priors.notes if o.announce is not None else ():
+            o.announce(note)
         frames = bag_io.iter_frames(
             reader, topic, poses, o.pose_tolerance, o.max_frames, keep_cdr=o.write_bag,
             max_pixels=o.max_image_pixels,

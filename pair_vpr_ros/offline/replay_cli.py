@@ -25,6 +25,7 @@ from pair_vpr_ros.geometry.features import KINDS
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
 from pair_vpr_ros.identity import DEFAULT_ROBOT, RULE, name_problem
 from pair_vpr_ros.imaging import MAX_PIXELS
+from pair_vpr_ros.offline.bag_io import check_bag_path
 from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
 from pair_vpr_ros.params import SPECS, detector_config, flag_help, flag_type, read_params_file
 from pair_vpr_ros.weights import resolve_weights
@@ -232,6 +233,7 @@ def _run(args: argparse.Namespace) -> int:
         name: value if getattr(args, name) is None else getattr(args, name)
         for name, value in runtime.items()
     }
+    check_bag_path(args.bag)  # a wrong bag path is said before the weights search
     weights = resolve_weights(args.weights, args.params_file)
     options = ReplayOptions(
         topic=args.topic, pose_topic=args.pose_topic, gt_topic=args.gt_topic,
@@ -243,14 +245,12 @@ def _run(args: argparse.Namespace) -> int:
         save_map=args.map_dir != NONE, overwrite=args.overwrite, progress=not args.quiet,
         robot_id=args.robot_id or fleet["robot_id"],
         session_id=args.session_id or fleet["session_id"],
-        prior_maps=(*fleet["prior_map_dirs"], *args.prior_map), **runtime,
+        prior_maps=(*fleet["prior_map_dirs"], *args.prior_map), announce=print, **runtime,
     )  # fmt: skip
     summary = replay_bag(
         args.bag, args.out, options, weights=weights, config=config,
         geometry=GeometryConfig(features=args.features),
     )  # fmt: skip
-    for note in summary.notes:
-        print(note)
     for warning in summary.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     ev = summary.evaluation

@@ -340,3 +340,17 @@ def test_a_1_by_20000_mono8_strip_replays_with_outputs(setup, tmp_path, capsys) 
     saved = json.loads((out / "summary.json").read_text())
     assert (saved["frames"], saved["skipped"]) == (3, 0)
     assert saved["keyframes"] >= 1 and (out / "loops.json").is_file() and (out / "map").is_dir()
+
+
+def test_a_wrong_bag_path_is_said_before_the_weights_search(tmp_path, capsys, monkeypatch):
+    """Issue 25 #5: with no weights anywhere, a mistyped bag path was reported as missing
+    weights; the bag is checked first now."""
+    monkeypatch.delenv("PAIRVPR_WEIGHTS", raising=False)
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "no-weights-here"))
+    missing = tmp_path / "recording.mcap"
+    assert main([str(missing), "--out", str(tmp_path / "out"), "--quiet"]) == 1
+    assert capsys.readouterr().err == (
+        f"error: bag {missing} does not exist: give a rosbag2 folder, a .mcap or .db3 file or "
+        "a ROS 1 .bag\n"
+    )
+    assert not (tmp_path / "out").exists()

@@ -29,14 +29,32 @@ def test_the_only_pose_topic_is_used_and_said_and_is_the_ground_truth():
 
 
 def test_several_pose_topics_none_is_used_and_all_are_listed():
-    t = choose(TWO)
+    t = choose({"/odom": ODOM, "/mocap": POSE})
     assert (t.pose, t.gt) == (None, None)
     expected = (
-        "keyframe poses: none: the bag has 2 pose topics (/ground_truth, /odom); pick one "
+        "keyframe poses: none: the bag has 2 pose topics (/mocap, /odom); pick one "
         "with --pose-topic"
     )
     assert t.warning == t.notes[0] == expected
     assert t.notes[1] == "ground truth: none, so no precision / recall (pass --gt-topic)"
+
+
+@pytest.mark.parametrize("name", ["/ground_truth", "/robot/gt", "/GroundTruth"])
+def test_a_topic_named_as_ground_truth_is_the_ground_truth_without_flags(name):
+    """Issue 25 #5: /odom beside /ground_truth: the odometry for keyframes, the ground truth
+    for the evaluation, and both choices said."""
+    t = choose({"/odom": ODOM, name: POSE})
+    assert (t.pose, t.gt, t.warning) == ("/odom", name, None)
+    assert t.notes == (
+        f"keyframe poses: /odom, the bag's only pose topic besides the ground truth {name} "
+        "(choose with --pose-topic, or --pose-topic none)",
+        f"ground truth: {name}, named as ground truth (choose with --gt-topic, or --gt-topic "
+        "none)",
+    )
+    assert choose({"/odom": ODOM, name: POSE}, gt="none").gt is None
+    assert choose({name: POSE}).notes[1].startswith(f"ground truth: {name}, the keyframe pose")
+    two = choose({"/odom": ODOM, "/a/gt": POSE, "/b/ground_truth": POSE})
+    assert (two.pose, two.gt) == (None, None)  # two named as ground truth: neither is chosen
 
 
 def test_gt_topic_apart_from_the_odometry_found_beside_it():

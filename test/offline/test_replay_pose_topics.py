@@ -31,11 +31,11 @@ def _drifted(truth):
     return [(t, (x, y + (DRIFT if t >= 100 else 0.0), z)) for t, (x, y, z) in truth]
 
 
-def write_bag(path, with_truth=True):
-    """/odom (drifting Odometry) and, ``with_truth``, /ground_truth (PoseStamped)."""
+def write_bag(path, with_truth=True, truth_topic="/ground_truth"):
+    """/odom (drifting Odometry) and, ``with_truth``, ``truth_topic`` (PoseStamped)."""
     images, truth = revisit_world()
     extra = [
-        ("/ground_truth", POSE_STAMPED, pose_msg(TS2, POSE_STAMPED, t, xyz), t) for t, xyz in truth
+        (truth_topic, POSE_STAMPED, pose_msg(TS2, POSE_STAMPED, t, xyz), t) for t, xyz in truth
     ]
     return write_rosbag2(
         path, images, _drifted(truth), pose_topic="/odom", pose_type=ODOMETRY,
@@ -83,9 +83,9 @@ def test_the_only_pose_topic_is_found_said_and_used_for_both(tmp_path, tiny_mode
 
 
 def test_several_pose_topics_none_is_used_and_they_are_listed(tmp_path, tiny_model):
-    s = replay(tmp_path, write_bag(tmp_path / "bag"), tiny_model)
+    s = replay(tmp_path, write_bag(tmp_path / "bag", truth_topic="/mocap/pose"), tiny_model)
     listed = (
-        "keyframe poses: none: the bag has 2 pose topics (/ground_truth, /odom); pick one with "
+        "keyframe poses: none: the bag has 2 pose topics (/mocap/pose, /odom); pick one with "
         "--pose-topic"
     )
     assert (s.pose_topic, s.gt_topic, s.evaluation) == (None, None, None)
@@ -128,12 +128,17 @@ def test_cli_prints_each_choice_and_the_ground_truth_of_its_figures(tmp_path, we
     assert printed[2].startswith("precision ")
     assert printed[2].endswith("; ground truth /ground_truth)")
     assert json.loads((out / "summary.json").read_text())["notes"] == printed[:2]
-    assert main([*argv, "--overwrite"]) == 0  # both topics, neither chosen: said on stderr
-    err = capsys.readouterr().err
-    assert err == (
-        "warning: keyframe poses: none: the bag has 2 pose topics (/ground_truth, /odom); pick "
-        "one with --pose-topic\n"
-    )
+    # Issue 25: no flags, /ground_truth beside /odom: each is used as its name says, and the
+    # choice is said in the run's first lines (before the model loads), without a warning
+    assert main([*argv, "--overwrite"]) == 0
+    printed, err = capsys.readouterr()
+    assert printed.splitlines()[:2] == [
+        "keyframe poses: /odom, the bag's only pose topic besides the ground truth "
+        "/ground_truth (choose with --pose-topic, or --pose-topic none)",
+        "ground truth: /ground_truth, named as ground truth (choose with --gt-topic, or "
+        "--gt-topic none)",
+    ]
+    assert err == ""
     assert main([*argv, "--overwrite", "--gt-topic", "/gps"]) == 1
     assert capsys.readouterr().err == (
         "error: --gt-topic /gps is not a pose topic of bag bag (Odometry, PoseStamped or "
