@@ -38,6 +38,14 @@ poses `types`, the map services `ros.maps`.
 
 from __future__ import annotations
 
+if __name__ == "__main__":  # `python -m pair_vpr_ros.ros.node`: through the light entry point,
+    # so that Ctrl-C while rclpy and torch import is a clean stop, as for `vpr_node` (ros.entry)
+    import sys as _sys
+
+    from pair_vpr_ros.ros.entry import vpr_node as _vpr_node
+
+    _sys.exit(_vpr_node())
+
 import json
 import signal
 import sys

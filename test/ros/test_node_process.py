@@ -134,11 +134,13 @@ def test_colcon_install_resolves_like_ros2_run(tmp_path):
     assert done.returncode == 1 and "cannot start: no Pair-VPR weights found" in done.stderr
 
 
-def test_ctrl_c_while_modules_import_stops_quietly():
+@pytest.mark.parametrize("module", ["pair_vpr_ros.ros.entry", "pair_vpr_ros.ros.node"])
+def test_ctrl_c_while_modules_import_stops_quietly(module):
     # Issue 17 #2: Ctrl-C in the first second or two printed a KeyboardInterrupt traceback and
     # exited with -2. `-X importtime` writes a line as each module finishes importing: the
     # signal goes out once rclpy is in and the node module (torch, ...) is still importing.
-    entry = [sys.executable, "-X", "importtime", "-m", "pair_vpr_ros.ros.entry"]
+    # Issue 25 #5: the same for `python -m pair_vpr_ros.ros.node`.
+    entry = [sys.executable, "-X", "importtime", "-m", module]
     proc = subprocess.Popen(
         [*entry, "--ros-args", "-p", "weights:=random-tiny"], cwd=ROOT, env=ENV, text=True,
         stdout=subprocess.PIPE, stderr=subprocess.PIPE,
