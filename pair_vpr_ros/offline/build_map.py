@@ -41,10 +41,13 @@ class BuildResult:
         return self.counts.skipped
 
     def line(self) -> str:
-        return (
+        """One line for `map_info` and the log; bad poses (and why the pose topic stopped) are
+        named after it, since frames near them were mapped without a pose."""
+        text = (
             f"{self.keyframes} keyframes from {self.frames} images of {self.source} "
             f"({self.skipped} skipped, {self.loops} loops, {self.seconds:.1f} s)"
         )
+        return "; ".join([text, *self.counts.pose_warnings])
 
 
 def build_map(

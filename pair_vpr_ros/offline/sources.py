@@ -40,6 +40,10 @@ class FrameCounts:
     first_backwards: str = ""
     last_stamp: float | None = None
     geometry_skips: Counter[str] = field(default_factory=Counter)  # depth / camera_info problems
+    # Pose messages left out (NaN / inf values) and why the pose topic was not read to its end:
+    # the frames near them have no pose (`bag_io.bad_poses_warning`).
+    bad_poses: int = 0
+    pose_warnings: list[str] = field(default_factory=list)
 
     def skip(self, reason: str, where: str = "") -> None:
         self.skipped += 1
@@ -126,7 +130,12 @@ def _bag_source(
     with bag_io.open_bag(path) as reader:
         topic = bag_io.choose_image_topic(reader, topic)
         pose_topic = bag_io.choose_pose_topic(reader)
-        poses = bag_io.read_poses(reader, pose_topic)[0] if pose_topic else None
+        poses = None
+        if pose_topic:
+            poses, error = bag_io.read_poses(reader, pose_topic)
+            counts.bad_poses = poses.rejected
+            bad = bag_io.bad_poses_warning(poses, pose_topic)
+            counts.pose_warnings += [w for w in (error, bad) if w]
         read = bag_io.iter_frames(reader, topic, poses, max_pixels=max_pixels)
         # Depth and intrinsics when the bag has one topic of each (poses need them later).
         geometry = open_geometry(reader, None, None, DEPTH_TOLERANCE, counts.geometry_skips)[0]

@@ -48,3 +48,24 @@ def test_the_map_would_refuse_such_a_pose(tmp_path) -> None:
 
     with PlaceMap(4, (2, 2)) as m, pytest.raises(MapError, match="7 finite numbers"):
         m.add([1, 0, 0, 0], [[0, 0], [0, 0]], KeyframeMeta(stamp=1.0, pose=_with(0, math.nan)))
+
+
+def test_build_map_reports_the_bad_poses_it_skipped(tiny_model, tmp_path) -> None:
+    """Issue 25 #5: `build_map` (the node's ~/build_map) read a bag's poses and dropped the bad
+    ones without a word; its result line (map_info, the node's log) now names them."""
+    from bag_fixtures import synthetic_images, write_rosbag2
+
+    from pair_vpr_ros.detector import DetectorConfig
+    from pair_vpr_ros.offline.build_map import build_map
+
+    images = [(10.0 + i, rgb) for i, rgb in enumerate(synthetic_images(3))]
+    poses = [(10.0, (0.0, 2.0, 0.0)), (11.0, (math.nan, 2.0, 0.0)), (12.0, (2.0, 2.0, 0.0))]
+    bag = write_rosbag2(tmp_path / "bag", images, poses)
+    pipe, result = build_map(tiny_model, DetectorConfig(), bag)
+    pipe.close()
+    assert result.counts.bad_poses == 1
+    assert result.line().endswith(
+        "; 1 poses of /odom hold NaN or infinite values and were skipped (the first at stamp "
+        "11.000 s); frames near them have no pose"
+    )
+    assert result.line().startswith(f"{result.keyframes} keyframes from 3 images of {bag} (0 ")
