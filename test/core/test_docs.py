@@ -79,9 +79,13 @@ def test_the_nav_drops_pages_not_written_yet_and_adds_unlisted_ones(tmp_path):
     assert config["nav"] == [{"Home": "a.md"}, {"More": ["sub/b.md"]}]
 
 
-def test_every_page_of_docs_is_in_the_nav_of_mkdocs_yml():
+def test_the_nav_holds_the_pages_the_issue_asks_for():
     config = yaml.safe_load((ROOT / "mkdocs.yml").read_text())
     config["docs_dir"] = str(DOCS)
     nav = hooks().on_config(config)["nav"]
-    assert not any("More" in item for item in nav if isinstance(item, dict)), nav[-1]
-    assert len(list(DOCS.glob("*.md"))) >= 6
+    named = hooks()._named(nav)
+    wanted = {"index.md", "install.md", "node.md", "launch.md", "replay.md", "relative-pose.md",
+              "posegraph.md", "evaluation.md", "bad-input.md", "performance.md",
+              "ARCHITECTURE.md", "api.md"}  # fmt: skip
+    assert wanted <= named, wanted - named
+    assert named == {p.name for p in DOCS.glob("*.md")}  # unlisted pages land under "More"
