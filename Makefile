@@ -20,7 +20,7 @@ test-quick: setup
 	$(PY) -m pytest -q -m "not slow" test
 
 docs: setup
-	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict
+	NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict
 
 lint: setup
 	$(VENV)/bin/ruff check .
