@@ -4,7 +4,8 @@
         image:=/camera/image_raw odom:=/odom
 
 `posegraph_node` reads `vpr_node`'s between-factors (`<loop_closure>/factor`) and the odometry
-`odom`, and publishes `corrected_path`, `map_to_odom` and `corrected_odom`. `camera_to_base`
+`odom`, and publishes `corrected_path`, `map_to_odom` and `corrected_odom`. When either node
+exits (e.g. vpr_node finds no weights), the launch shuts the other down. `camera_to_base`
 (the camera's pose in the odometry's child frame, `[x, y, z, qx, qy, qz, qw]`) is given as a
 YAML list, e.g. camera_to_base:="[0.0, 0.0, 1.6, -0.5, 0.5, -0.5, 0.5]" for the demo camera;
 '' keeps the posegraph_params_file's value. Weights are found as in vpr_node.launch.py.
@@ -19,7 +20,7 @@ import os
 import yaml
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.actions import DeclareLaunchArgument, OpaqueFunction, Shutdown
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
@@ -49,6 +50,9 @@ def _nodes(context) -> list[Node]:
             output="screen",
             parameters=vpr_parameters,
             remappings=[("image", arg("image")), ("loop_closure", loops)],
+            # one without the other is no use: a vpr_node that cannot start (no weights) would
+            # leave a pose graph waiting for loops forever
+            on_exit=Shutdown(reason="vpr_node exited"),
         ),
         Node(
             package="pair_vpr_ros",
@@ -57,6 +61,7 @@ def _nodes(context) -> list[Node]:
             output="screen",
             parameters=graph_parameters,
             remappings=[("odom", arg("odom"))],
+            on_exit=Shutdown(reason="posegraph_node exited"),
         ),
     ]
 

@@ -3,10 +3,10 @@
 would start: package, executable and the `--ros-args` it passes.
 
 Only what our launch files use is modelled: `LaunchDescription`, `DeclareLaunchArgument`,
-`LaunchConfiguration` (also `.perform(context)`), `OpaqueFunction` and `launch_ros.actions.Node`
-(parameters given as file paths or dicts of strings, numbers or lists, remappings as pairs).
-Anything else fails loudly, so
-a launch file that grows past this model fails its test instead of passing unchecked.
+`LaunchConfiguration` (also `.perform(context)`), `OpaqueFunction`, `Shutdown` (as a node's
+`on_exit`) and `launch_ros.actions.Node` (parameters given as file paths or dicts of strings,
+numbers or lists, remappings as pairs). Anything else fails loudly, so a launch file that grows
+past this model fails its test instead of passing unchecked.
 """
 
 from __future__ import annotations
@@ -65,6 +65,12 @@ class Node:
     parameters: list = field(default_factory=list)
     remappings: list = field(default_factory=list)
     arguments: list = field(default_factory=list)
+    on_exit: Any = None  # an action run when the process ends (Shutdown is modelled)
+
+
+@dataclass
+class Shutdown:
+    reason: str = ""
 
 
 @dataclass
@@ -80,6 +86,7 @@ def modules() -> dict[str, types.ModuleType]:
         "launch.actions": {
             "DeclareLaunchArgument": DeclareLaunchArgument,
             "OpaqueFunction": OpaqueFunction,
+            "Shutdown": Shutdown,
         },
         "launch.substitutions": {"LaunchConfiguration": LaunchConfiguration},
         "launch_ros": {},
@@ -150,9 +157,10 @@ def _performed(node: Node, context: LaunchContext) -> Node:
         for p in node.parameters
     ]
     remappings = [(_text(a, context), _text(b, context)) for a, b in node.remappings]
+    assert node.on_exit is None or isinstance(node.on_exit, Shutdown), f"not modelled: {node!r}"
     return Node(
         node.package, node.executable, node.name, node.namespace, node.output,
-        parameters, remappings, list(node.arguments),
+        parameters, remappings, list(node.arguments), node.on_exit,
     )  # fmt: skip
 
 

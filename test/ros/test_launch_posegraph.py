@@ -51,6 +51,9 @@ def test_both_nodes_are_installed_executables_with_installed_parameter_files(sha
     ]
     assert vpr.remappings == [("image", "image"), ("loop_closure", "loop_closure")]
     assert graph.remappings == [("odom", "odom")]
+    # either node ending ends the launch (a vpr_node without weights left the graph running)
+    assert vpr.on_exit == ls.Shutdown("vpr_node exited")
+    assert graph.on_exit == ls.Shutdown("posegraph_node exited")
 
 
 def test_camera_to_base_and_weights_reach_the_nodes(share):
