@@ -22,6 +22,7 @@ import yaml
 from pair_vpr_ros.detector import DetectorConfig, preset
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
+from pair_vpr_ros.geometry.relpose import PoseConfig
 from pair_vpr_ros.identity import DEFAULT_ROBOT, RULE, name_problem
 from pair_vpr_ros.imaging import MAX_PIXELS
 from pair_vpr_ros.model.config import PATCH
@@ -104,6 +105,23 @@ PARAMS: tuple[ParamSpec, ...] = (
     _p("features", "sift", "keypoints for relative poses: sift (accurate) or orb (cheaper)",
        choices=("sift", "orb"), **RO),
     _p("max_features", 1000, "keypoints per keyframe at most", 50, 100000, **RO),
+    _p("depth_sigma_a", 0.0012, "depth noise sigma_z = a + b z^2 (m): a; defaults from "
+       "published Kinect noise studies (docs/real-cameras.md)", 0.0, 10.0, **RO),
+    _p("depth_sigma_b", 0.0019, "depth noise: b (1/m); stereo: sigma_disparity / (f baseline)",
+       1e-9, 10.0, **RO),
+    _p("max_depth", 0.0, "depth beyond this (m) is not used for relative poses (0 = no limit)",
+       0.0, 1.0e4, **RO),
+    _p("pose_floor_rotation_deg", 0.2, "covariance floor of relative poses: rotation std per "
+       "axis (deg) for errors no residual shows (calibration, timing; docs/real-cameras.md)",
+       0.0, 90.0, **RO),
+    _p("pose_floor_translation_m", 0.005, "covariance floor: translation std (m), plus ...",
+       0.0, 100.0, **RO),
+    _p("pose_floor_translation_rel", 0.01, "... this fraction of the translation's length",
+       0.0, 10.0, **RO),
+    _p("right_image_topic", "", "stereo: sensor_msgs/Image of the right camera, rectified like "
+       "the left (image_topic); keyframe depth from StereoSGBM ('' = none)", **RO),
+    _p("right_camera_info_topic", "", "stereo: sensor_msgs/CameraInfo of the right camera "
+       "(its P gives the baseline)", **RO),
     _p("qos", "sensor_data", "input QoS: sensor_data (best effort, hears every publisher) or "
        "reliable (hears reliable publishers only)", choices=("sensor_data", "reliable"), **RO),
     _p("queue_size", 4, "frames waiting for the worker; when full the oldest is dropped",
@@ -269,6 +287,14 @@ def geometry_config(values: Mapping[str, Any]) -> GeometryConfig:
         relative_pose=values["relative_pose"],
         features=values["features"],
         max_features=values["max_features"],
+        pose=PoseConfig(
+            depth_sigma_a=values["depth_sigma_a"],
+            depth_sigma_b=values["depth_sigma_b"],
+            max_depth_m=values["max_depth"],
+            floor_rotation_deg=values["pose_floor_rotation_deg"],
+            floor_translation_m=values["pose_floor_translation_m"],
+            floor_translation_rel=values["pose_floor_translation_rel"],
+        ),
     )
 
 

@@ -44,7 +44,8 @@ from pair_vpr_ros.types import Pose
 class Frame:
     """One camera frame: RGB uint8 [H,W,3], header stamp in seconds, optional pose
     (x, y, z, qx, qy, qz, qw), optional aligned depth [H,W] float32 metres (NaN / 0: none) and
-    the camera's intrinsics (needed for a relative pose)."""
+    the camera's intrinsics (needed for a relative pose); stereo: the rectified right image
+    [H,W,3] and the baseline (m), keyframes without depth get it from them (geometry/stereo.py)."""
 
     stamp: float
     rgb: np.ndarray
@@ -53,6 +54,8 @@ class Frame:
     source: str = ""
     depth: np.ndarray | None = None
     camera: CameraModel | None = None
+    right: np.ndarray | None = None
+    baseline: float = 0.0
 
 
 @dataclass
@@ -90,6 +93,8 @@ class PipelineCounts:
     candidates_scored: int = 0  # pair scores computed (candidates re-ranked, all keyframes)
     rerank_budget_cut: int = 0  # keyframes whose re-ranking stopped at rerank_budget_ms
     clock_jumps: int = 0  # stamps that went back by more than CLOCK_JUMP_S: new sessions
+    stereo_depth: int = 0  # keyframes whose depth came from the stereo pair
+    stereo_invalid: int = 0  # keyframes whose stereo pair could not give depth (unrectified..)
 
     def to_dict(self) -> dict[str, int]:
         return asdict(self)
@@ -303,7 +308,8 @@ class LoopClosurePipeline:
         features = None
         if self.geometry.wanted(self.config.geometric_verification):
             t0 = time.perf_counter()
-            features = self.geometry.extract(frame.rgb, frame.depth, frame.camera)
+            features = self.geometry.extract(frame.rgb, frame.depth, frame.camera,
+                                             frame.right, frame.baseline)  # fmt: skip
             outcome.timings_ms["features"] = (time.perf_counter() - t0) * 1e3
         outcome.loop = self._query(frame, dense, desc, outcome, features)
         loop = outcome.loop

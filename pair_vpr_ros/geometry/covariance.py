@@ -71,3 +71,20 @@ def sigmas(cov: np.ndarray) -> tuple[float, float]:
     trans = float(np.sqrt(np.linalg.eigvalsh(cov[:3, :3])[-1]))
     rot = float(np.degrees(np.sqrt(np.linalg.eigvalsh(cov[3:, 3:])[-1])))
     return trans, rot
+
+
+def with_floor(
+    cov: np.ndarray,
+    t: np.ndarray,
+    rot_deg: float,
+    trans_m: float,
+    trans_rel: float,
+    scaled: bool = True,
+) -> np.ndarray:
+    """6x6 covariance plus independent floor noise: rot_deg on each rotation axis and, for a
+    pose with a scale, (trans_m + trans_rel |t|) on each translation axis."""
+    out = cov.copy()
+    out[3:, 3:] += np.eye(3) * np.radians(rot_deg) ** 2
+    if scaled:
+        out[:3, :3] += np.eye(3) * (trans_m + trans_rel * float(np.linalg.norm(t))) ** 2
+    return out

@@ -16,6 +16,7 @@ import numpy as np
 
 from pair_vpr_ros.errors import GeometryInputError
 from pair_vpr_ros.geometry.camera import PACKED_SIZE, CameraModel
+from pair_vpr_ros.geometry.depth_noise import robust_depth_at
 
 KINDS = {"sift": 128, "orb": 32}  # descriptor bytes
 
@@ -79,9 +80,12 @@ def extract_features(
     max_side: int = 640,
     depth: np.ndarray | None = None,
     camera: CameraModel | None = None,
+    depth_noise: tuple[float, float] = (0.0012, 0.0019),
 ) -> Features:
     """RGB uint8 [H, W, 3] (+ aligned depth [H, W] metres) -> Features; images larger than
-    `max_side` are detected on a downscaled copy, keypoints stay in full-size pixels."""
+    `max_side` are detected on a downscaled copy, keypoints stay in full-size pixels. The depth
+    of a keypoint: `depth_noise.robust_depth_at` with sigma_z = a + b z^2, (a, b) =
+    `depth_noise`."""
     grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
     h, w = grey.shape
     scale = min(1.0, max_side / max(h, w))
@@ -97,7 +101,7 @@ def extract_features(
         out = Features(points, np.clip(descriptors, 0, 255).astype(np.uint8), kind)
     out.camera = camera
     if depth is not None:
-        out.depth = depth_at(depth, out.keypoints)
+        out.depth = robust_depth_at(depth, out.keypoints, *depth_noise)
     return out
 
 

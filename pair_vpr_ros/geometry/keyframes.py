@@ -22,6 +22,7 @@ from pair_vpr_ros.geometry.features import (
 )
 from pair_vpr_ros.geometry.odometry_scale import Neighbour, pick_neighbours
 from pair_vpr_ros.geometry.relpose import PoseConfig, RelativePose, relative_pose
+from pair_vpr_ros.geometry.stereo import StereoInputError, stereo_depth
 
 
 @dataclass(frozen=True)
@@ -48,15 +49,23 @@ class KeyframeGeometry:
     def __init__(self, config: GeometryConfig | None, counts: Any) -> None:
         self.config = config or GeometryConfig()
         self.counts = counts
+        self.last_stereo_problem = ""
 
     def wanted(self, verification: bool) -> bool:
         return self.config.relative_pose or verification
 
     def extract(
-        self, rgb: np.ndarray, depth: np.ndarray | None, camera: CameraModel | None
+        self,
+        rgb: np.ndarray,
+        depth: np.ndarray | None,
+        camera: CameraModel | None,
+        right: np.ndarray | None = None,
+        baseline: float = 0.0,
     ) -> Features:
         """Features of one keyframe; a depth or camera model that does not fit the image is
-        dropped and counted (the keyframe still counts for place recognition)."""
+        dropped and counted (the keyframe still counts for place recognition). Without depth,
+        a rectified stereo pair (`right`, `baseline` m) gives it (`stereo.stereo_depth`); a
+        pair that cannot is counted (`stereo_invalid`, `last_stereo_problem` says why)."""
         h, w = rgb.shape[:2]
         if depth is not None and depth.shape != (h, w):
             self.counts.depth_wrong_size += 1
@@ -64,8 +73,27 @@ class KeyframeGeometry:
         if camera is not None and (camera.width, camera.height) != (w, h):
             self.counts.intrinsics_wrong_size += 1
             camera = None
+        if depth is None and right is not None:
+            depth = self._stereo(rgb, right, camera, baseline)
         c = self.config
-        return extract_features(rgb, c.features, c.max_features, depth=depth, camera=camera)
+        noise = (c.pose.depth_sigma_a, c.pose.depth_sigma_b)
+        return extract_features(rgb, c.features, c.max_features, depth=depth, camera=camera,
+                                depth_noise=noise)  # fmt: skip
+
+    def _stereo(self, left, right, camera: CameraModel | None, baseline: float):
+        try:
+            if camera is None:
+                raise StereoInputError("stereo pair without intrinsics (no camera_info)")
+            if not baseline > 0:
+                raise StereoInputError(f"stereo baseline {baseline!r} m must be > 0 (right "
+                                       "camera_info missing or without P[0, 3])")  # fmt: skip
+            depth = stereo_depth(left, right, camera.fx, baseline)
+        except StereoInputError as err:
+            self.counts.stereo_invalid += 1
+            self.last_stereo_problem = str(err)
+            return None
+        self.counts.stereo_depth += 1
+        return depth
 
     @staticmethod
     def pack(features: Features | None) -> bytes:

@@ -29,9 +29,10 @@ from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.geometry import covariance as cv
 from pair_vpr_ros.geometry.epipolar import essential_pose, parallax_deg, sampson_residuals
 from pair_vpr_ros.geometry.features import Features, match_features
+from pair_vpr_ros.geometry.metric_pose import metric_fit, within
 from pair_vpr_ros.geometry.odometry_scale import Neighbour, loop_length, triangulate_match
-from pair_vpr_ros.geometry.pnp import project, reprojection_residuals, solve_pnp
-from pair_vpr_ros.geometry.rotations import exp_so3, matrix_quaternion
+from pair_vpr_ros.geometry.pnp import project
+from pair_vpr_ros.geometry.rotations import exp_so3, log_so3, matrix_quaternion
 
 METRIC, METRIC_ODOMETRY, SCALE_FREE = "metric", "metric-odometry", "scale-free"
 
@@ -65,22 +66,47 @@ class PoseConfig:
     scale_min_points: int = 8  # loop inliers with a triangulated point needed
     scale_sigma_floor: float = 0.03  # relative std of the scale at least (odometry error)
     scale_lever_m: float = 1.0  # assumed camera offset from the odometry's turn axis, at most
+    # Depth noise sigma_z = a + b z^2 (depth_noise.py: Kinect-class defaults), depth beyond
+    # max_depth_m (0: no limit) not used for PnP, depth agreement within this many sigmas.
+    depth_sigma_a: float = 0.0012
+    depth_sigma_b: float = 0.0019
+    max_depth_m: float = 0.0
+    depth_agreement_sigmas: float = 3.0
+    # Errors no residual shows (intrinsics a little off, distortion left in, image/depth timing,
+    # rolling shutter), added to every covariance as independent noise: rotation std per axis,
+    # translation std a + b |t|. Measured on real RGB-D pairs (docs/real-cameras.md).
+    floor_rotation_deg: float = 0.2
+    floor_translation_m: float = 0.005
+    floor_translation_rel: float = 0.01
+    # PnP vs essential-matrix rotation (3 dof): above it the covariance is scaled by chi2 / it
+    max_model_disagreement_chi2: float = 16.0
 
     def __post_init__(self) -> None:
         for name in ("ratio", "ransac_px", "essential_px", "max_rotation_sigma_deg",
                      "max_translation_sigma_m", "max_direction_sigma_deg",
                      "covariance_scale", "scale_max_gap_s", "scale_min_baseline_m",
                      "scale_max_turn_deg", "scale_max_turn_mismatch_deg",
-                     "scale_min_parallax_deg", "scale_sigma_floor", "scale_lever_m"):  # fmt: skip
+                     "scale_min_parallax_deg", "scale_sigma_floor", "scale_lever_m",
+                     "depth_sigma_b", "depth_agreement_sigmas",
+                     "max_model_disagreement_chi2"):  # fmt: skip
             if not getattr(self, name) > 0:
                 raise ConfigError(f"pose {name}={getattr(self, name)!r} must be > 0")
         for name in ("scale_neighbours", "scale_tries", "scale_min_points"):
             if not getattr(self, name) >= 1:
                 raise ConfigError(f"pose {name}={getattr(self, name)!r} must be >= 1")
+        for name in ("depth_sigma_a", "max_depth_m", "floor_rotation_deg", "floor_translation_m",
+                     "floor_translation_rel"):  # fmt: skip
+            if not getattr(self, name) >= 0:
+                raise ConfigError(f"pose {name}={getattr(self, name)!r} must be >= 0")
         if not 0 < self.ratio <= 1:
             raise ConfigError(f"pose ratio={self.ratio!r} must be in (0, 1]")
         if self.min_inliers < 6 or self.min_matches < 5:
             raise ConfigError("pose min_inliers must be >= 6 and min_matches >= 5")
+
+    @property
+    def depth_limit(self) -> float:
+        """Largest depth used for PnP, m (inf: no limit)."""
+        return self.max_depth_m if self.max_depth_m > 0 else math.inf
 
 
 @dataclass
@@ -125,8 +151,17 @@ def relative_pose(
 ) -> RelativePose:
     """T_match_query of a loop from the query and match keyframes' features; `neighbours`:
     map keyframes next to the match with an odometry baseline (``pick_neighbours``), for the
-    scale of a pose without depth."""
+    scale of a pose without depth. Every covariance carries the floor of `PoseConfig`."""
     c = config or PoseConfig()
+    out = _relative_pose(query, match, c, neighbours)
+    if out.status:
+        out.covariance = cv.with_floor(out.covariance, out.translation, c.floor_rotation_deg,
+                                       c.floor_translation_m, c.floor_translation_rel,
+                                       scaled=out.status != SCALE_FREE)  # fmt: skip
+    return out
+
+
+def _relative_pose(query, match, c: PoseConfig, neighbours) -> RelativePose:
     if match is None:
         return _fail("match keyframe has no features (kept only for keyframes added since "
                      "features are stored: maps saved before that have none)")  # fmt: skip
@@ -144,18 +179,18 @@ def relative_pose(
     pairs = match_features(query, match, c.ratio)
     if len(pairs) < c.min_matches:
         return _fail(f"too few feature matches ({len(pairs)} < {c.min_matches})")
-    side, z, why = _depth_side(query, match, pairs, c.min_inliers)
+    side, z, why = _depth_side(query, match, pairs, c.min_inliers, c.depth_limit)
     if side is None:
         return _monocular(query, match, pairs, c, neighbours, why)
     return _metric(query, match, pairs, side, z, c)
 
 
-def _depth_side(q: Features, m: Features, pairs: np.ndarray, need: int):
+def _depth_side(q: Features, m: Features, pairs: np.ndarray, need: int, max_depth: float):
     """-> ("match" | "query" | None, depth [K] of the used side, reason when None)."""
     valid = {}
     for name, f, col in (("match", m, 1), ("query", q, 0)):
         z = f.depth[pairs[:, col]] if f.depth is not None else np.full(len(pairs), np.nan)
-        valid[name] = (int(np.isfinite(z).sum()), z)
+        valid[name] = (int((np.isfinite(z) & (z <= max_depth)).sum()), z)
     best = max(valid, key=lambda k: valid[k][0])  # ties: the match (from the map) first
     count, z = valid[best]
     if count >= need:
@@ -163,49 +198,39 @@ def _depth_side(q: Features, m: Features, pairs: np.ndarray, need: int):
     if q.depth is None and m.depth is None:
         return None, None, "no depth image (monocular): the translation is a direction only"
     return None, None, (f"no depth at the keypoints ({count} of {len(pairs)} matches have "
-                        "depth): the translation is a direction only")  # fmt: skip
+                        f"depth{within(max_depth)}): the translation is a direction "
+                        "only")  # fmt: skip
 
 
 def _metric(q, m, pairs, side, z, c: PoseConfig) -> RelativePose:
-    ok = np.isfinite(z)
-    kp_q, kp_m = q.keypoints[pairs[ok, 0]], m.keypoints[pairs[ok, 1]]
-    if side == "match":  # 3D in the match frame, seen by the query camera
-        pts, px, k = m.camera.rays(kp_m) * z[ok, None], q.camera.undistort(kp_q), q.camera.k
-    else:
-        pts, px, k = q.camera.rays(kp_q) * z[ok, None], m.camera.undistort(kp_m), m.camera.k
-    sol = solve_pnp(pts, px, k, c.ransac_px, c.min_inliers)
-    if isinstance(sol, str):
-        return _fail(sol)
-    r_ba, t_ba, idx = sol
-    r, t = (r_ba.T, -r_ba.T @ t_ba) if side == "match" else (r_ba, t_ba)
-    residuals = reprojection_residuals(pts[idx], px[idx], k, points_in_match=side == "match")
-    fit = cv.gauss_newton_covariance(cv.jacobian(residuals, r, t), residuals(r, t),
-                                     c.min_sigma_px)  # fmt: skip
-    if fit is None:
-        return _fail("degenerate geometry: the inliers do not constrain every axis", len(idx))
-    cov = fit[0] * c.covariance_scale
-    agree = _depth_agreement(q, m, pairs, r, t)
-    if agree is not None and agree[0] < c.min_inliers:
-        return _fail(f"pose disagrees with the other keyframe's depth ({agree[0]} of {agree[1]} "
-                     f"points agree, {c.min_inliers} needed)", len(idx))  # fmt: skip
-    s_t, s_r = cv.sigmas(cov)
-    if s_t > c.max_translation_sigma_m or s_r > c.max_rotation_sigma_deg:
-        return _fail(f"pose too uncertain (std {s_t:.2f} m, {s_r:.2f} deg)", len(idx))
-    return RelativePose(METRIC, "", len(idx), r, t, cov)
+    fit = metric_fit(q, m, pairs, side, z, c)
+    if isinstance(fit[0], str):
+        return _fail(*fit)
+    r, t, cov, inliers = fit
+    chi2, angle = _model_disagreement(q, m, pairs, r, cov, c)
+    if chi2 <= c.max_model_disagreement_chi2:
+        return RelativePose(METRIC, "", inliers, r, t, cov)
+    # The disagreement becomes plausible under the scaled covariance; the pose is kept (a back
+    # end's robust kernel and this weak factor cannot bend the graph), its reason says why.
+    cov = cov * (chi2 / c.max_model_disagreement_chi2)
+    why = (f"PnP and essential-matrix rotations disagree by {angle:.2f} deg (chi-square "
+           f"{chi2:.0f} > {c.max_model_disagreement_chi2:g}): intrinsics or distortion wrong? "
+           "check camera_info or the camera_* parameters")  # fmt: skip
+    return RelativePose(METRIC, f"covariance x{chi2 / c.max_model_disagreement_chi2:.1f}: {why}",
+                        inliers, r, t, cov)  # fmt: skip
 
 
-def _depth_agreement(q, m, pairs, r, t) -> tuple[int, int] | None:
-    """With depth in both keyframes: (matches whose two 3D points agree under (R, t) within
-    5 % of the depth + 5 cm, matches with both depths); None otherwise. A PnP solution found
-    on a few outliers fits the pixels but not the second depth image."""
-    if q.depth is None or m.depth is None:
-        return None
-    zq, zm = q.depth[pairs[:, 0]], m.depth[pairs[:, 1]]
-    ok = np.isfinite(zq) & np.isfinite(zm)
-    xq = q.camera.rays(q.keypoints[pairs[ok, 0]]) * zq[ok, None]
-    xm = m.camera.rays(m.keypoints[pairs[ok, 1]]) * zm[ok, None]
-    gap = np.linalg.norm(xq @ r.T + t - xm, axis=1)
-    return int((gap < 0.05 * zm[ok] + 0.05).sum()), int(ok.sum())
+def _model_disagreement(q, m, pairs, r, cov, c: PoseConfig) -> tuple[float, float]:
+    """(chi-square, 3 dof, angle in deg) of the difference between the PnP rotation (depth +
+    pixels) and the essential matrix's (pixels only) under both covariances; (0, 0) when no
+    essential matrix fits. Wrong intrinsics or ignored distortion bend the two models
+    differently (docs/real-cameras.md): the sign of a confident wrong pose."""
+    e = _essential_fit(q, m, pairs, c)
+    if isinstance(e, RelativePose):
+        return 0.0, 0.0
+    d = log_so3(e[0] @ r.T)
+    both = cov[3:, 3:] + e[3][2:, 2:] + 2 * np.eye(3) * math.radians(c.floor_rotation_deg) ** 2
+    return float(d @ np.linalg.solve(both, d)), math.degrees(float(np.linalg.norm(d)))
 
 
 def _monocular(q, m, pairs, c: PoseConfig, neighbours, why: str) -> RelativePose:

@@ -39,3 +39,8 @@ def rotation_angle_deg(r: np.ndarray) -> float:
     """Angle of a rotation matrix [3, 3], degrees."""
     c = (float(np.trace(r)) - 1.0) / 2.0
     return math.degrees(math.acos(min(1.0, max(-1.0, c))))
+
+
+def log_so3(r: np.ndarray) -> np.ndarray:
+    """[3, 3] rotation matrix -> rotation vector [3] (rad); inverse of `exp_so3`."""
+    return cv2.Rodrigues(np.asarray(r, np.float64))[0].ravel()

@@ -166,7 +166,11 @@ def open_geometry(
     notes = [n for n in (note_d, note_i) if n]
     if depth and not info:
         notes.append("depth without camera_info: no relative poses (they need intrinsics)")
-    return BagGeometry(reader, depth, info, tolerance, counts), depth, info, notes
+    geometry = BagGeometry(reader, depth, info, tolerance, counts)
+    if info and not geometry._cameras:
+        notes.append(f"camera_info topic {info} holds no valid CameraInfo (see the summary's "
+                     "geometry_skips): no relative poses")  # fmt: skip
+    return geometry, depth, info, notes
 
 
 def attach(frames: Iterator[Any], geometry: BagGeometry) -> Iterator[Any]:

@@ -31,9 +31,10 @@ from pair_vpr_ros.geometry.keyframes import GeometryConfig
 from pair_vpr_ros.identity import resolve_identity
 from pair_vpr_ros.imaging import MAX_PIXELS
 from pair_vpr_ros.model import PairVPRModel
-from pair_vpr_ros.offline import bag_io
+from pair_vpr_ros.offline import bag_io, replay_notes
 from pair_vpr_ros.offline.bag_geometry import attach, open_geometry
 from pair_vpr_ros.offline.bag_io import BagFrame, LoopBagWriter
+from pair_vpr_ros.offline.bag_stereo import with_right
 from pair_vpr_ros.offline.outputs import check_map_dir, check_writable, prepare_out
 from pair_vpr_ros.offline.pose_topics import choose_pose_topics
 from pair_vpr_ros.offline.report import KeyframeInfo, write_report
@@ -61,6 +62,8 @@ class ReplayOptions:
     gt_topic: str | None = None
     depth_topic: str | None = None
     camera_info_topic: str | None = None
+    right_topic: str | None = None  # stereo: rectified right image (bag_stereo.py)
+    right_camera_info_topic: str | None = None
     gt_radius: float = 10.0  # m: a loop is true when its keyframes lie this close
     pose_tolerance: float = 0.2
     depth_tolerance: float = 0.02
@@ -315,6 +318,7 @@ def replay_bag(
         msgtype = reader.topics[topic].msgtype
         writer = LoopBagWriter(bag_out, topic, msgtype) if o.write_bag else None
         source = attach(run.frames(frames, Path(bag).name), geo)
+        source = replay_notes.note_demo_model(with_right(source, reader, o, geo.counts), summary)
         start = time.perf_counter()
         with (
             tqdm(total=total, unit="frame", desc="replay", disable=not o.progress) as bar,
@@ -356,6 +360,7 @@ def _finish(
         )  # fmt: skip
         if evaluation is not None:
             summary.evaluation = {**evaluation.to_dict(), "gt_topic": summary.gt_topic}
+            summary.warnings += replay_notes.exclusion_notes(keyframes, evaluation)
     except PairVPRError as err:
         summary.error = summary.error or str(err)
     except OSError as err:  # the report's files (disk full, folder removed meanwhile)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 from pair_vpr_ros.cli import (
@@ -27,7 +28,14 @@ from pair_vpr_ros.identity import DEFAULT_ROBOT, RULE, name_problem
 from pair_vpr_ros.imaging import MAX_PIXELS
 from pair_vpr_ros.offline.bag_io import check_bag_path
 from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
-from pair_vpr_ros.params import SPECS, detector_config, flag_help, flag_type, read_params_file
+from pair_vpr_ros.params import (
+    SPECS,
+    detector_config,
+    flag_help,
+    flag_type,
+    geometry_config,
+    read_params_file,
+)
 from pair_vpr_ros.weights import resolve_weights
 
 NONE = "none"  # --pose-topic none / --map-dir none / --openvino-cache-dir none
@@ -149,6 +157,15 @@ def build_parser() -> argparse.ArgumentParser:
         "no intrinsics, so no relative poses)",
     )
     p.add_argument(
+        "--right-topic",
+        help="stereo: the right camera's rectified image topic; keyframes without depth get it "
+        "from StereoSGBM on the pair (needs --camera-info-topic and --right-camera-info-topic)",
+    )
+    p.add_argument(
+        "--right-camera-info-topic",
+        help="stereo: the right camera's sensor_msgs/CameraInfo (its P gives the baseline)",
+    )
+    p.add_argument(
         "--depth-tolerance",
         type=DEPTH_TOLERANCE,
         default=0.02,
@@ -238,6 +255,7 @@ def _run(args: argparse.Namespace) -> int:
     options = ReplayOptions(
         topic=args.topic, pose_topic=args.pose_topic, gt_topic=args.gt_topic,
         depth_topic=args.depth_topic, camera_info_topic=args.camera_info_topic,
+        right_topic=args.right_topic, right_camera_info_topic=args.right_camera_info_topic,
         gt_radius=args.gt_radius, depth_tolerance=args.depth_tolerance,
         batch_size=args.batch_size, max_frames=args.max_frames,
         max_image_pixels=args.max_image_pixels or max_pixels, device=args.device,
@@ -247,10 +265,12 @@ def _run(args: argparse.Namespace) -> int:
         session_id=args.session_id or fleet["session_id"],
         prior_maps=(*fleet["prior_map_dirs"], *args.prior_map), announce=print, **runtime,
     )  # fmt: skip
+    geometry = GeometryConfig(features=args.features)
+    if args.params_file is not None:  # depth noise, max depth: the parameter file's
+        geometry = replace(geometry_config(values), features=args.features)
     summary = replay_bag(
-        args.bag, args.out, options, weights=weights, config=config,
-        geometry=GeometryConfig(features=args.features),
-    )  # fmt: skip
+        args.bag, args.out, options, weights=weights, config=config, geometry=geometry
+    )
     for warning in summary.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     ev = summary.evaluation

@@ -13,10 +13,49 @@ import threading
 import time
 from typing import Any
 
-from pair_vpr_ros.errors import ConfigError, GeometryInputError
+from pair_vpr_ros.errors import ConfigError, GeometryInputError, ImageConversionError
 from pair_vpr_ros.geometry.camera import CameraModel, camera_from_info, camera_from_params
+from pair_vpr_ros.geometry.camera_notes import CAMERA_INFO_WAIT_S, camera_info_silence_note
 from pair_vpr_ros.geometry.depth import depth_from_msg
+from pair_vpr_ros.geometry.stereo import stereo_baseline
+from pair_vpr_ros.imaging import msg_to_rgb
 from pair_vpr_ros.types import message_stamp
+
+
+class _StampBuffer:
+    """The last `size` messages in stamp order; `nearest` waits up to `wait` s for a later one."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self._stamps: list[float] = []
+        self._msgs: list[Any] = []
+        self._cond = threading.Condition()
+
+    def add(self, msg: Any) -> None:
+        with self._cond:
+            stamp = message_stamp(msg)
+            i = bisect.bisect_right(self._stamps, stamp)
+            self._stamps.insert(i, stamp)
+            self._msgs.insert(i, msg)
+            if len(self._stamps) > self.size:
+                del self._stamps[0], self._msgs[0]
+            self._cond.notify_all()
+
+    def nearest(self, stamp: float, tolerance: float, wait: float) -> Any | None:
+        deadline = time.monotonic() + wait
+        with self._cond:
+            # Once a message at or after `stamp` is in, no later one can be nearer.
+            while not (self._stamps and self._stamps[-1] >= stamp):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._cond.wait(left)
+            i = bisect.bisect_left(self._stamps, stamp)
+            near = [j for j in (i - 1, i) if 0 <= j < len(self._stamps)]
+            if not near:
+                return None
+            best = min(near, key=lambda j: abs(self._stamps[j] - stamp))
+            return self._msgs[best] if abs(self._stamps[best] - stamp) <= tolerance else None
 
 
 class GeometryInputs:
@@ -34,11 +73,13 @@ class GeometryInputs:
         self.tolerance = float(values["depth_tolerance"])
         self.counts, self.wait, self.size = counts, wait, buffer_size
         self.values = values
-        self._stamps: list[float] = []
-        self._msgs: list[Any] = []
-        self._cond = threading.Condition()
+        self._depth = _StampBuffer(buffer_size)
+        self._right = _StampBuffer(buffer_size)  # stereo: right images (rectified)
+        self.baseline = 0.0  # stereo: from the right camera_info
         self.camera_info: CameraModel | None = None
         self.last_problem = ""
+        self._first_frame: float | None = None
+        self._silence_said = False
         try:
             self.camera_for(640, 480)  # the fallback parameters make a valid model
         except (GeometryInputError, ValueError) as err:
@@ -46,14 +87,20 @@ class GeometryInputs:
 
     # ---- callbacks (executor threads) ----------------------------------------------------
     def on_depth(self, msg: Any) -> None:
-        with self._cond:
-            stamp = message_stamp(msg)
-            i = bisect.bisect_right(self._stamps, stamp)
-            self._stamps.insert(i, stamp)
-            self._msgs.insert(i, msg)
-            if len(self._stamps) > self.size:
-                del self._stamps[0], self._msgs[0]
-            self._cond.notify_all()
+        self._depth.add(msg)
+
+    def on_right(self, msg: Any) -> None:
+        self._right.add(msg)
+
+    def on_right_camera_info(self, msg: Any) -> str | None:
+        """Keep the stereo baseline of the right camera's `msg`; -> the problem (counted)."""
+        try:
+            self.baseline = stereo_baseline(msg)
+        except GeometryInputError as err:
+            self.counts.camera_info_invalid += 1
+            self.last_problem = str(err)
+            return self.last_problem
+        return None
 
     def on_camera_info(self, msg: Any) -> str | None:
         """Keep the intrinsics of `msg`; -> the problem when it is unusable (counted)."""
@@ -85,7 +132,7 @@ class GeometryInputs:
         """Depth [H, W] m for a frame at `stamp`, or None (counted when depth is expected)."""
         if not self.enabled_depth:
             return None
-        msg = self._nearest(stamp)
+        msg = self._depth.nearest(stamp, self.tolerance, self.wait)
         if msg is None:
             self.counts.depth_unmatched += 1
             self.last_problem = f"no depth image within {self.tolerance} s of {stamp:.3f}"
@@ -97,18 +144,27 @@ class GeometryInputs:
             self.last_problem = str(err)
             return None
 
-    def _nearest(self, stamp: float) -> Any | None:
-        deadline = time.monotonic() + self.wait
-        with self._cond:
-            # Once a message at or after `stamp` is in, no later one can be nearer.
-            while not (self._stamps and self._stamps[-1] >= stamp):
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    break
-                self._cond.wait(left)
-            i = bisect.bisect_left(self._stamps, stamp)
-            near = [j for j in (i - 1, i) if 0 <= j < len(self._stamps)]
-            if not near:
-                return None
-            best = min(near, key=lambda j: abs(self._stamps[j] - stamp))
-            return self._msgs[best] if abs(self._stamps[best] - stamp) <= self.tolerance else None
+    def right_for(self, stamp: float) -> Any | None:
+        """RGB [H, W, 3] of the right image nearest to `stamp` (stereo), or None (counted)."""
+        if not self.values.get("right_image_topic"):
+            return None
+        msg = self._right.nearest(stamp, self.tolerance, self.wait)
+        try:
+            return None if msg is None else msg_to_rgb(msg)
+        except ImageConversionError as err:
+            self.last_problem = f"right image: {err}"
+            return None
+
+    def silence_note(self, now: float) -> str:
+        """Once, when camera_info_topic is set and no valid CameraInfo came within
+        CAMERA_INFO_WAIT_S s of the first frame: what to check; else ""."""
+        topic = self.values["camera_info_topic"]
+        if self._first_frame is None:
+            self._first_frame = now
+        if self._silence_said or not topic or self.camera_info is not None:
+            return ""
+        if now - self._first_frame < CAMERA_INFO_WAIT_S:
+            return ""
+        self._silence_said = True
+        fallback = self.values["camera_fx"] > 0
+        return camera_info_silence_note(topic, now - self._first_frame, fallback)

@@ -73,6 +73,7 @@ from pair_vpr_ros.cli import EXIT_ERROR, EXIT_OK
 from pair_vpr_ros.detector import LoopRecord
 from pair_vpr_ros.devices import check_device
 from pair_vpr_ros.errors import ConfigError, ImageConversionError, PairVPRError
+from pair_vpr_ros.geometry.camera_notes import demo_model_note, fallback_intrinsics_note
 from pair_vpr_ros.identity import resolve_identity
 from pair_vpr_ros.imaging import msg_to_rgb
 from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline, frame_due
@@ -197,6 +198,13 @@ class VprNode(Node):
                 CameraInfo, v["camera_info_topic"], self._on_camera_info, qos,
                 callback_group=MutuallyExclusiveCallbackGroup(),
             )  # fmt: skip
+        for msg_type, name, callback in (
+            (Image, "right_image_topic", self.geometry_inputs.on_right),
+            (CameraInfo, "right_camera_info_topic", self._on_right_camera_info),
+        ):  # stereo: depth for keyframes from the rectified pair (geometry/stereo.py)
+            if v[name]:
+                group = MutuallyExclusiveCallbackGroup()
+                self.create_subscription(msg_type, v[name], callback, qos, callback_group=group)
         if v["pose_topic"]:
             pose_type, group = POSE_TYPES[v["pose_type"]], MutuallyExclusiveCallbackGroup()
             self.create_subscription(
@@ -220,8 +228,14 @@ class VprNode(Node):
             self.create_timer(v["autosave_period"], self._autosave, services)
 
     # ---- parameters --------------------------------------------------------------------------
+    def _say_once(self, note: str) -> None:
+        if note:
+            self.get_logger().warning(note)
+
     def _warn_settings(self, v: dict) -> None:
         """Settings that are valid alone but do nothing together: say so at once."""
+        self._demo_note: str | None = None
+        self._say_once(fallback_intrinsics_note(v))
         if v["save_on_shutdown"] and not v["map_dir"]:
             self.get_logger().warning(
                 "save_on_shutdown is true but map_dir is empty: nothing will be saved when the "
@@ -265,6 +279,11 @@ class VprNode(Node):
                 throttle_duration_sec=10.0,
             )
 
+    def _on_right_camera_info(self, msg: CameraInfo) -> None:
+        problem = self.geometry_inputs.on_right_camera_info(msg)
+        if problem:
+            self.get_logger().warning(problem, throttle_duration_sec=10.0)
+
     def _on_camera_info(self, msg: CameraInfo) -> None:
         problem = self.geometry_inputs.on_camera_info(msg)
         if problem:
@@ -292,6 +311,11 @@ class VprNode(Node):
         inputs = self.geometry_inputs
         frame.camera = inputs.camera_for(frame.rgb.shape[1], frame.rgb.shape[0])
         frame.depth = inputs.depth_for(frame.stamp)
+        frame.right, frame.baseline = inputs.right_for(frame.stamp), inputs.baseline
+        self._say_once(inputs.silence_note(time.monotonic()))
+        if self._demo_note is None:  # the first frame: is the demo model on a real camera?
+            self._demo_note = demo_model_note(self.pipeline.model.fingerprint, frame.rgb)
+            self._say_once(self._demo_note)
         if inputs.enabled_depth and frame.depth is None:
             self.get_logger().warning(
                 f"frame without depth: {inputs.last_problem}", throttle_duration_sec=10.0

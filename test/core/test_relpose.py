@@ -134,3 +134,31 @@ def test_pose_config_checks_its_values():
         PoseConfig(ransac_px=0)
     with pytest.raises(ConfigError, match="min_inliers must be >= 6"):
         PoseConfig(min_inliers=3)
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("depth_sigma_a", -0.1, "pose depth_sigma_a=-0.1 must be >= 0"),
+        ("depth_sigma_b", 0.0, "pose depth_sigma_b=0.0 must be > 0"),
+        ("max_depth_m", float("nan"), "pose max_depth_m=nan must be >= 0"),
+        ("depth_agreement_sigmas", -1.0, "pose depth_agreement_sigmas=-1.0 must be > 0"),
+        ("floor_rotation_deg", -0.2, "pose floor_rotation_deg=-0.2 must be >= 0"),
+        ("max_model_disagreement_chi2", 0.0, "pose max_model_disagreement_chi2=0.0 must be > 0"),
+    ],
+)
+def test_depth_noise_and_floor_settings_are_checked(field, value, message):
+    with pytest.raises(ConfigError) as err:
+        PoseConfig(**{field: value})
+    assert str(err.value) == message
+
+
+def test_covariance_floor_is_added_to_every_pose(views):
+    rq, _, rm, dm, _ = views
+    q, m = extract_features(rq, camera=MODEL), extract_features(rm, depth=dm, camera=MODEL)
+    zero = dict(floor_rotation_deg=0.0, floor_translation_m=0.0, floor_translation_rel=0.0)
+    bare, floored = relative_pose(q, m, PoseConfig(**zero)), relative_pose(q, m)
+    diff = floored.covariance - bare.covariance
+    length = np.linalg.norm(bare.translation)
+    np.testing.assert_allclose(np.diag(diff), [(0.005 + 0.01 * length) ** 2] * 3
+                               + [math.radians(0.2) ** 2] * 3)  # fmt: skip

@@ -1,0 +1,73 @@
+"""Metric pose of a loop from one keyframe's depth and the other's pixels (PnP), weighted by
+the depth-noise model, with the second depth image as a check.
+
+Points beyond `PoseConfig.max_depth_m` are left out; PnP-RANSAC finds the inliers and
+`pnp_uncertainty.refine_with_covariance` refines the pose with each point weighted by its own
+depth noise. With depth in both keyframes, enough matches must agree in 3-D within
+`depth_agreement_sigmas` of their depth noise (plus 2 % of the depth for the pose's own error):
+a fixed tolerance refuses good far pairs, whose depth noise grows with z^2.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from pair_vpr_ros.geometry import covariance as cv
+from pair_vpr_ros.geometry.depth_noise import depth_sigma
+from pair_vpr_ros.geometry.pnp import solve_pnp
+from pair_vpr_ros.geometry.pnp_uncertainty import refine_with_covariance
+
+
+def within(limit: float) -> str:
+    """ " within N m" for a finite depth limit, else ""."""
+    return f" within {limit:g} m" if math.isfinite(limit) else ""
+
+
+def metric_fit(q, m, pairs: np.ndarray, side: str, z: np.ndarray, c):
+    """Features q, m, matches [K, 2], the side whose depth z [K] gives the 3-D points, a
+    `PoseConfig` -> (R, t, covariance [6, 6], inliers) of T_match_query, or (reason, inliers)."""
+    ok = np.isfinite(z) & (z <= c.depth_limit)  # far points: too noisy for PnP
+    kp_q, kp_m = q.keypoints[pairs[ok, 0]], m.keypoints[pairs[ok, 1]]
+    if side == "match":  # 3D in the match frame, seen by the query camera
+        pts, px, k = m.camera.rays(kp_m) * z[ok, None], q.camera.undistort(kp_q), q.camera.k
+    else:
+        pts, px, k = q.camera.rays(kp_q) * z[ok, None], m.camera.undistort(kp_m), m.camera.k
+    sol = solve_pnp(pts, px, k, c.ransac_px, c.min_inliers)
+    if isinstance(sol, str):
+        return sol, -1
+    r_ba, t_ba, idx = sol
+    r, t = (r_ba.T, -r_ba.T @ t_ba) if side == "match" else (r_ba, t_ba)
+    depth_ab = (c.depth_sigma_a, c.depth_sigma_b)
+    fit = refine_with_covariance(pts[idx], px[idx], k, r, t, side == "match", c.min_sigma_px,
+                                 depth_ab)  # fmt: skip
+    if fit is None:
+        return "degenerate geometry: the inliers do not constrain every axis", len(idx)
+    r, t, cov, _, _ = fit
+    cov = cov * c.covariance_scale
+    agree = depth_agreement(q, m, pairs, r, t, c)
+    if agree is not None and agree[0] < c.min_inliers:
+        return (f"pose disagrees with the other keyframe's depth ({agree[0]} of {agree[1]} "
+                f"points agree, {c.min_inliers} needed)", len(idx))  # fmt: skip
+    s_t, s_r = cv.sigmas(cov)
+    if s_t > c.max_translation_sigma_m or s_r > c.max_rotation_sigma_deg:
+        return f"pose too uncertain (std {s_t:.2f} m, {s_r:.2f} deg)", len(idx)
+    return r, t, cov, len(idx)
+
+
+def depth_agreement(q, m, pairs, r, t, c) -> tuple[int, int] | None:
+    """With depth in both keyframes: (matches whose two 3D points agree under (R, t) within
+    `depth_agreement_sigmas` of their depth noise, plus 2 % of the depth for the pose's own
+    error; matches with both depths within max_depth_m); None otherwise. A PnP solution found
+    on a few outliers fits the pixels but not the second depth image."""
+    if q.depth is None or m.depth is None:
+        return None
+    zq, zm = q.depth[pairs[:, 0]], m.depth[pairs[:, 1]]
+    ok = np.isfinite(zq) & np.isfinite(zm) & (zq <= c.depth_limit) & (zm <= c.depth_limit)
+    xq = q.camera.rays(q.keypoints[pairs[ok, 0]]) * zq[ok, None]
+    xm = m.camera.rays(m.keypoints[pairs[ok, 1]]) * zm[ok, None]
+    gap = np.linalg.norm(xq @ r.T + t - xm, axis=1)
+    ab = (c.depth_sigma_a, c.depth_sigma_b)
+    tol = c.depth_agreement_sigmas * np.hypot(depth_sigma(zq[ok], *ab), depth_sigma(zm[ok], *ab))
+    return int((gap < tol + 0.02 * zm[ok]).sum()), int(ok.sum())

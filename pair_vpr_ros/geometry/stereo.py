@@ -1,0 +1,110 @@
+"""Depth for keyframes from a rectified stereo pair (OpenCV StereoSGBM).
+
+Robots often have a stereo camera and no depth topic. With the left image (the one the pipeline
+sees), the right image and the right camera's ``CameraInfo`` (its projection matrix P holds the
+baseline: P[0, 3] = -fx B), a keyframe's depth is z = fx B / disparity. The pair must be
+rectified (``image_rect`` topics: same size, rows aligned); an unrectified or mismatched pair is
+refused with a `StereoInputError` saying why (the pipeline counts it and goes on without depth).
+Stereo depth noise: sigma_z = z^2 sigma_d / (fx B), i.e. the depth-noise model with a = 0 and
+b = sigma_d / (fx B) (`stereo_noise_b`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import cv2
+import numpy as np
+
+from pair_vpr_ros.errors import GeometryInputError
+
+MAX_ROW_GAP_PX = 1.5  # median vertical offset of left-right matches allowed (rectified: ~0)
+MIN_CHECK_MATCHES = 20  # left-right matches needed to judge the rectification
+
+
+class StereoInputError(GeometryInputError):
+    """A stereo pair that cannot give depth (what is wrong, what to do)."""
+
+
+def stereo_baseline(info: Any) -> float:
+    """Baseline B (m) from the right camera's ``CameraInfo`` (rclpy, rosbags or duck-typed):
+    B = -P[0, 3] / P[0, 0]; StereoInputError when P has none."""
+    try:
+        p = np.asarray(info.p, np.float64).ravel()
+    except (AttributeError, TypeError, ValueError) as err:
+        raise StereoInputError(f"right camera_info: not a CameraInfo message ({err})") from err
+    if p.shape != (12,) or not np.all(np.isfinite(p)) or p[0] <= 0:
+        raise StereoInputError("right camera_info: P must hold 12 finite values with fx > 0")
+    baseline = -p[3] / p[0]
+    if not baseline > 0:
+        raise StereoInputError(
+            f"right camera_info: P[0, 3] = {p[3]:g} gives no positive baseline; it must be the "
+            "RIGHT camera of a rectified pair (P[0, 3] = -fx * baseline)"
+        )
+    return float(baseline)
+
+
+def stereo_noise_b(fx: float, baseline: float, sigma_disparity: float = 0.5) -> float:
+    """The depth-noise model's b (1/m) of a stereo pair: sigma_d / (fx B)."""
+    return sigma_disparity / (fx * baseline)
+
+
+def _grey(img: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
+
+
+def check_pair(left: np.ndarray, right: np.ndarray) -> None:
+    """StereoInputError unless `left` and `right` [H, W(, 3)] uint8 look like a rectified pair:
+    same size, matched ORB features on the same rows (median |dy| <= 1.5 px), right of the
+    left image's (positive disparity)."""
+    if left.shape[:2] != right.shape[:2]:
+        raise StereoInputError(
+            f"stereo pair sizes differ: left {left.shape[1]}x{left.shape[0]}, right "
+            f"{right.shape[1]}x{right.shape[0]}: subscribe both rectified images of one camera"
+        )
+    orb = cv2.ORB_create(800)
+    kl, dl = orb.detectAndCompute(_grey(left), None)
+    kr, dr = orb.detectAndCompute(_grey(right), None)
+    if dl is None or dr is None:
+        return  # featureless: nothing to judge, SGBM will find little anyway
+    matches = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dl, dr)
+    if len(matches) < MIN_CHECK_MATCHES:
+        return
+    pl = np.array([kl[m.queryIdx].pt for m in matches])
+    pr = np.array([kr[m.trainIdx].pt for m in matches])
+    dy, dx = np.median(np.abs(pl[:, 1] - pr[:, 1])), np.median(pl[:, 0] - pr[:, 0])
+    if dy > MAX_ROW_GAP_PX:
+        raise StereoInputError(
+            f"stereo pair is not rectified: matched features are {dy:.1f} px apart vertically "
+            f"(at most {MAX_ROW_GAP_PX} px): use the image_rect topics (stereo_image_proc)"
+        )
+    if dx < 0:
+        raise StereoInputError(
+            f"stereo pair looks swapped: features sit {-dx:.1f} px further right in the left "
+            "image than in the right one: swap image_topic and right_image_topic"
+        )
+
+
+def stereo_depth(
+    left: np.ndarray, right: np.ndarray, fx: float, baseline: float, max_disparity: int = 0
+) -> np.ndarray:
+    """Rectified left / right images [H, W(, 3)] uint8, focal length fx (px) and baseline B (m)
+    -> depth [H, W] float32 metres of the left image (NaN: none) from semi-global matching.
+    `max_disparity` 0: an eighth of the width (objects at least 8 B fx / W away)."""
+    check_pair(left, right)
+    gl, gr = _grey(left), _grey(right)
+    n = max_disparity or max(16, gl.shape[1] // 8)
+    n = int(math.ceil(n / 16) * 16)
+    block = 5
+    sgbm = cv2.StereoSGBM_create(
+        minDisparity=0, numDisparities=n, blockSize=block,
+        P1=8 * block * block, P2=32 * block * block, disp12MaxDiff=1,
+        uniquenessRatio=10, speckleWindowSize=100, speckleRange=2,
+        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    )  # fmt: skip
+    disparity = sgbm.compute(gl, gr).astype(np.float32) / 16.0
+    depth = np.full(disparity.shape, np.nan, np.float32)
+    ok = disparity > 0.5
+    depth[ok] = fx * baseline / disparity[ok]
+    return depth

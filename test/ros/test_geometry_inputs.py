@@ -1,0 +1,47 @@
+"""The node's geometry inputs without ROS: stereo right images and baseline, a camera_info
+topic that stays silent (said once), bad right camera_info counted."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+from bag_fixtures import TS2, image_msg, textured
+
+from pair_vpr_ros.params import defaults
+from pair_vpr_ros.ros.geometry_inputs import GeometryInputs
+
+
+def inputs(**values):
+    counts = SimpleNamespace(camera_info_invalid=0, depth_unmatched=0, depth_invalid=0)
+    return GeometryInputs({**defaults(), **values}, counts, wait=0.0), counts
+
+
+def test_right_image_and_baseline_for_a_frame():
+    g, counts = inputs(right_image_topic="/right")
+    rgb = textured(2)
+    g.on_right(image_msg(TS2, 3.0, rgb, compressed=False))
+    assert g.on_right_camera_info(SimpleNamespace(p=[100.0, 0, 80, -25.0] + [0.0] * 8)) is None
+    np.testing.assert_array_equal(g.right_for(3.01), rgb)
+    assert g.right_for(3.5) is None  # beyond depth_tolerance
+    assert g.baseline == 0.25
+    problem = g.on_right_camera_info(SimpleNamespace(p=[100.0] + [0.0] * 11))
+    assert problem.startswith("right camera_info: P[0, 3] = 0 gives no positive baseline")
+    assert counts.camera_info_invalid == 1 and g.baseline == 0.25  # the good one stays
+
+
+def test_no_right_topic_no_right_image():
+    g, _ = inputs()
+    g.on_right(image_msg(TS2, 3.0, textured(2), compressed=False))
+    assert g.right_for(3.0) is None
+
+
+def test_silent_camera_info_is_said_once_after_the_wait():
+    g, _ = inputs(camera_info_topic="/cam/info")
+    assert g.silence_note(100.0) == ""  # the first frame starts the clock
+    assert g.silence_note(104.0) == ""
+    assert g.silence_note(105.5).startswith("camera_info_topic /cam/info: no valid CameraInfo "
+                                            "within 6 s of the first frame")  # fmt: skip
+    assert g.silence_note(200.0) == ""  # once
+    quiet, _ = inputs()
+    assert quiet.silence_note(0.0) == quiet.silence_note(100.0) == ""
