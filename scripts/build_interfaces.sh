@@ -1,0 +1,55 @@
+#!/usr/bin/env bash
+# Build the typed ROS interfaces (interfaces/pair_vpr_ros_interfaces, ament_cmake + rosidl)
+# with colcon against the ROS 2 Jazzy wheels of the venv, then install them into the venv
+# itself (lib/, lib/python3.X/site-packages/, share/), next to the wheels' own messages: every
+# Python of the venv (tests, node processes, console scripts) imports them with no sourcing.
+# Idempotent: a stamp in the venv skips the build while the package's files are unchanged.
+# On a normal ROS install none of this is needed: `colcon build` in the workspace (docs/interfaces.md).
+#   VENV=.venv                       the venv (with the `ros` and `interfaces` extras installed)
+#   INTERFACES_BUILD=build/interfaces  where colcon builds (git-ignored; `make clean` removes it)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PKG=pair_vpr_ros_interfaces
+SRC=interfaces/$PKG
+VENV=$(cd "${VENV:-.venv}" && pwd)
+WORK=${INTERFACES_BUILD:-build/interfaces}
+PY="$VENV/bin/python"
+stamp="$VENV/.$PKG-built"
+want=$(cat "$SRC/package.xml" "$SRC/CMakeLists.txt" "$SRC"/msg/*.msg "$0" | sha256sum | cut -c1-16)
+if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] \
+    && "$PY" -c "import $PKG.msg" 2>/dev/null; then
+    exit 0
+fi
+start=$(date +%s)
+echo "setup: building $PKG (colcon, rosidl) into $VENV"
+
+# The wheels' exported CMake files name the include folders of the machine that built them:
+# point them at this venv's Python headers and numpy headers (else CMake stops with
+# "includes non-existent path").
+py_include=$("$PY" -c "import sysconfig; print(sysconfig.get_paths()['include'])")
+np_include=$("$PY" -c "import numpy; print(numpy.get_include())")
+built_py=/opt/python/cp311-cp311/include/python3.11
+grep -rlF -e "$built_py" -e /opt/python/ "$VENV/share" 2>/dev/null | while read -r f; do
+    sed -i -e "s#/opt/python/[^;\"]*/numpy/_core/include#$np_include#g" \
+        -e "s#$built_py#$py_include#g" "$f"
+done
+
+rm -rf "$WORK"
+mkdir -p "$WORK"
+CMAKE_PREFIX_PATH="$VENV" AMENT_PREFIX_PATH="$VENV" PATH="$VENV/bin:$PATH" \
+    "$VENV/bin/colcon" --log-base "$WORK/log" build --base-paths "$SRC" \
+    --build-base "$WORK/build" --install-base "$WORK/install" \
+    --event-handlers console_cohesion- console_direct- status- \
+    --cmake-args "-DPython3_EXECUTABLE=$PY" -DBUILD_TESTING=OFF \
+    > "$WORK/colcon.log" 2>&1 || {
+    tail -n 40 "$WORK/colcon.log" >&2
+    echo "setup: error: building $PKG failed (full log: $WORK/colcon.log). The node runs" \
+        "without it (no loop_closure/typed); PAIRVPR_INTERFACES=skip make setup skips it." >&2
+    exit 1
+}
+# A message removed from the package must not stay importable from an earlier build.
+rm -rf "$VENV/share/$PKG" "$("$PY" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')/$PKG"
+cmake --install "$WORK/build/$PKG" --prefix "$VENV" > "$WORK/install.log"
+"$PY" -c "import $PKG.msg"
+echo "$want" > "$stamp"
+echo "setup: $PKG built and installed in $(($(date +%s) - start)) s"
