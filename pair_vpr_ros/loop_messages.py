@@ -32,6 +32,11 @@ both publish identical data; the pose-graph tools decode them here too. One acce
 
 ``loop_closure/factor`` — ``nav_msgs/Odometry``, one message per loop that has a relative pose:
     everything one between-factor needs (layout in ``loop_factor`` and docs/node.md).
+
+``loop_closure/typed`` — ``pair_vpr_ros_interfaces/msg/LoopClosure`` (interfaces/ in this
+    repository, docs/interfaces.md): the json record as one typed message, with both sides'
+    robot and session and the relative pose as a ``geometry_msgs/PoseWithCovariance``;
+    ``loop_closure_fields`` gives its values. Sent with detail and json.
 """
 
 from __future__ import annotations
@@ -52,10 +57,13 @@ from pair_vpr_ros.loop_factor import (
     factor_from_record,
     factor_msg,
 )
+from pair_vpr_ros.types import split_stamp
 
 PAIR_TOPIC = "loop_closure"
 DETAIL_TOPIC = "loop_closure/detail"
 JSON_TOPIC = "loop_closure/json"
+TYPED_TOPIC = "loop_closure/typed"
+TYPED_TYPE = "pair_vpr_ros_interfaces/msg/LoopClosure"
 FLOAT64_ARRAY_TYPE = "std_msgs/msg/Float64MultiArray"
 STRING_TYPE = "std_msgs/msg/String"
 
@@ -113,6 +121,7 @@ __all__ = [
     "factor_from_msg",
     "factor_from_record",
     "factor_msg",
+    "loop_closure_fields",
     "loop_messages",
 ]
 
@@ -232,3 +241,38 @@ def detail_text(labels: list[str] | tuple[str, ...]) -> dict[str, str]:
     """The text fields of a detail message, ``{field: text}`` (the identity; {} from a node
     older than issue 22)."""
     return dict(label.split("=", 1) for label in labels if "=" in label)
+
+
+def loop_closure_fields(record: Any) -> dict[str, Any]:
+    """The ``loop_closure/typed`` message (``TYPED_TYPE``) as plain values, keyed by its field
+    names: stamps as (sec, nanosec); ``header`` = {stamp: the query's, frame_id: the match's};
+    ``pose_status`` its code (``POSE_STATUS_CODES``: 0 none, 1 metric, 2 scale-free, 3 metric
+    from odometry); ``relative_pose`` = {position (x, y, z), orientation (x, y, z, w),
+    covariance (36, row-major)}, all NaN without a pose."""
+    out: dict[str, Any] = {
+        "header": {
+            "stamp": split_stamp(float(record.query_stamp)),
+            "frame_id": str(record.match_frame_id),
+        }
+    }
+    out |= identity(record)  # query_robot, query_session, match_robot, match_session
+    for side in ("query", "match"):
+        out[f"{side}_stamp"] = split_stamp(float(getattr(record, f"{side}_stamp")))
+        out[f"{side}_id"] = int(getattr(record, f"{side}_id"))
+        out[f"{side}_frame_id"] = str(getattr(record, f"{side}_frame_id"))
+    for name in ("pair_score", "global_similarity", "inlier_ratio"):
+        out[name] = float(getattr(record, name))
+    for name in ("rank_before", "rank_after", "candidates", "scored", "inliers", "pose_inliers"):
+        out[name] = int(getattr(record, name))
+    out |= {
+        "accepted": bool(record.accepted),
+        "reason": str(record.reason),
+        "pose_status": POSE_STATUS_CODES.get(record.pose_status, 0),
+        "pose_reason": str(record.pose_reason),
+        "relative_pose": {
+            "position": tuple(float(getattr(record, k)) for k in ("tx", "ty", "tz")),
+            "orientation": tuple(float(getattr(record, k)) for k in ("qx", "qy", "qz", "qw")),
+            "covariance": covariance_values(record),
+        },
+    }
+    return out

@@ -11,9 +11,15 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PKG=pair_vpr_ros_interfaces
 SRC=interfaces/$PKG
+fail() { echo "setup: error: $*" >&2; exit 1; }
+[ -x "${VENV:-.venv}/bin/python" ] || fail "no Python at ${VENV:-.venv}/bin/python: make setup" \
+    "creates the venv (or give VENV=the venv with the ros and interfaces extras)"
 VENV=$(cd "${VENV:-.venv}" && pwd)
 WORK=${INTERFACES_BUILD:-build/interfaces}
 PY="$VENV/bin/python"
+[ -x "$VENV/bin/colcon" ] || fail "colcon is not installed in $VENV: pip install -e" \
+    "'.[ros,interfaces]' (make setup does), or set PAIRVPR_INTERFACES=skip to go without" \
+    "loop_closure/typed"
 stamp="$VENV/.$PKG-built"
 want=$(cat "$SRC/package.xml" "$SRC/CMakeLists.txt" "$SRC"/msg/*.msg "$0" | sha256sum | cut -c1-16)
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] \
@@ -43,9 +49,8 @@ CMAKE_PREFIX_PATH="$VENV" AMENT_PREFIX_PATH="$VENV" PATH="$VENV/bin:$PATH" \
     --cmake-args "-DPython3_EXECUTABLE=$PY" -DBUILD_TESTING=OFF \
     > "$WORK/colcon.log" 2>&1 || {
     tail -n 40 "$WORK/colcon.log" >&2
-    echo "setup: error: building $PKG failed (full log: $WORK/colcon.log). The node runs" \
-        "without it (no loop_closure/typed); PAIRVPR_INTERFACES=skip make setup skips it." >&2
-    exit 1
+    fail "building $PKG failed (full log: $WORK/colcon.log). The node runs without it (no" \
+        "loop_closure/typed); PAIRVPR_INTERFACES=skip make setup skips it."
 }
 # A message removed from the package must not stay importable from an earlier build.
 rm -rf "$VENV/share/$PKG" "$("$PY" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')/$PKG"

@@ -11,9 +11,9 @@ Inputs: `image` (sensor_msgs/Image) and/or `compressed_image_topic` (CompressedI
 converts and enqueues (a full queue drops its oldest frame); a worker thread takes each frame to
 the map thread of `MapControl`, the one thread that runs the pipeline and its map services.
 
-Outputs: `loop_closure` (Float64MultiArray `[t_current, t_previous]`, LIO-SAM), `loop_closure/
-detail` (labelled Float64MultiArray), `loop_closure/json` (String) and, for loops with a
-relative pose, `loop_closure/factor` (Odometry: one between-factor), see `loop_messages`;
+Outputs: `loop_closure` (Float64MultiArray `[t_current, t_previous]`, LIO-SAM), `.../detail`
+(labelled Float64MultiArray), `.../json` (String), `.../typed` (pair_vpr_ros_interfaces/
+LoopClosure, docs/interfaces.md), `.../factor` (Odometry, loops with a pose): `loop_messages`;
 `loop_closure/markers` (MarkerArray, when both poses are known); `/diagnostics` (~1 Hz).
 
 Services (paths come from the `map_dir` and `build_source` parameters)::

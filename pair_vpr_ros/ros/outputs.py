@@ -1,7 +1,7 @@
 """The loop-closure outputs of `vpr_node`: one base topic and the topics under it.
 
-`loop_closure` carries the LIO-SAM pair; `detail`, `json`, `factor` and `markers` live under
-whatever `loop_closure` resolves to, so one remap moves them all:
+`loop_closure` carries the LIO-SAM pair; `detail`, `json`, `factor`, `typed` and `markers` live
+under whatever `loop_closure` resolves to, so one remap moves them all:
 `-r loop_closure:=/lio_loop/loop_closure_detection` puts the pair where LIO-SAM listens and the
 rest under `/lio_loop/loop_closure_detection/...`. A sub-topic can still be remapped on its own
 by its resolved name (`-r /loop_closure/json:=/loops_json` without a base remap).
@@ -22,6 +22,13 @@ from pair_vpr_ros import loop_messages as lm
 from pair_vpr_ros.detector import LoopRecord
 from pair_vpr_ros.types import Pose, split_stamp
 
+try:  # built by `make setup` (scripts/build_interfaces.sh) or colcon in a ROS workspace
+    from pair_vpr_ros_interfaces.msg import LoopClosure
+except ImportError as err:  # the node runs without it: every other output stays on
+    LoopClosure, TYPED_MISSING = None, str(err)
+else:
+    TYPED_MISSING = ""
+
 MARKER_TOPIC = "loop_closure/markers"
 SUBTOPICS = {  # output -> its topic relative to the base (loop_messages' names, base stripped)
     name: topic.removeprefix(lm.PAIR_TOPIC + "/")
@@ -29,6 +36,7 @@ SUBTOPICS = {  # output -> its topic relative to the base (loop_messages' names,
         ("detail", lm.DETAIL_TOPIC),
         ("json", lm.JSON_TOPIC),
         ("factor", lm.FACTOR_TOPIC),
+        ("typed", lm.TYPED_TOPIC),
         ("markers", MARKER_TOPIC),
     )
 }
@@ -71,6 +79,16 @@ class LoopOutputs:
         self.json = node.create_publisher(String, topics["json"], depth)
         self.factor = node.create_publisher(Odometry, topics["factor"], depth)
         self.markers = node.create_publisher(MarkerArray, topics["markers"], depth)
+        self.typed = None
+        if LoopClosure is None:
+            node.get_logger().warning(
+                f"{topics['typed']} is off: the message package pair_vpr_ros_interfaces "
+                f"cannot be imported ({TYPED_MISSING}); build it with `make setup` (pip "
+                "install) or `colcon build` in your ROS workspace (docs/interfaces.md). "
+                "Every other loop-closure topic is on."
+            )
+        else:
+            self.typed = node.create_publisher(LoopClosure, topics["typed"], depth)
 
     def publish(
         self,
@@ -80,8 +98,8 @@ class LoopOutputs:
         number: int,
     ) -> tuple[bool, str]:
         """Send `record` (accepted, or rejected with publish_rejected): pair (accepted and
-        ordered), detail, json, factor (with a relative pose), markers (both poses known, in
-        `marker_frame_id`, marker id `number`) -> (pair sent, what the log should say)."""
+        ordered), detail, json, typed, factor (with a relative pose), markers (both poses known,
+        in `marker_frame_id`, marker id `number`) -> (pair sent, what the log should say)."""
         content = lm.loop_messages(record)
         detail = Float64MultiArray(data=content.detail)
         detail.layout.dim = [
@@ -108,6 +126,8 @@ class LoopOutputs:
             )
         self._send(self.detail, detail)
         self._send(self.json, String(data=content.json))
+        if self.typed is not None:
+            self._send(self.typed, loop_closure_msg(lm.loop_closure_fields(record)))
         if record.accepted and content.factor is not None:
             self._send(self.factor, lm.factor_msg(content.factor, message_classes()))
         if record.accepted and None not in poses:
@@ -119,6 +139,23 @@ class LoopOutputs:
 
     def clear_markers(self) -> None:
         self._send(self.markers, MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
+
+
+def loop_closure_msg(fields: dict):
+    """A `LoopClosure` message from `loop_messages.loop_closure_fields`' plain values."""
+    values = dict(fields)
+    header, pose = values.pop("header"), values.pop("relative_pose")
+    msg = LoopClosure(**{k: v for k, v in values.items() if not k.endswith("_stamp")})
+    msg.header.frame_id = header["frame_id"]
+    msg.header.stamp.sec, msg.header.stamp.nanosec = header["stamp"]
+    for side in ("query", "match"):
+        stamp = getattr(msg, f"{side}_stamp")
+        stamp.sec, stamp.nanosec = values[f"{side}_stamp"]
+    p, q = msg.relative_pose.pose.position, msg.relative_pose.pose.orientation
+    p.x, p.y, p.z = pose["position"]
+    q.x, q.y, q.z, q.w = pose["orientation"]
+    msg.relative_pose.covariance = pose["covariance"]
+    return msg
 
 
 def loop_marker(record: LoopRecord, pose_a: Pose, pose_b: Pose, frame_id: str, number: int):

@@ -140,3 +140,45 @@ def test_field_order_matches_loop_record():
     from pair_vpr_ros.detector import LoopRecord
 
     assert list(lm.LOOP_RECORD_FIELDS) == LoopRecord.field_names()
+
+
+def test_typed_fields_of_a_loop_without_a_pose():
+    fields = lm.loop_closure_fields(_record(inliers=41, inlier_ratio=0.625))
+    pose = fields.pop("relative_pose")
+    assert fields == {
+        "header": {"stamp": (1700000123, 456789017), "frame_id": "cam_front"},
+        "query_stamp": (1700000123, 456789017), "query_id": 12, "query_frame_id": "cam_front",
+        "query_robot": "", "query_session": "",
+        "match_stamp": (1700000001, 250000000), "match_id": 3, "match_frame_id": "cam_front",
+        "match_robot": "", "match_session": "",
+        "pair_score": 2.75, "global_similarity": 0.8125, "inlier_ratio": 0.625,
+        "rank_before": 2, "rank_after": 0, "candidates": 10, "scored": 3, "inliers": 41,
+        "pose_inliers": -1, "accepted": True, "reason": "", "pose_status": 0, "pose_reason": "",
+    }  # fmt: skip
+    assert all(math.isnan(v) for v in (*pose["position"], *pose["orientation"]))
+    assert len(pose["covariance"]) == 36 and all(math.isnan(v) for v in pose["covariance"])
+
+
+@pytest.mark.parametrize(
+    ("status", "code"),
+    [("metric", 1), ("scale-free", 2), ("metric-odometry", 3), ("", 0), ("unheard-of", 0)],
+)
+def test_typed_fields_carry_the_pose_and_its_status_code(status, code):
+    fields = lm.loop_closure_fields(_posed(pose_status=status, accepted=False, reason="low"))
+    assert (fields["pose_status"], fields["pose_inliers"]) == (code, 57)
+    assert (fields["accepted"], fields["reason"]) == (False, "low")
+    assert fields["relative_pose"] == {
+        "position": (1.5, -0.25, 3.0),
+        "orientation": (0.0, 0.6, 0.0, 0.8),
+        "covariance": list(COV),
+    }
+
+
+def test_typed_fields_types_fit_the_message():
+    # numpy scalars from the pipeline become the Python types rclpy's setters accept
+    record = _record(query_id=np.int64(7), rank_before=np.int32(1), pair_score=np.float32(0.5),
+                     accepted=np.bool_(True))  # fmt: skip
+    fields = lm.loop_closure_fields(record)
+    assert [type(fields[k]) for k in ("query_id", "rank_before", "pair_score", "accepted")] == [
+        int, int, float, bool,
+    ]  # fmt: skip

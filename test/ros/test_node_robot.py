@@ -60,7 +60,8 @@ def test_every_output_follows_a_remapped_loop_closure(harness, places):
     wait_for(lambda: len(h.got["loop_closure"]) == 1 and len(h.got["loop_closure/json"]) == 1)
     assert list(h.got["loop_closure"][0].data) == [103.0, 100.0]
     assert len(h.got["loop_closure/detail"]) == 1
-    expected = {base, *(f"{base}/{s}" for s in ("detail", "json", "factor", "markers"))}
+    subs = ["detail", "json", "factor", "markers"] + (["typed"] if h.node.outputs.typed else [])
+    expected = {base, *(f"{base}/{s}" for s in subs)}
 
     def published() -> dict[str, list[str]]:
         return dict(h.peer.get_publisher_names_and_types_by_node("vpr_node", "/"))
@@ -68,6 +69,8 @@ def test_every_output_follows_a_remapped_loop_closure(harness, places):
     wait_for(lambda: expected <= set(published()))  # the graph is discovered, not instant
     assert {t for t in published() if "loop" in t} == expected
     assert published()[base] == ["std_msgs/msg/Float64MultiArray"]
+    if h.node.outputs.typed:  # pair_vpr_ros_interfaces is built (test_typed_loop_closure.py)
+        assert published()[f"{base}/typed"] == ["pair_vpr_ros_interfaces/msg/LoopClosure"]
 
 
 def diagnostic_level(h) -> bytes | None:
