@@ -22,16 +22,19 @@ WIRE_NAMES = {"float64": "double", "float32": "float", "bool": "boolean"}  # as 
 
 def class_type(field_type) -> str:
     """A .msg field type as `get_fields_and_field_types` names it."""
-    name = str(field_type).removesuffix("[]")
+    name = re.sub(r"\[\d*\]$", "", str(field_type))
     name = WIRE_NAMES.get(name, name)
-    return f"sequence<{name}>" if field_type.is_array else name
+    if not field_type.is_array:
+        return name
+    size = field_type.array_size
+    return f"{name}[{size}]" if size else f"sequence<{name}>"
 
 
 def test_every_message_file_is_generated():
     listed = re.findall(r'"(msg/\w+\.msg)"', (SRC / "CMakeLists.txt").read_text())
     assert sorted(listed) == [f"msg/{p.name}" for p in MSG_FILES]
     assert [p.stem for p in MSG_FILES] == [
-        "KeyframeDescriptor", "KeyframeRef", "LoopClosure", "ScoreRequest", "ScoreResponse",
+        "KeyframeDescriptor", "LoopClosure", "ScoreRequest", "ScoreResponse",
     ]  # fmt: skip
 
 

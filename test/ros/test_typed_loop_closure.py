@@ -138,18 +138,20 @@ def test_message_sizes_on_the_wire(typed_messages):
     from rclpy.serialization import serialize_message
 
     m = typed_messages
-    ref = m.KeyframeRef(robot="robot_a", session="20261125T155000Z", keyframe_id=123456)
+    ids = dict(robot="robot_a", session="20261125T155000Z", model=list(range(8)))
     desc = np.linspace(-1, 1, 512).astype("<f2")
-    descriptor = m.KeyframeDescriptor(
-        keyframe=ref, seq=7, model="0123456789abcdef", dim=512, descriptor=desc.tobytes()
-    )
-    assert len(serialize_message(descriptor)) == 1120 <= 1536  # the fleet budget, 1.5 KB
+    descriptor = m.KeyframeDescriptor(**ids, keyframe_id=12345, dim=512, descriptor=desc.tobytes())
+    assert len(serialize_message(descriptor)) == 1100 <= 1536  # the fleet budget, 1.5 KB
     tokens = np.zeros((529, 768), "<f2")  # ViT-B at 322 px
     request = m.ScoreRequest(
-        request_id=1, query=ref, owner_robot="robot_b", model="0123456789abcdef",
-        candidates=[m.KeyframeRef(robot="robot_b", session="s", keyframe_id=i) for i in range(5)],
-        global_similarities=[0.5] * 5, token_count=529, token_dim=768,
-        dense_tokens=tokens.tobytes(),
+        **ids, request_id=1, owner_robot="robot_b", owner_session="20261125T160000Z",
+        query_id=7, candidate_ids=list(range(5)), global_similarities=[0.5] * 5,
+        token_count=529, token_dim=768, dense_tokens=tokens.tobytes(),
     )  # fmt: skip
-    assert len(serialize_message(request)) - tokens.nbytes == 328  # all but the tokens
+    assert len(serialize_message(request)) - tokens.nbytes == 196  # all but the tokens
+    response = m.ScoreResponse(
+        **ids, request_id=1, requester_robot="robot_b", requester_session="20261125T160000Z",
+        query_id=7, match_id=3, pair_score=2.5, scored=5, accepted=True, pose_status=1,
+    )  # fmt: skip
+    assert len(serialize_message(response)) == 123
     assert len(serialize_message(m.LoopClosure())) == 516
