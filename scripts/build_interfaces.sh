@@ -4,7 +4,8 @@
 # itself (lib/, lib/python3.X/site-packages/, share/), next to the wheels' own messages: every
 # Python of the venv (tests, node processes, console scripts) imports them with no sourcing.
 # Idempotent: a stamp in the venv skips the build while the package's files are unchanged.
-# On a normal ROS install none of this is needed: `colcon build` in the workspace (docs/interfaces.md).
+# On a normal ROS install none of this is needed: colcon builds it in the workspace
+# (docs/interfaces.md).
 #   VENV=.venv                       the venv (with the `ros` and `interfaces` extras installed)
 #   INTERFACES_BUILD=build/interfaces  where colcon builds (git-ignored; `make clean` removes it)
 set -euo pipefail
@@ -21,7 +22,8 @@ PY="$VENV/bin/python"
     "'.[ros,interfaces]' (make setup does), or set PAIRVPR_INTERFACES=skip to go without" \
     "loop_closure/typed"
 stamp="$VENV/.$PKG-built"
-want=$(cat "$SRC/package.xml" "$SRC/CMakeLists.txt" "$SRC"/msg/*.msg "$0" | sha256sum | cut -c1-16)
+want=$(cat "$SRC/package.xml" "$SRC/CMakeLists.txt" "$SRC"/msg/*.msg scripts/build_interfaces.sh \
+    | sha256sum | cut -c1-16)
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] \
     && "$PY" -c "import $PKG.msg" 2>/dev/null; then
     exit 0
@@ -35,7 +37,7 @@ echo "setup: building $PKG (colcon, rosidl) into $VENV"
 py_include=$("$PY" -c "import sysconfig; print(sysconfig.get_paths()['include'])")
 np_include=$("$PY" -c "import numpy; print(numpy.get_include())")
 built_py=/opt/python/cp311-cp311/include/python3.11
-grep -rlF -e "$built_py" -e /opt/python/ "$VENV/share" 2>/dev/null | while read -r f; do
+grep -rlF /opt/python/ "$VENV/share" 2>/dev/null | while read -r f; do
     sed -i -e "s#/opt/python/[^;\"]*/numpy/_core/include#$np_include#g" \
         -e "s#$built_py#$py_include#g" "$f"
 done
@@ -53,7 +55,8 @@ CMAKE_PREFIX_PATH="$VENV" AMENT_PREFIX_PATH="$VENV" PATH="$VENV/bin:$PATH" \
         "loop_closure/typed); PAIRVPR_INTERFACES=skip make setup skips it."
 }
 # A message removed from the package must not stay importable from an earlier build.
-rm -rf "$VENV/share/$PKG" "$("$PY" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')/$PKG"
+site=$("$PY" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
+rm -rf "$VENV/share/$PKG" "$VENV/include/$PKG" "${site:?}/$PKG"
 cmake --install "$WORK/build/$PKG" --prefix "$VENV" > "$WORK/install.log"
 "$PY" -c "import $PKG.msg"
 echo "$want" > "$stamp"
