@@ -182,3 +182,8 @@ def test_typed_fields_types_fit_the_message():
     assert [type(fields[k]) for k in ("query_id", "rank_before", "pair_score", "accepted")] == [
         int, int, float, bool,
     ]  # fmt: skip
+
+
+def test_typed_fields_name_both_sides_robot_and_session():
+    fields = lm.loop_closure_fields(_record(**IDENTITY))
+    assert [fields[k] for k in lm.IDENTITY_FIELDS] == ["r1", "s2", "r0", "s1"]

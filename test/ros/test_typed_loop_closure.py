@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -41,7 +42,7 @@ def same_as_json(msg, record: dict) -> None:
     """Every field the json record has, equal in the typed message (NaN where it is null)."""
     for side in ("query", "match"):
         assert stamp(getattr(msg, f"{side}_stamp")) == record[f"{side}_stamp"]
-        for name in ("id", "frame_id"):
+        for name in ("id", "frame_id", "robot", "session"):
             assert getattr(msg, f"{side}_{name}") == record[f"{side}_{name}"]
     for name in ("pair_score", "global_similarity", "inlier_ratio"):
         value = getattr(msg, name)
@@ -52,7 +53,7 @@ def same_as_json(msg, record: dict) -> None:
 
 
 def test_a_typed_subscriber_gets_every_field_of_each_loop(harness, typed_messages):
-    h = harness()
+    h = harness(robot_id="rover_2", session_id="day1")
     got = subscribe(h, typed_messages.LoopClosure)
     records: list = []
     h.peer.create_subscription(String, JSON_TOPIC, records.append, 50)
@@ -70,7 +71,9 @@ def test_a_typed_subscriber_gets_every_field_of_each_loop(harness, typed_message
         "cam", "cam", True, "",
     )  # fmt: skip
     assert (msg.rank_before, msg.rank_after, msg.candidates, msg.scored) == (1, 1, 1, 1)
-    assert (msg.query_robot, msg.query_session, msg.match_robot, msg.match_session) == ("",) * 4
+    assert (msg.query_robot, msg.query_session, msg.match_robot, msg.match_session) == (
+        "rover_2", "day1", "rover_2", "day1",
+    )  # fmt: skip
     assert msg.pose_status == typed_messages.LoopClosure.POSE_NONE == 0
     assert (msg.pose_inliers, msg.inliers) == (-1, -1)
     pose = msg.relative_pose
@@ -106,6 +109,12 @@ def test_the_typed_topic_follows_the_remapped_base(harness, typed_messages):
     h.processed(4)
     wait_for(lambda: len(got) == 1)
     assert (got[0].query_id, got[0].match_id) == (3, 0)
+    # the default identity: robot "robot" (no namespace), session the start time, UTC
+    session = h.node.identity.session
+    assert re.fullmatch(r"\d{8}T\d{6}Z", session)
+    assert (got[0].query_robot, got[0].query_session, got[0].match_robot) == (
+        "robot", session, "robot",
+    )  # fmt: skip
 
 
 @pytest.mark.slow
