@@ -61,6 +61,8 @@ setup(
         "openvino": ["openvino>=2025.0", "nncf>=2.16"],
         # The documentation site (make docs): MkDocs, its theme, the API from docstrings.
         "docs": ["mkdocs>=1.6", "mkdocs-material>=9.5", "mkdocstrings[python]>=0.26"],
+        # index: milvus (docs/milvus.md): the client, and milvus-lite for a local .db file.
+        "milvus": ["pymilvus>=2.5", "milvus-lite>=2.5"],
         "test": [
             "pytest>=7",
             "ruff>=0.5",

@@ -39,6 +39,11 @@ class MapFingerprintError(MapError):
     """A saved map was built with another model (checkpoint, input size or descriptor dim)."""
 
 
+class MapUnavailableError(MapError):
+    """The map's index server (Milvus) cannot be reached now: the query is skipped and counted;
+    keyframes added meanwhile are kept and inserted when it answers again."""
+
+
 class BagError(PairVPRError):
     """A rosbag is missing, not a bag, corrupt, or lacks the requested topics."""
 

@@ -17,6 +17,7 @@ import numpy as np
 from pair_vpr_ros.detector import Candidate, DetectorConfig
 from pair_vpr_ros.identity import Identity
 from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
+from pair_vpr_ros.place_map.milvus_expr import Exclusion
 from pair_vpr_ros.recency import GroupedRecency
 
 
@@ -61,7 +62,11 @@ class MapSearch:
             if ok is None:
                 continue
             found = True
-            if ok.prefix is not None:
+            if place_map.filters_in_index:  # Milvus: the same rules as a filter expression
+                limit = recency.own_limit(who.robot, who.session, config.exclude_recent_keyframes)
+                rule = Exclusion(stamp, config.exclude_recent_s, limit, who.robot, who.session)
+                got = place_map.search(desc, config.top_k, exclusion=rule)
+            elif ok.prefix is not None:
                 got = place_map.search(desc, config.top_k, max_id=ok.prefix - 1)
             else:
                 got = place_map.search(desc, config.top_k, allowed=ok.mask, exclude=ok.exclude)

@@ -26,6 +26,7 @@ from pair_vpr_ros.geometry.relpose import PoseConfig
 from pair_vpr_ros.identity import DEFAULT_ROBOT, RULE, name_problem
 from pair_vpr_ros.imaging import MAX_PIXELS
 from pair_vpr_ros.model.config import PATCH
+from pair_vpr_ros.place_map.index import IndexConfig
 
 # A tuple default: a fixed-size double array, or (ParamSpec.strings) a string array of any size.
 Value = bool | int | float | str | tuple[float, ...] | tuple[str, ...]
@@ -74,7 +75,19 @@ PARAMS: tuple[ParamSpec, ...] = (
     _p("image_size", 0, "network input side in pixels, a multiple of 14; 0: the checkpoint's",
        0, 1022, **RO),
     _p("index", "flat", "map index: flat (exact), ivf (exact below 25,000 keyframes, then k-means "
-       "lists: large maps) or hnsw (graph)", choices=("flat", "hnsw", "ivf"), **RO),
+       "lists: large maps), hnsw (graph) or milvus (a Milvus collection: milvus_uri; optional "
+       "package: pip install 'pair_vpr_ros[milvus]')",
+       choices=("flat", "hnsw", "ivf", "milvus"), **RO),
+    _p("milvus_uri", "", "index milvus: a milvus-lite file (path ending in .db, created if "
+       "missing) or a Milvus server address (http://host:19530)", **RO),
+    _p("milvus_collection", "pairvpr_keyframes", "index milvus: the collection (maps of one "
+       "model may share it, see docs/milvus.md)", **RO),
+    _p("milvus_index", "IVF_FLAT", "index milvus: the collection's vector index (made when the "
+       "collection is created; docs/milvus.md compares them)",
+       choices=("IVF_FLAT", "HNSW", "FLAT"), **RO),
+    _p("milvus_token_env", "PAIRVPR_MILVUS_TOKEN", "index milvus: name of the environment "
+       "variable that holds the server token (the token is never a parameter, never logged)",
+       **RO),
     # ---- inputs (start-up only)
     _p("image_topic", "image", "sensor_msgs/Image input topic ('' = none)", **RO),
     _p("compressed_image_topic", "", "sensor_msgs/CompressedImage input topic ('' = none)", **RO),
@@ -296,6 +309,14 @@ def geometry_config(values: Mapping[str, Any]) -> GeometryConfig:
             floor_translation_rel=values["pose_floor_translation_rel"],
         ),
     )
+
+
+def index_config(values: Mapping[str, Any]) -> IndexConfig:
+    """The place map's `IndexConfig` of a full parameter set (kind + the milvus settings)."""
+    if values["index"] != "milvus":
+        return IndexConfig(kind=values["index"])
+    names = ("milvus_uri", "milvus_collection", "milvus_index", "milvus_token_env")
+    return IndexConfig(kind="milvus", **{name: values[name] for name in names})
 
 
 def detector_config(values: Mapping[str, Any]) -> DetectorConfig:

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from pair_vpr_ros.detector import Candidate, DetectorConfig, LoopDetector, LoopRecord
-from pair_vpr_ros.errors import ConfigError, MapFingerprintError
+from pair_vpr_ros.errors import ConfigError, MapFingerprintError, MapUnavailableError
 from pair_vpr_ros.geometry.camera import CameraModel
 from pair_vpr_ros.geometry.features import Features
 from pair_vpr_ros.geometry.keyframes import GeometryConfig, KeyframeGeometry
@@ -33,7 +33,7 @@ from pair_vpr_ros.identity import LEGACY_SESSION, Identity
 from pair_vpr_ros.map_search import MapSearch
 from pair_vpr_ros.model import PairVPRModel, preprocess_batch
 from pair_vpr_ros.model.decoder import default_chunk
-from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
+from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
 from pair_vpr_ros.prior_maps import refuse_prior_target
 from pair_vpr_ros.recency import ClockWatch
 from pair_vpr_ros.scoring import dense_pair_scores, encode_for_map, map_pair_scores
@@ -95,6 +95,8 @@ class PipelineCounts:
     clock_jumps: int = 0  # stamps that went back by more than CLOCK_JUMP_S: new sessions
     stereo_depth: int = 0  # keyframes whose depth came from the stereo pair
     stereo_invalid: int = 0  # keyframes whose stereo pair could not give depth (unrectified..)
+    map_searches_skipped: int = 0  # keyframes not queried: the map's Milvus did not answer
+    map_keyframes_pending: int = 0  # now: keyframes kept until the map's Milvus answers again
 
     def to_dict(self) -> dict[str, int]:
         return asdict(self)
@@ -111,7 +113,7 @@ class LoopClosurePipeline:
         model: PairVPRModel,
         config: DetectorConfig | None = None,
         place_map: PlaceMap | None = None,
-        index: str = "flat",
+        index: str | IndexConfig = "flat",
         rerank_chunk: int | None = None,
         geometry: GeometryConfig | None = None,
         *,
@@ -327,6 +329,8 @@ class LoopClosurePipeline:
             packed = self.geometry.pack(features)
             outcome.keyframe_id = self._place_map.add(desc, dense, meta, packed)
             self.maps.added(replace(meta, id=outcome.keyframe_id))
+            pending = self._place_map.index_diagnostics.get("map_keyframes_pending", 0)
+            self.counts.map_keyframes_pending = pending
             if outcome.loop is not None:
                 outcome.loop.query_id = outcome.keyframe_id
         self._last_desc = desc
@@ -340,7 +344,11 @@ class LoopClosurePipeline:
     def _query(self, frame: Frame, dense, desc, outcome: FrameOutcome, features: Features | None):
         timings = outcome.timings_ms
         t0 = time.perf_counter()
-        found = self.maps.search(desc, frame.stamp, self.identity, self.config)
+        try:
+            found = self.maps.search(desc, frame.stamp, self.identity, self.config)
+        except MapUnavailableError:  # logged by the map once per outage; nothing is lost
+            self.counts.map_searches_skipped += 1
+            return None
         if found is None:
             return None
         timings["search"] = (time.perf_counter() - t0) * 1e3

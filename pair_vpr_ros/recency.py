@@ -125,6 +125,15 @@ class GroupedRecency:
         self._groups.setdefault((robot, session), _Group()).append(int(kf_id), float(stamp))
         self._size = max(self._size, int(kf_id) + 1)
 
+    def own_limit(self, robot: str, session: str, exclude_n: int) -> int:
+        """The first id of the newest `exclude_n` keyframes of (robot, session), i.e. its ids
+        below this may match (an index filter's form of the rule; the map's size when the
+        group is empty or exclude_n is 0)."""
+        group = self._groups.get((robot, session))
+        if group is None or not group.ids or exclude_n <= 0:
+            return self._size
+        return group.ids[-min(int(exclude_n), len(group.ids))]
+
     def sessions(self) -> dict[tuple[str, str], int]:
         """{(robot, session): keyframes}."""
         return {key: len(g.ids) for key, g in self._groups.items()}

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Create (or update) the project's virtual environment: CPU torch first, then the package with
-# its ROS, interfaces, training, test, SLAM, OpenVINO and docs extras; then build the typed
+# its ROS, interfaces, training, test, SLAM, OpenVINO, docs and Milvus extras; then build the typed
 # messages (scripts/build_interfaces.sh) into it. Idempotent: re-running only reinstalls when
 # setup.py changed, and only rebuilds the messages when their files changed.
 #   VENV=.venv          where to create it
@@ -28,7 +28,7 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
     # torch before the package: a bare "torch" requirement on a machine without torch pulls the
     # multi-GB CUDA build.
     "$VENV/bin/python" -c "import torch" 2>/dev/null || "${PIP[@]}" install "$TORCH_SPEC"
-    "${PIP[@]}" install -e '.[ros,interfaces,train,test,slam,openvino,docs]'
+    "${PIP[@]}" install -e '.[ros,interfaces,train,test,slam,openvino,docs,milvus]'
     echo "$want" > "$stamp"
     echo "setup: $VENV ready ($("$VENV/bin/python" -c 'import torch; print("torch", torch.__version__)'))"
 fi

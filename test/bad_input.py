@@ -40,3 +40,38 @@ def saved_map_digest(directory: Path) -> dict[str, str]:
             data = data[: manifest["count"] * n * d * 2]
         out[entry["name"]] = hashlib.sha256(data).hexdigest()
     return out
+
+
+class FlakyClient:
+    """A MilvusClient stand-in that forwards to a real one until `down` is set; then every call
+    raises what pymilvus raises for a server that cannot be reached. `lose_replies`: calls
+    reach the server, but their answers are lost (the same error after the work is done)."""
+
+    def __init__(self, client) -> None:
+        self._client, self.down, self.lose_replies, self.calls = client, False, False, 0
+        self.names: list[str] = []  # the methods called, in order
+
+    def __getattr__(self, name: str):
+        real = getattr(self._client, name)
+
+        def call(*args, **kwargs):
+            self.calls += 1
+            self.names.append(name)
+            if self.lose_replies:
+                real(*args, **kwargs)
+            if self.down or self.lose_replies:
+                import pymilvus  # only the milvus tests use this
+
+                raise pymilvus.MilvusException(
+                    code=2, message="Fail connecting to server on 127.0.0.1:19530"
+                )
+            return real(*args, **kwargs)
+
+        return call
+
+
+def make_flaky(place_map) -> FlakyClient:
+    """Swap the client of a "milvus" PlaceMap for a FlakyClient around it."""
+    index = place_map._index
+    index.client = FlakyClient(index.client)
+    return index.client

@@ -19,6 +19,7 @@ from pair_vpr_ros.imaging import MAX_PIXELS
 from pair_vpr_ros.model import PairVPRModel
 from pair_vpr_ros.offline.sources import FrameCounts, source_frames
 from pair_vpr_ros.pipeline import LoopClosurePipeline
+from pair_vpr_ros.place_map import IndexConfig
 
 
 @dataclass
@@ -57,7 +58,7 @@ def build_map(
     *,
     image_topic: str | None = None,
     image_period: float = 1.0,
-    index: str = "flat",
+    index: str | IndexConfig = "flat",
     stop: threading.Event | None = None,
     batch_size: int = 8,
     max_pixels: int = MAX_PIXELS,

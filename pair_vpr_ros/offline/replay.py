@@ -40,6 +40,7 @@ from pair_vpr_ros.offline.pose_topics import choose_pose_topics
 from pair_vpr_ros.offline.report import KeyframeInfo, write_report
 from pair_vpr_ros.offline.sources import FrameCounts, bag_frames
 from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
+from pair_vpr_ros.place_map import IndexConfig
 from pair_vpr_ros.prior_maps import open_prior_maps
 from pair_vpr_ros.types import PoseTrack
 from pair_vpr_ros.weights import Weights, check_runtime, load_model
@@ -85,6 +86,7 @@ class ReplayOptions:
     # Called with each choice of topic as soon as it is made, before the model loads (the
     # command line prints them as the run's first lines); they are in summary.notes either way.
     announce: Callable[[str], None] | None = None
+    index: str | IndexConfig = "flat"  # the map's index (kind "milvus": docs/milvus.md)
 
     def check(self) -> None:
         """ConfigError naming the first value out of range."""
@@ -300,8 +302,9 @@ def replay_bag(
         save_to = o.map_path(out) if o.save_map else None
         priors = open_prior_maps(o.prior_maps, model.fingerprint, identity, "--prior-map", save_to)
         pipe = LoopClosurePipeline(
-            model, config, geometry=geometry, identity=identity, prior_maps=priors.maps
-        )
+            model, config, index=o.index, geometry=geometry, identity=identity,
+            prior_maps=priors.maps,
+        )  # fmt: skip
         summary.config = asdict(config)
         summary.model = pipe.model.fingerprint
         summary.robot, summary.session = identity.robot, identity.session

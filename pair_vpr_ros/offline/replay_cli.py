@@ -34,12 +34,14 @@ from pair_vpr_ros.params import (
     flag_help,
     flag_type,
     geometry_config,
+    index_config,
     read_params_file,
 )
 from pair_vpr_ros.weights import resolve_weights
 
 NONE = "none"  # --pose-topic none / --map-dir none / --openvino-cache-dir none
 RUNTIME = ("precision", "backend", "openvino_cache_dir")  # flags that mirror node parameters
+INDEX = ("index", "milvus_uri", "milvus_collection", "milvus_index")  # ... the map's index
 DEPTH_TOLERANCE = float_flag("a number of seconds in [0, 1]", lambda v: 0 <= v <= 1)
 
 POSITIVE_METRES = float_flag("a finite number of metres > 0", lambda v: v > 0)
@@ -124,6 +126,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="DIR",
         help=flag_help("openvino_cache_dir") + " or none (default: --params-file's, else auto)",
     )
+    for name in INDEX:
+        spec = SPECS[name]
+        p.add_argument(
+            f"--{name.replace('_', '-')}",
+            choices=spec.choices or None,
+            metavar=None if spec.choices else "TEXT",
+            help=flag_help(name) + f" (default: --params-file's, else {spec.default!r})",
+        )
     p.add_argument(
         "--batch-size",
         type=positive_int,
@@ -236,14 +246,18 @@ def _run(args: argparse.Namespace) -> int:
     overrides = {k: v for k, v in overrides.items() if v is not None}
     max_pixels, runtime = MAX_PIXELS, {n: SPECS[n].default for n in RUNTIME}
     fleet = {name: SPECS[name].default for name in ("robot_id", "session_id", "prior_map_dirs")}
+    index = {n: SPECS[n].default for n in INDEX}
     if args.params_file is not None:
         values = read_params_file(args.params_file)
         config = detector_config(values).updated(**overrides)
         max_pixels = values["max_image_pixels"]
         runtime = {name: values[name] for name in runtime}
         fleet = {name: values[name] for name in fleet}
+        index = {name: values[name] for name in INDEX}
     else:
         config = DetectorConfig(**overrides)
+    index.update({n: getattr(args, n) for n in INDEX if getattr(args, n) is not None})
+    index["milvus_token_env"] = SPECS["milvus_token_env"].default
     if args.openvino_cache_dir == NONE:
         args.openvino_cache_dir = ""
     runtime = {
@@ -263,7 +277,8 @@ def _run(args: argparse.Namespace) -> int:
         save_map=args.map_dir != NONE, overwrite=args.overwrite, progress=not args.quiet,
         robot_id=args.robot_id or fleet["robot_id"],
         session_id=args.session_id or fleet["session_id"],
-        prior_maps=(*fleet["prior_map_dirs"], *args.prior_map), announce=print, **runtime,
+        prior_maps=(*fleet["prior_map_dirs"], *args.prior_map), announce=print,
+        index=index_config(index), **runtime,
     )  # fmt: skip
     geometry = GeometryConfig(features=args.features)
     if args.params_file is not None:  # depth noise, max depth: the parameter file's

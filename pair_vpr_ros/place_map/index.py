@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,7 +20,9 @@ import numpy as np
 from pair_vpr_ros.errors import ConfigError, MapError
 from pair_vpr_ros.place_map.ivf import IvfIndex, Training, check_loaded, omp_threads
 
-INDEX_KINDS = ("flat", "hnsw", "ivf")
+INDEX_KINDS = ("flat", "hnsw", "ivf", "milvus")
+MILVUS_INDEXES = ("IVF_FLAT", "HNSW", "FLAT")
+MILVUS_NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,254}")  # Milvus's collection-name rule
 # Smallest value of each integer IndexConfig field (39: FAISS's k-means minimum for one list).
 LOWEST = dict(hnsw_m=1, ef_construction=1, ef_search=1, nlist=0, nprobe=1, train_at=39,
               exact_below=0, search_threads=0)  # fmt: skip
@@ -48,6 +51,14 @@ class IndexConfig:
     search_threads: OpenMP threads for one search and one "ivf" add (0 = FAISS default). 1 by
         default: a single query is latency-bound, and on a 2-core machine FAISS's fan-out made
         a flat search of 1e5 keyframes 4x slower (63 ms vs 17 ms, see benchmarks/bench_map.py).
+    milvus_uri: kind "milvus": a milvus-lite file (path ending in .db, created if missing; a
+        relative path is made absolute) or a server / cluster address (http(s)://host:port).
+    milvus_collection: the Milvus collection (several maps may share one: docs/milvus.md).
+    milvus_index: the collection's vector index: IVF_FLAT (default: recall@10 1.000 at 1e5,
+        docs/milvus.md), HNSW or FLAT (exact); nlist (0: 1024) / nprobe, hnsw_m /
+        ef_construction / ef_search apply to it.
+    milvus_token_env: environment variable holding the Milvus token ("" or unset: none); the
+        token itself is never stored, logged or taken as a parameter.
     """
 
     kind: str = "flat"
@@ -60,6 +71,10 @@ class IndexConfig:
     retrain_growth: float = 4.0
     exact_below: int = 4096
     search_threads: int = 1
+    milvus_uri: str = ""
+    milvus_collection: str = "pairvpr_keyframes"
+    milvus_index: str = "IVF_FLAT"
+    milvus_token_env: str = "PAIRVPR_MILVUS_TOKEN"
 
     def __post_init__(self) -> None:
         if self.kind not in INDEX_KINDS:
@@ -78,12 +93,41 @@ class IndexConfig:
                 f"IndexConfig.retrain_growth must be a number > 1 (retrain when the map has "
                 f"grown that factor) or 0 (never retrain), got {growth!r}"
             )
+        if self.kind == "milvus":
+            self._check_milvus()
+
+    def _check_milvus(self) -> None:
+        uri = self.milvus_uri
+        if not isinstance(uri, str) or not (
+            uri.endswith(".db") or re.fullmatch(r"https?://[^\s/]+(:\d+)?/?", uri)
+        ):
+            raise ConfigError(
+                f"milvus_uri must be a milvus-lite file (a path ending in .db) or a Milvus "
+                f"server address (http://host:19530), got {uri!r}"
+            )
+        if uri.endswith(".db"):  # the record of a saved map must not depend on the cwd
+            object.__setattr__(self, "milvus_uri", str(Path(uri).expanduser().absolute()))
+        if not isinstance(self.milvus_collection, str) or not MILVUS_NAME_RE.fullmatch(
+            self.milvus_collection
+        ):
+            raise ConfigError(
+                f"milvus_collection must be 1-255 letters, digits or underscores, not starting "
+                f"with a digit, got {self.milvus_collection!r}"
+            )
+        if self.milvus_index not in MILVUS_INDEXES:
+            raise ConfigError(
+                f"milvus_index must be one of {MILVUS_INDEXES}, got {self.milvus_index!r}"
+            )
+        if not isinstance(self.milvus_token_env, str):
+            raise ConfigError(f"milvus_token_env must be a string, got {self.milvus_token_env!r}")
 
 
 class DescriptorIndex:
     """Wraps a FAISS index of `dim`-d float32 vectors; id i = the i-th vector added."""
 
     def __init__(self, dim: int, config: IndexConfig | None = None) -> None:
+        if config is not None and config.kind == "milvus":
+            raise ConfigError("index kind 'milvus' is a MilvusIndex: use make_index")
         self.dim = int(dim)
         self.config = config or IndexConfig()
         self._set(self._new_index())
@@ -124,9 +168,10 @@ class DescriptorIndex:
     def __len__(self) -> int:
         return int(self._index.ntotal)
 
-    def add(self, desc: np.ndarray) -> None:
+    def add(self, desc: np.ndarray, rows: list | None = None) -> None:
         """desc [B, dim] float32 (already validated and normalised). With "ivf", the add that
-        reaches a training size trains the index first (a pause: see ivf.py)."""
+        reaches a training size trains the index first (a pause: see ivf.py). `rows` (robot,
+        session, stamp per descriptor) are for the "milvus" kind; FAISS kinds ignore them."""
         desc = np.ascontiguousarray(desc, dtype=np.float32).reshape(-1, self.dim)
         (self._index if self._ivf is None else self._ivf).add(desc)
 
@@ -140,13 +185,17 @@ class DescriptorIndex:
         max_id: int | None = None,
         allowed: np.ndarray | None = None,
         exclude: tuple[int, int] | None = None,
+        exclusion: object | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """desc [dim] -> (ids [k'] int64, similarities [k'] float32), best first, ids <= max_id
         and, with `allowed` (bool [m]), only ids i < m with allowed[i]; with `exclude` (lo, hi)
-        (and neither of the others) no id in lo..hi-1.
+        (and neither of the others) no id in lo..hi-1. `exclusion` (the rules as an index
+        filter) is for kind "milvus": FAISS kinds take the others.
 
         k' = min(k, number of eligible ids); never returns FAISS's -1 padding.
         """
+        if exclusion is not None:
+            raise MapError("search(exclusion=...) needs index kind 'milvus'; pass allowed=")
         limit = len(self) if max_id is None else min(len(self), int(max_id) + 1)
         if exclude is not None and max_id is None and allowed is None:
             count, selector = _not_range(len(self), *exclude)
@@ -251,6 +300,15 @@ def _not_range(size: int, lo: int, hi: int) -> tuple[int, faiss.IDSelector | Non
     selector = faiss.IDSelectorNot(inner)
     selector.referenced_objects = [inner]  # FAISS keeps a pointer, not the object
     return size - (hi - lo), selector
+
+
+def make_index(dim: int, config: IndexConfig, fingerprint: str):
+    """A new empty index of `config.kind`: DescriptorIndex (FAISS) or MilvusIndex."""
+    if config.kind == "milvus":
+        from pair_vpr_ros.place_map.milvus import MilvusIndex  # pymilvus only when used
+
+        return MilvusIndex(dim, config, fingerprint)
+    return DescriptorIndex(dim, config)
 
 
 def _read_bounded(path: Path) -> faiss.Index:

@@ -1,6 +1,7 @@
 """`manifest.json`: the one file that says which generation of map files is the saved map.
 
-Files of generation g are named `index-g.faiss`, `meta-g.sqlite`, `dense-g.crc`; the dense file
+Files of generation g are named `index-g.faiss` (kind "milvus": `index-g.milvus`, the record
+of its collection), `meta-g.sqlite`, `dense-g.crc`; the dense file
 keeps the name of the generation that created it (`dense-h.f16`, h <= g) because saves append to
 it. Replacing the manifest (`os.replace`) is the commit point of a save.
 """
@@ -22,10 +23,10 @@ FORMAT_NAME = "pair_vpr_ros.place_map"
 FORMAT_VERSION = 2  # 2: keyframes carry robot and session (issue 22)
 READABLE_VERSIONS = (1, 2)  # a version-1 map loads with its keyframes named at load
 # Files a save may create; anything else in the directory is left alone.
-MAP_FILE_RE = re.compile(r"^(index-\d+\.faiss|meta-\d+\.sqlite|dense-\d+\.(f16|crc))")
+MAP_FILE_RE = re.compile(r"^(index-\d+\.(faiss|milvus)|meta-\d+\.sqlite|dense-\d+\.(f16|crc))")
 _CHECKED = ("index", "meta", "dense_crc")  # small files: size + sha256 in the manifest
 _ROLE_RE = {
-    "index": re.compile(r"index-\d+\.faiss"),
+    "index": re.compile(r"index-\d+\.(faiss|milvus)"),  # milvus: the collection's record
     "meta": re.compile(r"meta-\d+\.sqlite"),
     "dense_crc": re.compile(r"dense-\d+\.crc"),
     "dense": re.compile(r"dense-\d+\.f16"),
@@ -166,7 +167,7 @@ def remove_stale(directory: Path, keep: set[str]) -> None:
 
 def remove_generation(directory: Path, generation: int, keep: set[str]) -> None:
     """Delete the files (and temporaries) a failed save of `generation` left, except `keep`."""
-    pattern = re.compile(rf"^(index|meta|dense)-{generation}\.(faiss|sqlite|f16|crc)")
+    pattern = re.compile(rf"^(index|meta|dense)-{generation}\.(faiss|milvus|sqlite|f16|crc)")
     for name in os.listdir(directory):
         if pattern.match(name) and name not in keep:
             remove_quietly(directory / name)

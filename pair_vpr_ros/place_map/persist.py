@@ -42,7 +42,7 @@ def reached(step: str) -> None:
 class MapParts:
     """The live stores of a map, as `write_generation` saves and `open_saved` returns them."""
 
-    index: DescriptorIndex
+    index: DescriptorIndex  # or a MilvusIndex (kind "milvus")
     meta: MetadataStore
     dense: DenseStore
     desc_dim: int
@@ -81,7 +81,8 @@ def write_generation(
     """
     dense_name, copied = _place_dense(d, gen, parts.dense, dense_in_place)
     reached("dense")
-    names = {"dense_crc": f"dense-{gen}.crc", "index": f"index-{gen}.faiss"}
+    suffix = "milvus" if parts.index.config.kind == "milvus" else "faiss"
+    names = {"dense_crc": f"dense-{gen}.crc", "index": f"index-{gen}.{suffix}"}
     crcs = parts.dense.crc_bytes()
     publish(d, names["dense_crc"], lambda p: write_bytes_durably(p, crcs))
     reached("dense_crc")
@@ -147,15 +148,15 @@ def open_saved(
         )
     check_files(d, m)
     index_path = d / m.files["index"]["name"]
-    index = DescriptorIndex.read(index_path, m.desc_dim, _index_config(m, ef_search))
-    if len(index) != m.count:
-        raise MapError(
-            f"FAISS index {index_path} holds {len(index)} vectors, the manifest lists "
-            f"{m.count}: the map is damaged, restore it from a backup or rebuild it"
-        )
+    config = _index_config(m, ef_search)
+    if (config.kind == "milvus") != index_path.name.endswith(".milvus"):
+        raise MapError(f"{index_path} is not the index file of a {config.kind!r} map: rebuild it")
+    if config.kind != "milvus":
+        index = _check_count(DescriptorIndex.read(index_path, m.desc_dim, config), m, index_path)
     crcs = read_crcs(d / m.files["dense_crc"]["name"], m.count)
     old = legacy if m.format_version == 1 else None
     meta = MetadataStore.from_saved(d / m.files["meta"]["name"], work, m.count, old)
+    dense = None
     try:
         dense = DenseStore(
             d / m.files["dense"]["name"],
@@ -165,8 +166,16 @@ def open_saved(
             cache_size=cache_size,
             verify_reads=verify_reads,
         )
+        if config.kind == "milvus":  # last: the local files are checked before any row changes
+            from pair_vpr_ros.place_map.milvus import MilvusIndex  # pymilvus only when used
+
+            index = MilvusIndex.read(
+                index_path, m.desc_dim, config, m.fingerprint, m.count, read_only
+            )
     except BaseException:
         meta.close()
+        if dense is not None:
+            dense.close()
         raise
     shape = (m.dense_shape[0], m.dense_shape[1])
     note = "" if old is None else (
@@ -175,6 +184,15 @@ def open_saved(
         "(the next save stores these names)"
     )  # fmt: skip
     return MapParts(index, meta, dense, m.desc_dim, shape, m.fingerprint, m.format_version, note)
+
+
+def _check_count(index: DescriptorIndex, m: Manifest, path: Path) -> DescriptorIndex:
+    if len(index) != m.count:
+        raise MapError(
+            f"FAISS index {path} holds {len(index)} vectors, the manifest lists "
+            f"{m.count}: the map is damaged, restore it from a backup or rebuild it"
+        )
+    return index
 
 
 def _index_config(m: Manifest, ef_search: int | None) -> IndexConfig:

@@ -17,6 +17,7 @@ import weakref
 from collections.abc import Iterable
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -26,9 +27,10 @@ from pair_vpr_ros.place_map import persist
 from pair_vpr_ros.place_map.checks import dense_tokens, keyframe_ids, unit_descriptor
 from pair_vpr_ros.place_map.dense_store import DenseStore, entry_bytes
 from pair_vpr_ros.place_map.files import LOCK_NAME, DirLock, fsync_path
-from pair_vpr_ros.place_map.index import DescriptorIndex, IndexConfig
+from pair_vpr_ros.place_map.index import IndexConfig, make_index
 from pair_vpr_ros.place_map.manifest import MANIFEST_NAME, Manifest, read_manifest, remove_stale
 from pair_vpr_ros.place_map.metadata import KeyframeMeta, MetadataStore, validate_meta
+from pair_vpr_ros.place_map.milvus_expr import Exclusion, identity, utc_session
 
 
 class PlaceMap:
@@ -37,7 +39,8 @@ class PlaceMap:
     desc_dim: global descriptor size (512). dense_shape: (N, D) tokens per keyframe.
     fingerprint: opaque model identity (checkpoint hash + input size + desc dim), stored on save.
     index: "flat" (exact) | "ivf" (exact below 25,000 keyframes, then k-means lists: ~1e6
-        keyframes; training pauses an add, see place_map/ivf.py) | "hnsw" | an IndexConfig.
+        keyframes; training pauses an add, see place_map/ivf.py) | "hnsw" | an IndexConfig
+        (kind "milvus": a Milvus collection, see place_map/milvus.py and docs/milvus.md).
     dense_cache_size: dense entries kept in memory (LRU). verify_dense_reads: CRC32-check
     entries read from disk. work_dir: parent of the temporary working folder (default: $TMPDIR);
     put it on the disk of the map directory so the first save moves the dense file, not copies it.
@@ -61,13 +64,17 @@ class PlaceMap:
         self.desc_dim = int(desc_dim)
         self.dense_shape = (int(dense_shape[0]), int(dense_shape[1]))
         self.fingerprint = str(fingerprint)
-        self._index = DescriptorIndex(self.desc_dim, config)
         self._meta = MetadataStore(self._tmp / "meta.sqlite")
         self._dense = self._fresh_dense()
+        try:
+            self._index = make_index(self.desc_dim, config, self.fingerprint)
+        except BaseException:
+            self.close()
+            raise
 
     def _setup(self, cache_size: int, verify_reads: bool, work_dir) -> None:
         self._cache_size, self._verify_reads = int(cache_size), bool(verify_reads)
-        self._index: DescriptorIndex | None = None
+        self._index: Any = None  # DescriptorIndex (FAISS) or MilvusIndex
         self._meta: MetadataStore | None = None
         self._dense: DenseStore | None = None
         self._home: Path | None = None  # directory of the last load/save (we hold its lock)
@@ -77,6 +84,7 @@ class PlaceMap:
         self.load_note = ""  # what a caller should log about the load ("" = nothing)
         self._fresh_count = 0
         self._closed = False
+        self.session = utc_session()  # of keyframes that name none (see `identity`)
         try:
             self._tmp = Path(tempfile.mkdtemp(prefix="pairvpr-map-", dir=work_dir))
         except OSError as err:
@@ -104,7 +112,7 @@ class PlaceMap:
         self._dense.append(tokens)
         try:
             self._meta.add(replace(meta, id=kf_id), bytes(features))
-            self._index.add(query[None])
+            self._index.add(query[None], [(*self.identity(meta), meta.stamp)])
         except BaseException as err:
             self._meta.delete_from(kf_id)
             self._dense.drop_last()
@@ -120,15 +128,18 @@ class PlaceMap:
         max_id: int | None = None,
         allowed: np.ndarray | None = None,
         exclude: tuple[int, int] | None = None,
+        exclusion: Exclusion | None = None,
     ) -> list[tuple[int, float]]:
         """desc [desc_dim] -> up to k (id, inner-product similarity), best first, id <= max_id
         and, with `allowed` (bool [m]), only ids i < m with allowed[i]; with `exclude`
-        (lo, hi) alone, no id in lo..hi-1."""
+        (lo, hi) alone, no id in lo..hi-1; `exclusion` (kind "milvus" only:
+        `filters_in_index`) applies the temporal and robot/session rules as a filter in the
+        index. MapUnavailableError: the index server did not answer."""
         self._check_open()
         if int(k) < 0:
             raise MapError(f"search k must be >= 0, got {k}")
         query = unit_descriptor(desc, self.desc_dim)
-        ids, sims = self._index.search(query, int(k), max_id, allowed, exclude)
+        ids, sims = self._index.search(query, int(k), max_id, allowed, exclude, exclusion)
         return [(int(i), float(s)) for i, s in zip(ids, sims, strict=True)]
 
     def get_dense(self, ids: Iterable[int]) -> np.ndarray:
@@ -179,6 +190,20 @@ class PlaceMap:
     @property
     def index_config(self) -> IndexConfig:
         return self._index.config
+
+    @property
+    def filters_in_index(self) -> bool:
+        """The index applies `Exclusion`s itself (Milvus filter expressions)."""
+        return self._index.config.kind == "milvus"
+
+    def identity(self, item: Any) -> tuple[str, str]:
+        """(robot, session) of a keyframe or frame (milvus_expr.identity)."""
+        return identity(item, self.session)
+
+    @property
+    def index_diagnostics(self) -> dict[str, int]:
+        """Kind "milvus": searches skipped and keyframes waiting while it was unreachable."""
+        return self._index.diagnostics() if self.filters_in_index else {}
 
     @property
     def bytes_per_keyframe(self) -> int:
@@ -346,6 +371,8 @@ class PlaceMap:
             self._discard(self._dense)
         if self._meta is not None:
             self._meta.close()
+        if hasattr(self._index, "close"):
+            self._index.close()
         if self._lock is not None:
             self._lock.release()
         self._remove_tmp()

@@ -128,8 +128,8 @@ class VprNode(Node):
         self._prior_summary = priors.summary()
         self.maps = MapControl(
             lambda: LoopClosurePipeline(
-                model, config, index=v["index"], geometry=geometry, identity=self.identity,
-                prior_maps=priors.maps,
+                model, config, index=params.index_config(v), geometry=geometry,
+                identity=self.identity, prior_maps=priors.maps,
             ),
             self._log,
             partial(precision_context, device, autocast),
@@ -429,7 +429,7 @@ class VprNode(Node):
             params.detector_config(v),
             image_topic=v["build_image_topic"] or None,
             image_period=v["build_image_period"],
-            index=v["index"],
+            index=params.index_config(v),
             max_pixels=v["max_image_pixels"],
             geometry=params.geometry_config(v),
             identity=self.identity,

@@ -21,7 +21,7 @@ N_IVF = 60  # trained at 39 (train_at), not again before 156
 IVF = IndexConfig(kind="ivf", train_at=39)
 
 BAD_CONFIGS = {
-    "kind": (dict(kind="pq"), r"place map index must be one of \('flat', 'hnsw', 'ivf'\)"),
+    "kind": (dict(kind="pq"), r"must be one of \('flat', 'hnsw', 'ivf', 'milvus'\)"),
     "nlist negative": (dict(nlist=-1), r"IndexConfig.nlist must be an integer >= 0, got -1"),
     "nprobe zero": (dict(nprobe=0), r"IndexConfig.nprobe must be an integer >= 1, got 0"),
     "nprobe float": (dict(nprobe=2.5), r"nprobe must be an integer >= 1, got 2.5"),

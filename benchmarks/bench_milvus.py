@@ -1,0 +1,198 @@
+"""Place map on Milvus beside the FAISS kinds, in one run: insert rate, query latency, recall.
+
+The same trajectory-shaped 512-d descriptors (map_data.py) go into each index: FAISS flat /
+hnsw / ivf (DescriptorIndex, as the map builds them) and a milvus-lite collection per Milvus
+index type (MilvusIndex, as the map writes it: inserts of 2,000 rows, then `--single-adds` one
+keyframe at a time). Queries are revisits, one per call, twice: unfiltered, and with the
+temporal exclusion of a query stamped inside the map (a hole of `--exclude-frac` of the map:
+FAISS gets the stamp mask, Milvus the filter expression). recall@k is against the exact (flat)
+answer of the same query and rule. Figures depend on the machine and its load: the header
+prints both.
+
+    python benchmarks/bench_milvus.py --sizes 1e5
+    python benchmarks/bench_milvus.py --sizes 1e6 --kinds flat,ivf,milvus-IVF_FLAT --queries 50
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from map_data import trajectory, trajectory_queries
+from tqdm import tqdm
+
+from pair_vpr_ros.place_map import IndexConfig
+from pair_vpr_ros.place_map.index import DescriptorIndex
+from pair_vpr_ros.place_map.milvus import MilvusIndex
+from pair_vpr_ros.place_map.milvus_expr import Exclusion
+from pair_vpr_ros.recency import eligible_keyframes
+
+KINDS = ("flat", "hnsw", "ivf", "milvus-HNSW", "milvus-IVF_FLAT", "milvus-FLAT")
+BULK = 10_000  # rows handed to one add while building
+
+
+def make_index(kind: str, n: int, db: str, dim: int, args):
+    if not kind.startswith("milvus-"):
+        return DescriptorIndex(dim, IndexConfig(kind=kind, train_at=min(25_000, n // 2)))
+    config = IndexConfig(
+        kind="milvus", milvus_uri=db, milvus_collection=f"bench_{kind[7:]}_{n}",
+        milvus_index=kind[7:], nprobe=args.nprobe, ef_search=args.ef_search,
+    )  # fmt: skip
+    index = MilvusIndex(dim, config, "bench")
+    if index.client.has_collection(config.milvus_collection):  # a previous run's rows
+        index.client.drop_collection(config.milvus_collection)
+        index = MilvusIndex(dim, config, "bench")
+    return index
+
+
+def add(index, desc: np.ndarray, lo: int) -> None:
+    rows = [("robot", "s", float(i)) for i in range(lo, lo + len(desc))]
+    index.add(desc, rows)
+
+
+def build(kind: str, descs: np.ndarray, db: str, args) -> tuple:
+    """-> (index, bulk rows/s, ms per single add, s to seal + index (Milvus))."""
+    n, single = len(descs), min(args.single_adds, len(descs) // 10)
+    index = make_index(kind, n, db, descs.shape[1], args)
+    t0 = time.perf_counter()
+    for lo in tqdm(range(0, n - single, BULK), desc=f"{kind} add", leave=False):
+        add(index, descs[lo : min(lo + BULK, n - single)], lo)
+    bulk_rate = (n - single) / (time.perf_counter() - t0)
+    t1 = time.perf_counter()
+    for i in range(n - single, n):
+        add(index, descs[i : i + 1], i)
+    single_ms = (time.perf_counter() - t1) / max(single, 1) * 1e3
+    seal_s = 0.0
+    if isinstance(index, MilvusIndex):  # seal the segments and wait for their vector index
+        t2 = time.perf_counter()
+        index.client.flush(index.collection)
+        while True:
+            info = index.client.describe_index(index.collection, "desc")
+            if int(info.get("indexed_rows", 0)) >= n or time.perf_counter() - t2 > 1800:
+                break
+            time.sleep(1.0)
+        seal_s = time.perf_counter() - t2
+    return index, bulk_rate, single_ms, seal_s
+
+
+def search_all(index, queries, k: int, rules) -> tuple[np.ndarray, np.ndarray]:
+    """-> (ids [Q, k] -1 padded, wall ms [Q]); rules: per query None or (mask, Exclusion)."""
+    ids, ms = np.full((len(queries), k), -1, np.int64), np.empty(len(queries))
+    for i, (q, rule) in enumerate(zip(queries, rules, strict=True)):
+        t0 = time.perf_counter()
+        if rule is None:
+            found, _ = index.search(q, k)
+        elif isinstance(index, MilvusIndex):
+            found, _ = index.search(q, k, exclusion=rule[1])
+        else:
+            found, _ = index.search(q, k, allowed=rule[0])
+        ms[i] = (time.perf_counter() - t0) * 1e3
+        ids[i, : len(found)] = found
+    return ids, ms
+
+
+def recall(ids: np.ndarray, exact: np.ndarray) -> float:
+    return float(np.mean([len(set(a) & set(b)) / len(b) for a, b in zip(ids, exact, strict=True)]))
+
+
+def temporal_rules(n: int, q: int, frac: float, rng) -> list:
+    """Each query stamped inside the map (stamps = ids, 1 s apart): a hole of frac * n."""
+    stamps = np.arange(n, dtype=np.float64)
+    rules = []
+    for t in rng.uniform(0, n, q):
+        mask = eligible_keyframes(stamps, float(t), frac * n, 10)
+        rules.append((mask, Exclusion(float(t), frac * n, n - 10, "robot", "s")))
+    return rules
+
+
+def bench_size(n: int, args, db: str) -> list[dict]:
+    rng = np.random.default_rng(args.seed)
+    descs, xy, city = trajectory(n, 512, rng, args.city_km)
+    queries = trajectory_queries(city, xy, n, args.queries, np.random.default_rng(args.seed + 7))
+    queries /= np.linalg.norm(queries, axis=1, keepdims=True)
+    rules = temporal_rules(n, args.queries, args.exclude_frac, np.random.default_rng(3))
+    exact = None
+    out = []
+    for kind in args.kinds:
+        index, rate, single_ms, seal_s = build(kind, descs, db, args)
+        plain, plain_ms = search_all(index, queries, args.k, [None] * len(queries))
+        filt, filt_ms = search_all(index, queries, args.k, rules)
+        if exact is None:  # flat runs first: the exact answers
+            exact = (plain, filt)
+        out.append(dict(
+            n=n, kind=kind, rate=rate, single_ms=single_ms, seal_s=seal_s,
+            p50=np.median(plain_ms), p95=np.percentile(plain_ms, 95), rec=recall(plain, exact[0]),
+            fp50=np.median(filt_ms), frec=recall(filt, exact[1]),
+        ))  # fmt: skip
+        print_row(out[-1], args.k)
+        if isinstance(index, MilvusIndex):
+            index.client.drop_collection(index.collection)
+            index.close()
+        del index
+    return out
+
+
+def print_row(r: dict, k: int) -> None:
+    print(
+        f"| {r['n']:,} | {r['kind']} | {r['rate']:,.0f} | {r['single_ms']:.2f} | "
+        f"{r['seal_s']:.1f} | {r['p50']:.1f} | {r['p95']:.1f} | {r['rec']:.3f} | "
+        f"{r['fp50']:.1f} | {r['frec']:.3f} |",
+        flush=True,
+    )
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--sizes", default="1e5", help="map sizes, comma-separated (default 1e5)")
+    p.add_argument("--kinds", default=",".join(KINDS), help="flat first (the exact answers)")
+    p.add_argument("--queries", type=int, default=100, help="queries per size (default 100)")
+    p.add_argument("--k", type=int, default=10, help="top-k (default 10)")
+    p.add_argument("--single-adds", type=int, default=200, help="last adds one at a time")
+    p.add_argument("--nprobe", type=int, default=32, help="milvus IVF_FLAT nprobe (default 32)")
+    p.add_argument("--ef-search", type=int, default=64, help="milvus HNSW ef (default 64)")
+    p.add_argument("--exclude-frac", type=float, default=0.1, help="temporal hole / map size")
+    p.add_argument("--city-km", type=float, default=3.0, help="map_data city size (default 3)")
+    p.add_argument(
+        "--db", help="milvus_uri: a milvus-lite file or a server (default: a temporary file)"
+    )
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+    args.sizes = [int(float(s)) for s in args.sizes.split(",")]
+    args.kinds = args.kinds.split(",")
+    if args.kinds[0] != "flat" or not set(args.kinds) <= set(KINDS):
+        p.error(f"--kinds must start with flat and be among {KINDS}")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    import pymilvus
+
+    cpu = platform.processor() or platform.machine()
+    now = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    print(
+        f"{now}, {cpu}, {os.cpu_count()} cpus, load average {os.getloadavg()[0]:.1f}, pymilvus "
+        f"{pymilvus.__version__}, k {args.k}, {args.queries} queries, milvus HNSW ef "
+        f"{args.ef_search}, IVF_FLAT nprobe {args.nprobe}"
+    )
+    print(
+        "\n| keyframes | index | bulk insert rows/s | single add ms | seal+index s | query p50 "
+        f"ms | p95 ms | recall@{args.k} | filtered p50 ms | filtered recall@{args.k} |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory(prefix="bench-milvus-") as tmp:
+        db = args.db or str(Path(tmp) / "bench.db")  # any milvus_uri: a server too
+        for n in args.sizes:
+            bench_size(n, args, db)
+    print(f"\nload average after: {os.getloadavg()[0]:.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

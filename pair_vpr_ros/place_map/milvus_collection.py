@@ -1,0 +1,159 @@
+"""Connecting to Milvus and creating or checking the keyframe collection (index kind "milvus").
+
+The collection: `pk` INT64 primary key (`writer << 32 | keyframe id`, see milvus_expr.py),
+`robot` and `session` VARCHAR, `stamp` DOUBLE (s), `desc` FLOAT_VECTOR of the model's
+dimension, inner-product metric, Strong consistency (a row inserted is seen by the next search).
+The model fingerprint is a collection property (`pairvpr.fingerprint`): milvus-lite returns the
+schema description empty, properties come back. A collection of another model, of another
+dimension or of another layout is refused.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+from pair_vpr_ros.errors import ConfigError, MapError, MapFingerprintError
+
+FINGERPRINT_KEY = "pairvpr.fingerprint"
+FORMAT_KEY = "pairvpr.format"
+FORMAT = "pair_vpr_ros.keyframes.v1"
+FIELDS = ("pk", "robot", "session", "stamp", "desc")
+NAME_MAX = 256  # VARCHAR length of robot and session
+INSTALL = "pip install 'pair_vpr_ros[milvus]' (pymilvus and milvus-lite)"
+CONNECT_TIMEOUT_S = 10.0
+
+
+def pymilvus() -> Any:
+    """The pymilvus module, or a ConfigError saying what to install."""
+    try:
+        import pymilvus as module
+    except ImportError as err:
+        raise ConfigError(
+            f"place map index 'milvus' needs the optional packages pymilvus and milvus-lite, "
+            f"which are not installed ({err}): {INSTALL}"
+        ) from err
+    return module
+
+
+def is_lite(uri: str) -> bool:
+    return uri.endswith(".db")
+
+
+def where(uri: str) -> str:
+    """The URI as messages show it (a server address without any user:password part)."""
+    if is_lite(uri):
+        return f"milvus-lite file {uri}"
+    scheme, _, rest = uri.partition("://")
+    return f"Milvus server {scheme}://{rest.rpartition('@')[2]}"
+
+
+def connect(uri: str, token_env: str) -> Any:
+    """A MilvusClient for `uri` (a milvus-lite file is created if missing); the token, if any,
+    comes from the environment variable `token_env` and is never logged or stored."""
+    milvus = pymilvus()
+    if is_lite(uri) and not Path(uri).parent.is_dir():
+        raise MapError(
+            f"cannot open {where(uri)}: its folder {Path(uri).parent} does not exist; create it "
+            "or set milvus_uri to a path in an existing folder"
+        )
+    token = os.environ.get(token_env, "") if token_env else ""
+    try:
+        return milvus.MilvusClient(uri, token=token, timeout=CONNECT_TIMEOUT_S)
+    except Exception as err:  # pymilvus raises MilvusException and its subclasses
+        hint = (
+            f"check milvus_uri, that the server runs and can be reached, and the token in "
+            f"${token_env}"
+        )
+        if is_lite(uri):  # pymilvus drops milvus-lite's reason; its file lock is the usual one
+            hint = (
+                "milvus-lite lets one process open a file at a time: if another process holds "
+                "it, stop that process, use another file, or run a Milvus server for several "
+                "writers"
+            )
+        raise MapError(f"cannot connect to {where(uri)} ({_reason(err)}): {hint}") from err
+
+
+def _reason(err: BaseException) -> str:
+    return str(getattr(err, "message", "") or err)[:200]
+
+
+def open_collection(
+    client: Any, uri: str, name: str, dim: int, fingerprint: str, index: dict
+) -> str:
+    """Create collection `name` (empty, with `index` = add_index keyword arguments) or check the
+    one there; either way it is loaded for search -> its vector index type (a collection made
+    earlier keeps the type it was made with, whatever `index` says)."""
+    milvus = pymilvus()
+    try:
+        if not client.has_collection(name):
+            _create(client, milvus, name, dim, fingerprint, index)
+        else:
+            check_collection(client.describe_collection(name), uri, name, dim, fingerprint)
+        if str(client.get_load_state(name).get("state")) != "Loaded":
+            client.load_collection(name)  # a re-opened lite file comes back released
+        return str(client.describe_index(name, "desc").get("index_type", index["index_type"]))
+    except milvus.MilvusException as err:
+        raise MapError(
+            f"cannot open collection {name!r} in {where(uri)} ({_reason(err)}): check that the "
+            "server runs and that the token allows it"
+        ) from err
+
+
+def _create(client: Any, milvus: Any, name: str, dim: int, fingerprint: str, index: dict):
+    dtype = milvus.DataType
+    schema = client.create_schema(auto_id=False, enable_dynamic_field=False)
+    schema.add_field("pk", dtype.INT64, is_primary=True)
+    schema.add_field("robot", dtype.VARCHAR, max_length=NAME_MAX)
+    schema.add_field("session", dtype.VARCHAR, max_length=NAME_MAX)
+    schema.add_field("stamp", dtype.DOUBLE)
+    schema.add_field("desc", dtype.FLOAT_VECTOR, dim=int(dim))
+    params = client.prepare_index_params()
+    params.add_index("desc", metric_type="IP", **index)
+    # milvus-lite's in-process server logs a traceback for a call it lacks (AllocTimestamp)
+    # while pymilvus waits for the new index; creation succeeds, so keep that out of the log.
+    quiet = logging.getLogger("grpc._server")
+    was, quiet.disabled = quiet.disabled, True
+    try:
+        client.create_collection(
+            name,
+            schema=schema,
+            index_params=params,
+            consistency_level="Strong",
+            properties={FINGERPRINT_KEY: json.dumps(fingerprint), FORMAT_KEY: FORMAT},
+        )
+    finally:
+        quiet.disabled = was
+
+
+def check_collection(info: dict, uri: str, name: str, dim: int, fingerprint: str) -> None:
+    """MapError unless `info` (describe_collection) is a keyframe collection of `dim`-d
+    descriptors made by the model `fingerprint` (MapFingerprintError when another model)."""
+    place = f"collection {name!r} in {where(uri)}"
+    props = info.get("properties") or {}
+    fields = {f["name"]: f for f in info.get("fields", [])}
+    if props.get(FORMAT_KEY) != FORMAT or tuple(fields) != FIELDS:
+        raise MapError(
+            f"{place} is not a pair_vpr_ros keyframe collection (fields {list(fields)}, format "
+            f"{props.get(FORMAT_KEY)!r}; expected fields {list(FIELDS)}): set milvus_collection "
+            "to a new name or to one this package made"
+        )
+    have = int(fields["desc"].get("params", {}).get("dim", -1))
+    if have != int(dim):
+        raise MapError(
+            f"{place} holds {have}-d descriptors, this map's are {dim}-d: use another "
+            "milvus_collection for this model"
+        )
+    stored = props.get(FINGERPRINT_KEY)
+    try:
+        stored = json.loads(stored)
+    except (TypeError, ValueError):
+        stored = repr(stored)
+    if stored != fingerprint:
+        raise MapFingerprintError(
+            f"{place} holds descriptors of model {stored!r}, this map's model is "
+            f"{fingerprint!r}: use the same weights and image size, or another milvus_collection"
+        )

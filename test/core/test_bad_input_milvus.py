@@ -1,0 +1,203 @@
+"""Bad-input matrix, index kind "milvus": wrong URIs and names are ConfigErrors, unreachable
+servers, collections of another dimension, model or layout and damaged records are MapErrors
+with exact texts; a server that goes away is a counted skip; nothing saved changes."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+from bad_input import make_flaky, tree_digest
+from test_place_map_persist import DIM, SHAPE, add_range, dense_for, desc_for, meta_for
+
+from pair_vpr_ros.errors import ConfigError, MapError, MapFingerprintError, MapUnavailableError
+from pair_vpr_ros.place_map import IndexConfig, PlaceMap
+from pair_vpr_ros.place_map.milvus import read_record
+
+pytest_plugins = ["milvus_fixtures"]  # fixtures lite_db, milvus
+
+URI_RULE = (
+    "milvus_uri must be a milvus-lite file (a path ending in .db) or a Milvus server address "
+    "(http://host:19530), got {!r}"
+)
+BAD_CONFIGS = {
+    "no uri": (dict(milvus_uri=""), URI_RULE.format("")),
+    "sqlite file": (dict(milvus_uri="maps/x.sqlite"), URI_RULE.format("maps/x.sqlite")),
+    "ftp": (dict(milvus_uri="ftp://host:19530"), URI_RULE.format("ftp://host:19530")),
+    "no scheme": (dict(milvus_uri="localhost:19530"), URI_RULE.format("localhost:19530")),
+    "no host": (dict(milvus_uri="http://"), URI_RULE.format("http://")),
+    "uri not text": (dict(milvus_uri=5), URI_RULE.format(5)),
+    "collection digit": (
+        dict(milvus_collection="1map"),
+        "milvus_collection must be 1-255 letters, digits or underscores, not starting with a "
+        "digit, got '1map'",
+    ),
+    "collection dash": (
+        dict(milvus_collection="my-map"),
+        "milvus_collection must be 1-255 letters, digits or underscores, not starting with a "
+        "digit, got 'my-map'",
+    ),
+    "milvus index": (
+        dict(milvus_index="IVF_PQ"),
+        "milvus_index must be one of ('IVF_FLAT', 'HNSW', 'FLAT'), got 'IVF_PQ'",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_CONFIGS))
+def test_bad_milvus_settings_are_config_errors(case: str) -> None:
+    fields, message = BAD_CONFIGS[case]
+    settings = {"kind": "milvus", "milvus_uri": "/tmp/x.db", **fields}
+    with pytest.raises(ConfigError) as err:
+        IndexConfig(**settings)
+    assert str(err.value) == message
+
+
+def test_a_lite_file_in_a_missing_folder(tmp_path: Path) -> None:
+    uri = tmp_path / "nowhere" / "maps.db"
+    with pytest.raises(MapError) as err:
+        PlaceMap(DIM, SHAPE, "fp", index=IndexConfig(kind="milvus", milvus_uri=str(uri)))
+    assert str(err.value) == (
+        f"cannot open milvus-lite file {uri}: its folder {uri.parent} does not exist; create it "
+        "or set milvus_uri to a path in an existing folder"
+    )
+    assert not uri.parent.exists()
+
+
+def test_a_server_unreachable_at_start(tmp_path: Path) -> None:
+    config = IndexConfig(kind="milvus", milvus_uri="http://127.0.0.1:9")
+    with pytest.raises(MapError) as err:
+        PlaceMap(DIM, SHAPE, "fp", index=config, work_dir=tmp_path)
+    assert str(err.value) == (
+        "cannot connect to Milvus server http://127.0.0.1:9 (Fail connecting to server on "
+        "127.0.0.1:9, illegal connection params or server unavailable): check milvus_uri, that "
+        "the server runs and can be reached, and the token in $PAIRVPR_MILVUS_TOKEN"
+    )
+    assert list(tmp_path.iterdir()) == []  # the working folder went with the failed map
+
+
+def test_a_collection_of_another_dimension(milvus) -> None:
+    PlaceMap(DIM, SHAPE, "fp", index=milvus).close()
+    with pytest.raises(MapError) as err:
+        PlaceMap(2 * DIM, SHAPE, "fp", index=milvus)
+    assert str(err.value) == (
+        f"collection {milvus.milvus_collection!r} in milvus-lite file {milvus.milvus_uri} holds "
+        f"8-d descriptors, this map's are 16-d: use another milvus_collection for this model"
+    )
+
+
+def test_a_collection_of_another_model(milvus) -> None:
+    PlaceMap(DIM, SHAPE, "model-a", index=milvus).close()
+    with pytest.raises(MapFingerprintError) as err:
+        PlaceMap(DIM, SHAPE, "model-b", index=milvus)
+    assert str(err.value) == (
+        f"collection {milvus.milvus_collection!r} in milvus-lite file {milvus.milvus_uri} holds "
+        "descriptors of model 'model-a', this map's model is 'model-b': use the same weights and "
+        "image size, or another milvus_collection"
+    )
+
+
+def test_a_collection_of_another_program(milvus) -> None:
+    from pymilvus import MilvusClient
+
+    client = MilvusClient(milvus.milvus_uri)
+    client.create_collection(milvus.milvus_collection, dimension=DIM)  # id + vector, no format
+    with pytest.raises(MapError) as err:
+        PlaceMap(DIM, SHAPE, "fp", index=milvus)
+    assert str(err.value) == (
+        f"collection {milvus.milvus_collection!r} in milvus-lite file {milvus.milvus_uri} is not "
+        "a pair_vpr_ros keyframe collection (fields ['id', 'vector'], format None; expected "
+        "fields ['pk', 'robot', 'session', 'stamp', 'desc']): set milvus_collection to a new "
+        "name or to one this package made"
+    )
+
+
+def test_a_server_that_goes_away_is_a_counted_skip(milvus) -> None:
+    with PlaceMap(DIM, SHAPE, "fp", index=milvus) as m:
+        add_range(m, 0, 4)
+        make_flaky(m).down = True
+        assert m.add(desc_for(4), dense_for(4), meta_for(4)) == 4  # kept
+        with pytest.raises(MapUnavailableError) as err:
+            m.search(desc_for(1), 2)
+        assert str(err.value) == (
+            f"collection {milvus.milvus_collection!r} in milvus-lite file {milvus.milvus_uri} "
+            "cannot be reached: query skipped, 1 keyframe(s) kept for insertion"
+        )
+        assert m.index_diagnostics == {"map_searches_skipped": 1, "map_keyframes_pending": 1}
+
+
+@pytest.fixture
+def saved_milvus(milvus, tmp_path: Path) -> Path:
+    with PlaceMap(DIM, SHAPE, "fp", index=milvus) as m:
+        add_range(m, 0, 6)
+        m.save(tmp_path / "map")
+    return tmp_path / "map"
+
+
+def _set_index(directory: Path, **fields) -> None:
+    path = directory / "manifest.json"
+    data = json.loads(path.read_text())
+    data["index"].update(fields)
+    path.write_text(json.dumps(data))
+
+
+def test_a_saved_map_whose_server_is_gone(saved_milvus: Path) -> None:
+    _set_index(saved_milvus, milvus_uri="http://127.0.0.1:9")
+    before = tree_digest(saved_milvus)
+    with pytest.raises(MapError, match=r"^cannot connect to Milvus server http://127.0.0.1:9 "):
+        PlaceMap.load(saved_milvus, "fp")
+    assert tree_digest(saved_milvus) == before
+
+
+def test_a_saved_map_of_another_kind_of_index_file(saved_milvus: Path) -> None:
+    _set_index(saved_milvus, kind="flat")
+    with pytest.raises(MapError) as err:
+        PlaceMap.load(saved_milvus, "fp")
+    assert str(err.value) == (
+        f"{saved_milvus / 'index-1.milvus'} is not the index file of a 'flat' map: rebuild it"
+    )
+
+
+def test_a_damaged_record(saved_milvus: Path, tmp_path: Path) -> None:
+    record = saved_milvus / "index-1.milvus"
+    with pytest.raises(MapError, match=r"does not match its checksum"):  # the manifest's sha256
+        record.write_bytes(record.read_bytes()[:100])
+        PlaceMap.load(saved_milvus, "fp")
+    cut = tmp_path / "cut.milvus"
+    cut.write_bytes(b"PK\x03\x04 not a zip")
+    with pytest.raises(MapError, match=rf"^milvus record {cut} cannot be read \("):
+        read_record(cut, DIM, 6)
+
+
+def test_a_record_of_another_count(saved_milvus: Path, tmp_path: Path) -> None:
+    with pytest.raises(MapError) as err:
+        read_record(saved_milvus / "index-1.milvus", DIM, 7)
+    assert str(err.value) == (
+        f"milvus record {saved_milvus / 'index-1.milvus'} does not match the manifest (7 "
+        f"keyframes of {DIM}-d): the map is damaged, restore it from a backup or rebuild it"
+    )
+
+
+def test_without_pymilvus(monkeypatch, milvus) -> None:
+    monkeypatch.setitem(sys.modules, "pymilvus", None)
+    with pytest.raises(ConfigError) as err:
+        PlaceMap(DIM, SHAPE, "fp", index=milvus)
+    assert str(err.value).startswith(
+        "place map index 'milvus' needs the optional packages pymilvus and milvus-lite, which "
+        "are not installed ("
+    )
+    assert str(err.value).endswith(
+        "): pip install 'pair_vpr_ros[milvus]' (pymilvus and milvus-lite)"
+    )
+
+
+def test_search_with_an_exclusion_needs_milvus() -> None:
+    from pair_vpr_ros.place_map.milvus_expr import Exclusion
+
+    with PlaceMap(DIM, SHAPE, "fp") as m:
+        add_range(m, 0, 2)
+        with pytest.raises(MapError) as err:
+            m.search(desc_for(0), 1, exclusion=Exclusion(0.0, 1.0, 2, "r", "s"))
+    assert str(err.value) == "search(exclusion=...) needs index kind 'milvus'; pass allowed="
