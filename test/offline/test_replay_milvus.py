@@ -22,6 +22,7 @@ def _loops(out) -> list[tuple[int, int]]:
     return [(r["query_id"], r["match_id"]) for r in json.loads((out / "loops.json").read_text())]
 
 
+@pytest.mark.slow  # three replays of the revisit bag
 def test_replay_on_milvus_accepts_the_loops_of_the_default_index(tmp_path, tiny_model, milvus):
     images, poses = revisit_world()
     bag = write_rosbag2(tmp_path / "bag", images, poses)
