@@ -177,6 +177,8 @@ def diagnostic_values(
         "loops_pose_none": live.counts.pose_none,
         "candidates_scored": live.counts.candidates_scored,
         "rerank_budget_cut": live.counts.rerank_budget_cut,
+        "map_searches_skipped": live.counts.map_searches_skipped,  # index milvus unreachable
+        "map_keyframes_pending": live.counts.map_keyframes_pending,
         "camera_info_invalid": c.camera_info_invalid,
         "frames_without_depth": c.depth_unmatched,
         "depth_invalid": c.depth_invalid,
