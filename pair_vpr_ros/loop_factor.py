@@ -27,12 +27,14 @@ twist.covariance                all zeros
 A consumer adds ``BetweenFactor(X(match), X(query), T_match_query, covariance)`` after moving it
 from the camera frame to its body frame (camera extrinsics).
 
-Robot and session of both keyframes (``LoopFactor.query_robot`` ... ``match_session``, issue 22)
-are NOT in this encoding: ``nav_msgs/Odometry`` has two strings, both taken by the frame ids,
-and packing text into the float fields would break its readers. A factor decoded from this
-message names "" for all four (the single robot and session of the old format); the JSON,
-CSV, ``loops.json`` and the detail topic carry them, and the typed ``LoopClosure`` message
-(issue 22 part 2) carries them as string fields.
+Robot and session of both keyframes (``LoopFactor.query_robot`` ... ``match_session``, issue 22):
+a loop within one robot-session keeps the encoding above unchanged (its frame ids as they are;
+decoded, all four are "": the robot-session of the topic it came on, as posegraph_node reads
+it). A loop *between* two robot-sessions, new with issue 22, tags both frame ids
+``<frame_id>@<robot>@<session>`` (``tag_frame``; frame and robot ids are ROS names, which
+cannot hold ``@``), so the pose graph can key it by both trajectories. The JSON, CSV,
+``loops.json`` and the detail topic carry all four as text, and the typed ``LoopClosure``
+message (issue 22 part 2) as string fields.
 """
 
 from __future__ import annotations
@@ -146,15 +148,37 @@ def factor_from_record(record: Any) -> LoopFactor | None:
     )
 
 
+def tag_frame(frame_id: str, robot: str, session: str) -> str:
+    """``frame_id`` with the robot and session of its keyframe."""
+    return f"{frame_id}@{robot}@{session}"
+
+
+def untag_frame(text: str) -> tuple[str, str, str]:
+    """``tag_frame``'s inverse: (frame_id, robot, session); ("", "") for an untagged id."""
+    parts = text.rsplit("@", 2)
+    return (parts[0], parts[1], parts[2]) if len(parts) == 3 else (text, "", "")
+
+
+def _frame_ids(factor: LoopFactor) -> tuple[str, str]:
+    """(query, match) frame ids of the message: tagged only for a loop between two
+    robot-sessions."""
+    query = (factor.query_robot, factor.query_session)
+    match = (factor.match_robot, factor.match_session)
+    if query == match:
+        return factor.query_frame_id, factor.match_frame_id
+    return tag_frame(factor.query_frame_id, *query), tag_frame(factor.match_frame_id, *match)
+
+
 def factor_msg(factor: LoopFactor, types: Mapping[str, Callable[..., Any]]) -> Any:
     """Build the ``nav_msgs/Odometry`` of ``factor`` with the message classes in ``types``
     (keys: ``FACTOR_MSG_TYPES``; rclpy classes or a rosbags typestore's ``types``)."""
     vec, quat = types["geometry_msgs/msg/Vector3"], types["geometry_msgs/msg/Quaternion"]
     q_sec, q_nsec = split_stamp(factor.query_stamp)
     m_sec, m_nsec = split_stamp(factor.match_stamp)
+    query_frame, match_frame = _frame_ids(factor)
     header = types["std_msgs/msg/Header"](
         stamp=types["builtin_interfaces/msg/Time"](sec=q_sec, nanosec=q_nsec),
-        frame_id=factor.match_frame_id,
+        frame_id=match_frame,
     )
     x, y, z = (float(v) for v in factor.translation)
     pose = types["geometry_msgs/msg/Pose"](
@@ -167,7 +191,7 @@ def factor_msg(factor: LoopFactor, types: Mapping[str, Callable[..., Any]]) -> A
     )
     return types[FACTOR_TYPE](
         header=header,
-        child_frame_id=factor.query_frame_id,
+        child_frame_id=query_frame,
         pose=types["geometry_msgs/msg/PoseWithCovariance"](
             pose=pose, covariance=np.asarray(factor.covariance, np.float64)
         ),
@@ -191,11 +215,13 @@ def factor_from_msg(msg: Any) -> LoopFactor:
             f"not a loop_closure/factor message: covariance has {len(cov)} values, status code "
             f"{twist.linear.z} (expected 36 values and 1.0, 2.0 or 3.0)"
         )
+    query_frame, query_robot, query_session = untag_frame(msg.child_frame_id)
+    match_frame, match_robot, match_session = untag_frame(msg.header.frame_id)
     return LoopFactor(
         query_stamp=stamp.sec + stamp.nanosec * 1e-9,
         match_stamp=twist.linear.x + twist.linear.y * 1e-9,
-        query_frame_id=msg.child_frame_id,
-        match_frame_id=msg.header.frame_id,
+        query_frame_id=query_frame,
+        match_frame_id=match_frame,
         translation=(p.x, p.y, p.z),
         rotation=(q.x, q.y, q.z, q.w),
         covariance=cov,
@@ -204,4 +230,8 @@ def factor_from_msg(msg: Any) -> LoopFactor:
         query_id=int(twist.angular.y),
         match_id=int(twist.angular.z),
         scale_from_odometry=twist.linear.z == STATUS_CODES["metric-odometry"],
+        query_robot=query_robot,
+        query_session=query_session,
+        match_robot=match_robot,
+        match_session=match_session,
     )

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from pair_vpr_ros.cli import float_flag, nonnegative_int, positive_float, run_cli
-from pair_vpr_ros.errors import ConfigError, PoseGraphError
+from pair_vpr_ros.errors import ConfigError, PoseGraphError, UsageError
 from pair_vpr_ros.loop_factor import LoopFactor
 from pair_vpr_ros.offline import bag_io
 from pair_vpr_ros.offline.loop_io import read_loops
@@ -122,13 +122,6 @@ def _graph_trajectories(graph: PoseGraph) -> tuple[Trajectory, Trajectory]:
     return Trajectory(stamps, graph.odometry_poses()), Trajectory(stamps, graph.optimised_poses())
 
 
-def _loop_segments(graph: PoseGraph) -> np.ndarray:
-    """``[L, 2, 3]`` optimised positions of each added loop's match and query nodes."""
-    poses = graph.optimised_poses()
-    ends = [(poses[lf.match_key, :3], poses[lf.query_key, :3]) for lf in graph.loops]
-    return np.array(ends, dtype=np.float64).reshape(-1, 2, 3)
-
-
 def run_posegraph(
     bag: str | Path,
     loops_path: str | Path,
@@ -186,7 +179,7 @@ def _write_outputs(
         write_tum(out / "ground_truth.tum", truth)
         for name, estimate in (("odometry", before), ("optimised", after)):
             summary.errors[name] = trajectory_errors(estimate, truth).to_dict()
-    plot_trajectories(out / "posegraph.png", truth, before, after, _loop_segments(graph),
+    plot_trajectories(out / "posegraph.png", truth, before, after, graph.loop_segments(),
                       graph.loop_inliers(), summary.ate_line() or "")  # fmt: skip
     (out / "posegraph.json").write_text(json.dumps(asdict(summary), indent=1) + "\n")
 
@@ -229,11 +222,19 @@ def build_parser() -> argparse.ArgumentParser:
         "GTSAM pose graph (iSAM2, robust loop factors), TUM trajectories before/after, ATE/RPE "
         "against ground truth (evo) and a picture.",
     )
-    p.add_argument("bag", help="bag with the odometry (rosbag2 folder, .mcap, .db3 or ROS 1 .bag)")
+    p.add_argument("bag", nargs="?",
+                   help="bag with the odometry (rosbag2 folder, .mcap, .db3 or ROS 1 .bag) of one "
+                   "robot; several robot-sessions: --trajectory instead")  # fmt: skip
     p.add_argument(
-        "--loops", required=True, metavar="PATH",
+        "--trajectory", nargs=3, action="append", metavar=("ROBOT", "SESSION", "BAG"),
+        help="one robot-session and the bag with its odometry (repeat for each; the first is "
+        "the map frame): each gets ROBOT/SESSION/optimised.tum in --out, in the first one's frame",
+    )  # fmt: skip
+    p.add_argument(
+        "--loops", required=True, metavar="PATH", action="append",
         help="the loops: a pairvpr-bag-replay --out folder, its loops.json, or the bag it wrote "
-        "with --write-bag",
+        "with --write-bag (with --trajectory: repeat for several robots' replays; else the last "
+        "one counts)",
     )  # fmt: skip
     p.add_argument("--out", metavar="DIR", default="posegraph_out",
                    help="output folder (default: %(default)s)")  # fmt: skip
@@ -282,8 +283,14 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace) -> None:
+    if (args.bag is None) == (args.trajectory is None):
+        raise UsageError("give one robot's BAG or several --trajectory ROBOT SESSION BAG")
+    if args.trajectory is not None:
+        from pair_vpr_ros.offline.posegraph_fleet import fleet_main
+
+        return fleet_main(args, _config(args))
     summary = run_posegraph(
-        args.bag, args.loops, args.out, odom_topic=args.odom_topic, gt_topic=args.gt_topic,
+        args.bag, args.loops[-1], args.out, odom_topic=args.odom_topic, gt_topic=args.gt_topic,
         config=_config(args), false_loop_fraction=args.inject_false_loops, seed=args.seed,
     )  # fmt: skip
     for warning in summary.warnings:

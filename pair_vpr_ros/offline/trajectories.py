@@ -77,12 +77,9 @@ def read_tum(path: str | Path) -> Trajectory:
     return Trajectory.from_evo(file_interface.read_tum_trajectory_file(Path(path)))
 
 
-def trajectory_errors(
-    estimate: Trajectory, truth: Trajectory, max_diff: float = 0.05, rpe_delta_m: float = 10.0
-) -> TrajectoryErrors:
-    """ATE and RPE of ``estimate`` against ``truth`` (see the module docstring)."""
-    from evo.core import metrics, sync
-    from evo.core.units import Unit
+def _associate(estimate: Trajectory, truth: Trajectory, max_diff: float) -> tuple[Any, Any]:
+    """evo trajectories (truth, estimate) of the poses within ``max_diff`` s of each other."""
+    from evo.core import sync
 
     if len(estimate) < 3 or len(truth) < 3:
         raise PoseGraphError(
@@ -104,8 +101,38 @@ def trajectory_errors(
             f"only {ref.num_poses} poses of the estimate lie within {max_diff} s of a "
             f"ground-truth pose: {clock}"
         )
-    est = copy.deepcopy(est)
-    est.align(ref, correct_scale=False)
+    return ref, copy.deepcopy(est)
+
+
+def reference_alignment(
+    estimate: Trajectory, truth: Trajectory, max_diff: float = 0.05
+) -> np.ndarray:
+    """``[4, 4]`` SE(3) (Umeyama, no scale) that moves ``estimate`` onto ``truth``: applied to
+    every trajectory of a pose graph, it checks they all share the estimate's frame."""
+    ref, est = _associate(estimate, truth, max_diff)
+    rotation, translation, _ = est.align(ref, correct_scale=False)
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = rotation, translation
+    return out
+
+
+def trajectory_errors(
+    estimate: Trajectory,
+    truth: Trajectory,
+    max_diff: float = 0.05,
+    rpe_delta_m: float = 10.0,
+    alignment: np.ndarray | None = None,
+) -> TrajectoryErrors:
+    """ATE and RPE of ``estimate`` against ``truth`` (see the module docstring); with
+    ``alignment`` (``[4, 4]``) the estimate is moved by it instead of aligned on its own."""
+    from evo.core import metrics
+    from evo.core.units import Unit
+
+    ref, est = _associate(estimate, truth, max_diff)
+    if alignment is None:
+        est.align(ref, correct_scale=False)
+    else:
+        est.transform(np.asarray(alignment, dtype=np.float64))
     ate = metrics.APE(metrics.PoseRelation.translation_part)
     ate.process_data((ref, est))
     stats = ate.get_all_statistics()
@@ -164,5 +191,51 @@ def plot_trajectories(
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_fleet(
+    path: str | Path,
+    before: dict[Any, Trajectory],
+    after: dict[Any, Trajectory],
+    truth: dict[Any, Trajectory],
+    to_truth: np.ndarray | None,
+    loops: np.ndarray,
+    inliers: np.ndarray,
+    between: np.ndarray,
+) -> Path:
+    """PNG of several robot-sessions (keys ``(robot, session)``): left their odometry, each in
+    its own frame; right the optimised trajectories in the map frame, moved onto the ground
+    truth by ``to_truth`` (the first trajectory's alignment, ``[4, 4]``) when given, with the
+    loops (``[L, 2, 3]``; ``between [L]``: joins two trajectories; red dotted: outliers)."""
+    from pair_vpr_ros.offline.report import _pyplot
+
+    plt = _pyplot()
+    move = np.eye(4) if to_truth is None else np.asarray(to_truth)
+    fig, axes = plt.subplots(1, 2, figsize=(13, 6.5))
+    colours = plt.get_cmap("tab10").colors
+    for k, key in enumerate(before):
+        name, colour = "/".join(key) or "robot", colours[k % len(colours)]
+        for ax in axes if key in truth else ():
+            ax.plot(*truth[key].poses[:, :2].T, "-", color="0.75", lw=2.5, zorder=0)
+        axes[0].plot(*before[key].poses[:, :2].T, "-", color=colour, lw=1.2, label=name)
+        xy = after[key].poses[:, :3] @ move[:3, :3].T + move[:3, 3]
+        axes[1].plot(xy[:, 0], xy[:, 1], "-", color=colour, lw=1.2, label=name)
+    for segment, trusted, joins in zip(loops, inliers, between, strict=True):
+        xy = segment @ move[:3, :3].T + move[:3, 3]
+        style = ({"color": "tab:red", "lw": 0.9, "ls": ":"} if not trusted else
+                 {"color": "k" if joins else "tab:green", "lw": 0.5, "alpha": 0.5})  # fmt: skip
+        axes[1].plot(xy[:, 0], xy[:, 1], **style)
+    axes[0].set_title("before: odometry, each robot-session in its own frame", fontsize=10)
+    axes[1].set_title("after: pose graph, all in the first one's frame (grey: ground truth, "
+                      "black: loops between, red: outliers)", fontsize=9)  # fmt: skip
+    for ax in axes:
+        ax.set(xlabel="x [m]", ylabel="y [m]", aspect="equal")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

@@ -17,16 +17,21 @@ from pair_vpr_ros.loop_factor import LoopFactor
 from pair_vpr_ros.posegraph.transforms import valid_pose7
 
 
-@dataclass
+@dataclass(eq=False)
 class LoopEntry:
-    """A loop that made it into the graph: its two nodes, the factor it came from, the measured
-    relative pose between the nodes' base frames and the inverse of its covariance."""
+    """A loop placed between two graph nodes: their gtsam keys, the factor it came from, the
+    measured relative pose between the nodes' base frames, the inverse of its covariance and
+    the (robust) noise model of its between-factor."""
 
     match_key: int
     query_key: int
     factor: LoopFactor
     measured: gtsam.Pose3
     information: np.ndarray  # [6, 6], GTSAM order
+    noise: gtsam.noiseModel.Base | None = None
+
+    def between(self) -> gtsam.BetweenFactorPose3:
+        return gtsam.BetweenFactorPose3(self.match_key, self.query_key, self.measured, self.noise)
 
 
 def loop_problem(factor: LoopFactor) -> str | None:

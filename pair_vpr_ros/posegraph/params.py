@@ -10,6 +10,7 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
+from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.params import RO, ParamSpec, _p, yaml_text
 from pair_vpr_ros.posegraph.graph import KERNELS, PoseGraphConfig
 
@@ -22,6 +23,9 @@ PARAMS: tuple[ParamSpec, ...] = (
     _p("loop_topic", "loop_closure/factor", "loop between-factor input (vpr_node's output)", **RO),
     _p("odom_qos", "sensor_data", "odometry QoS: sensor_data (best effort, hears every "
        "publisher) or reliable", choices=("sensor_data", "reliable"), **RO),
+    _p("trajectories", "", "several robot-sessions: comma-separated ROBOT/SESSION=ODOM_TOPIC "
+       "(e.g. 'a/day1=/a/odom, b/day1=/b/odom'), the first one the map frame; SESSION may be "
+       "empty (any session of that robot); '' = one robot on odom_topic", **RO),
     _p("map_frame", "map", "frame of the corrected path and parent of map_to_odom", **RO),
     _p("odom_frame", "", "child frame of map_to_odom ('' = the odometry's header.frame_id)", **RO),
     _p("path_period", 1.0, "seconds between corrected_path messages (the whole path each time)",
@@ -57,6 +61,14 @@ PARAMS: tuple[ParamSpec, ...] = (
        "every this many seconds", 0.0, 10.0, **RO),
     _p("relinearize_threshold", _D.relinearize_threshold, "iSAM2 relinearisation threshold",
        1e-6, 10.0, **RO),
+    _p("join_min_loops", _D.join_min_loops, "several robot-sessions: one joins the map frame "
+       "once this many of its loops to joined ones agree on its place (1 = at its first loop)",
+       1, 100, **RO),
+    _p("join_tolerance_m", _D.join_tolerance_m, "two loops agree when the poses they give one "
+       "node differ by at most this (m) ...", 0.01, 1000.0, **RO),
+    _p("join_tolerance_deg", _D.join_tolerance_deg, "... and this (deg) ...", 0.01, 180.0, **RO),
+    _p("join_tolerance_per_m", _D.join_tolerance_per_m, "... widened by this fraction of the "
+       "odometry travelled between the two loops", 0.0, 10.0, **RO),
     _p("loop_iterations", _D.loop_iterations, "iSAM2 iterations after a loop, one per later "
        "odometry message or path_period (the robust kernel converges even when the robot stops)",
        0, 100, **RO),
@@ -70,6 +82,28 @@ HEADER = (
     "#       --params-file config/posegraph_node.yaml -r odom:=/your/odometry",
     "# All are read-only (start-up only). pairvpr-posegraph --params-file reads this file too.",
 )
+
+
+def parse_trajectories(text: str, odom_topic: str) -> list[tuple[str, str, str]]:
+    """``trajectories`` -> [(robot, session, odometry topic)]; '' -> one robot on
+    ``odom_topic``. ``ConfigError`` names a malformed or repeated entry."""
+    if not text.strip():
+        return [("", "", odom_topic)]
+    out: list[tuple[str, str, str]] = []
+    for entry in (e.strip() for e in text.split(",")):
+        ident, sep, topic = entry.partition("=")
+        robot, _, session = ident.strip().partition("/")
+        robot, session, topic = robot.strip(), session.strip(), topic.strip()
+        if not sep or not robot or not topic or "/" in session:
+            raise ConfigError(
+                f"trajectories: {entry!r} is not ROBOT/SESSION=ODOM_TOPIC (e.g. 'a/day1=/a/odom')"
+            )
+        if any((robot, session) == (r, s) for r, s, _ in out):
+            raise ConfigError(f"trajectories: robot-session {robot}/{session} is given twice")
+        if any(topic == t for _, _, t in out):
+            raise ConfigError(f"trajectories: odometry topic {topic} is given twice")
+        out.append((robot, session, topic))
+    return out
 
 
 def defaults() -> dict[str, Any]:

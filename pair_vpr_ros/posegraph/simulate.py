@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 
 import gtsam
 import numpy as np
@@ -51,15 +52,35 @@ def ground_truth_loops(
     """One loop per ``(query_stamp, match_stamp)`` pair, its pose from the ground-truth base
     poses (``stamps [P]``, ``poses [P, 7]``, nearest stamp) plus noise drawn from ``covariance``
     (default ``loop_covariance()``)."""
+    truth = (stamps, poses)
+    return trajectory_loops(truth, truth, pairs, rng, covariance, camera_to_base)
+
+
+def trajectory_loops(
+    query_truth: tuple[np.ndarray, np.ndarray],
+    match_truth: tuple[np.ndarray, np.ndarray],
+    pairs: Sequence[tuple[float, float]],
+    rng: np.random.Generator,
+    covariance: np.ndarray | None = None,
+    camera_to_base: Sequence[float] = IDENTITY,
+    query: tuple[str, str] = ("", ""),
+    match: tuple[str, str] = ("", ""),
+) -> list[LoopFactor]:
+    """``ground_truth_loops`` between two trajectories: the query stamps in ``query_truth``
+    (``stamps [P]``, ``poses [P, 7]``), the match stamps in ``match_truth``, both in one world
+    frame; the factors name the ``query`` and ``match`` (robot, session)."""
     cov = loop_covariance() if covariance is None else np.asarray(covariance, dtype=np.float64)
+    names = dict(query_robot=query[0], query_session=query[1], match_robot=match[0],
+                 match_session=match[1])  # fmt: skip
     out = []
     for query_stamp, match_stamp in pairs:
-        q = pose3(poses[_nearest(stamps, query_stamp)]).compose(pose3(camera_to_base))
-        m = pose3(poses[_nearest(stamps, match_stamp)]).compose(pose3(camera_to_base))
+        q = pose3(query_truth[1][_nearest(query_truth[0], query_stamp)])
+        m = pose3(match_truth[1][_nearest(match_truth[0], match_stamp)])
+        q, m = q.compose(pose3(camera_to_base)), m.compose(pose3(camera_to_base))
         loop = make_factor(query_stamp, match_stamp, m.between(q), cov)
         noise = rng.multivariate_normal(np.zeros(6), loop.gtsam_covariance())
         measured = m.between(q).compose(gtsam.Pose3.Expmap(noise))
-        out.append(make_factor(query_stamp, match_stamp, measured, cov))
+        out.append(replace(make_factor(query_stamp, match_stamp, measured, cov), **names))
     return out
 
 
