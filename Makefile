@@ -1,17 +1,20 @@
-# Two entry points (see README): `make demo` and `make test`. Each sets up .venv itself.
-# `make docs` builds the documentation site into site/ (warnings are errors).
+# Entry points (see README): `make demo`, `make demo-fleet` and `make test`. Each sets up .venv
+# itself. `make docs` builds the documentation site into site/ (warnings are errors).
 VENV ?= .venv
 PY := $(VENV)/bin/python
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 export MPLBACKEND := Agg
 
-.PHONY: setup demo demo-model test test-quick lint docs clean
+.PHONY: setup demo demo-fleet demo-model test test-quick lint docs clean
 
 setup:
 	@VENV=$(VENV) bash scripts/setup_env.sh
 
 demo: setup
 	@bash scripts/demo.sh $(VENV)
+
+demo-fleet: setup
+	@bash scripts/demo_fleet.sh $(VENV)
 
 test: setup
 	$(PY) -m pytest -q test

@@ -72,6 +72,7 @@ def write_world_bag(
     odometry: OdometryNoise | None = None,
     depth: bool = True,
     mono: bool = False,
+    local_odometry: bool = False,
 ) -> Path:
     """Write every frame of `world` to `path` and return it.
 
@@ -81,7 +82,8 @@ def write_world_bag(
     `progress` shows a tqdm bar; `odometry` sets how `/odom` drifts (default `OdometryNoise()`);
     `depth=False` leaves out the depth topic (40 ms a frame to render, 150 KB at 320x240);
     `mono=True` writes what a grey camera gives: mono8 images (grey JPEGs if `compressed`), the
-    BT.601 luma of the rendered colours.
+    BT.601 luma of the rendered colours. `local_odometry=True`: `/odom` starts at the origin of
+    its own frame, as a robot's does (else at the true start pose: odom = map at start).
     """
     path = Path(path)
     odometry = odometry or OdometryNoise()
@@ -91,7 +93,7 @@ def write_world_bag(
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     try:
         folder = tmp / (path.stem if _is_file(path) else path.name)
-        _write(world, folder, compressed, progress, odometry, depth, mono)
+        _write(world, folder, compressed, progress, odometry, depth, mono, local_odometry)
         _remove(path)  # only now: a failed write keeps the old output
         (folder / f"{folder.name}.mcap" if _is_file(path) else folder).replace(path)
     except (OSError, WriterError) as err:
@@ -136,6 +138,7 @@ def _write(
     noise: OdometryNoise,
     depth: bool,
     mono: bool = False,
+    local_odometry: bool = False,
 ) -> None:
     """Serialise every frame's messages with identical header stamps and log times."""
     ts = get_typestore(Stores.ROS2_JAZZY)
@@ -143,6 +146,8 @@ def _write(
     image_type = "sensor_msgs/msg/CompressedImage" if compressed else "sensor_msgs/msg/Image"
     info_type = "sensor_msgs/msg/CameraInfo"
     odometry = drifting_odometry(world.poses, world.config.rate_hz, world.seed, noise)
+    if local_odometry:
+        odometry = _from_start(odometry)
     cam = Camera(world.config.width, world.config.height)
     with Writer(folder, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         image_topic = COMPRESSED_TOPIC if compressed else IMAGE_TOPIC
@@ -175,6 +180,15 @@ def _write(
                 messages += ((DEPTH_TOPIC, _depth_msg(t, stamp, depth_to_mm(metres))),)
             for topic, msg in messages:
                 writer.write(conns[topic], stamp_ns, ts.serialize_cdr(msg, msg.__msgtype__))
+
+
+def _from_start(poses: np.ndarray) -> np.ndarray:
+    """Planar poses ``[N, 3]`` (x, y, yaw) in the frame of the first one."""
+    x0, y0, yaw0 = poses[0]
+    c, s = math.cos(yaw0), math.sin(yaw0)
+    dx, dy = poses[:, 0] - x0, poses[:, 1] - y0
+    yaw = np.angle(np.exp(1j * (poses[:, 2] - yaw0)))
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, yaw], axis=1)
 
 
 def _depth_msg(t: dict, stamp: object, mm: np.ndarray) -> object:

@@ -94,6 +94,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--no-depth", action="store_true", help=f"leave out {DEPTH_TOPIC} (smaller, faster bag)"
     )
+    parser.add_argument(
+        "--fleet",
+        action="store_true",
+        help="write the demo fleet instead: OUT is a folder that gets one bag per robot-session "
+        "(robots a, b, c on one clock from three points of the loop, a again a day later at "
+        "dusk; odometry from each robot's own origin) and fleet.json; --frames is per drive "
+        "(default 300 with --fleet)",
+    )
     parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
     parser.add_argument("--dataset", type=Path, help="also write a place dataset to this folder")
     parser.add_argument(
@@ -112,7 +120,11 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> None:
     if args.out is None and args.dataset is None:
         raise UsageError("give an output bag path (OUT) and/or --dataset DIR")
-    if args.out is not None:
+    if args.fleet:
+        if args.out is None:
+            raise UsageError("--fleet needs an output folder (OUT)")
+        _fleet(args)
+    elif args.out is not None:
         start = time.perf_counter()
         world = generate_world(
             args.seed,
@@ -155,6 +167,20 @@ def _run(args: argparse.Namespace) -> None:
             f"wrote {root}: {args.places} places x {args.views} views {args.size[0]}x"
             f"{args.size[1]}, seed {args.seed}, {time.perf_counter() - start:.1f} s"
         )
+
+
+def _fleet(args: argparse.Namespace) -> None:
+    from pair_vpr_ros.demo.fleet import write_fleet_bags
+
+    start = time.perf_counter()
+    frames = 300 if args.frames == WorldConfig.frames else args.frames
+    manifest = write_fleet_bags(
+        args.out, seed=args.seed, frames=frames, size=args.size, force=args.force,
+        progress=args.progress, odometry=OdometryNoise(
+            scale_error=args.odom_scale_error, yaw_rate_bias_deg_s=args.odom_yaw_bias),
+    )  # fmt: skip
+    print(f"wrote {manifest} and its bags: {frames} frames per drive, seed {args.seed}, "
+          f"{time.perf_counter() - start:.1f} s")  # fmt: skip
 
 
 if __name__ == "__main__":

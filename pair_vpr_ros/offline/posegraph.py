@@ -231,10 +231,15 @@ def build_parser() -> argparse.ArgumentParser:
         "the map frame): each gets ROBOT/SESSION/optimised.tum in --out, in the first one's frame",
     )  # fmt: skip
     p.add_argument(
-        "--loops", required=True, metavar="PATH", action="append",
+        "--loops", metavar="PATH", action="append",
         help="the loops: a pairvpr-bag-replay --out folder, its loops.json, or the bag it wrote "
         "with --write-bag (with --trajectory: repeat for several robots' replays; else the last "
         "one counts)",
+    )  # fmt: skip
+    p.add_argument(
+        "--loops-of", nargs=3, action="append", metavar=("ROBOT", "SESSION", "PATH"),
+        help="with --trajectory: the loops of ROBOT's SESSION replay; loop ends that name no "
+        "robot and session (a replay without --robot-id) are that robot-session's",
     )  # fmt: skip
     p.add_argument("--out", metavar="DIR", default="posegraph_out",
                    help="output folder (default: %(default)s)")  # fmt: skip
@@ -289,6 +294,8 @@ def _run(args: argparse.Namespace) -> None:
         from pair_vpr_ros.offline.posegraph_fleet import fleet_main
 
         return fleet_main(args, _config(args))
+    if args.loops is None or args.loops_of is not None:
+        raise UsageError("one robot's BAG needs --loops PATH (--loops-of goes with --trajectory)")
     summary = run_posegraph(
         args.bag, args.loops[-1], args.out, odom_topic=args.odom_topic, gt_topic=args.gt_topic,
         config=_config(args), false_loop_fraction=args.inject_false_loops, seed=args.seed,

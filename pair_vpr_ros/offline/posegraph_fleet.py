@@ -19,13 +19,13 @@ join it once their loops agree on where they are (``posegraph.joining``). Writes
 from __future__ import annotations
 
 import re
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pair_vpr_ros.errors import ConfigError, PoseGraphError
+from pair_vpr_ros.errors import ConfigError, PairVPRError, UsageError
 from pair_vpr_ros.loop_factor import LoopFactor
 from pair_vpr_ros.offline import bag_io
 from pair_vpr_ros.offline.loop_io import read_loops
@@ -100,6 +100,15 @@ def check_inputs(inputs: list[TrajectoryInput]) -> None:
         seen[item.id] = number
 
 
+def own(factor: LoopFactor, owner: TrajectoryId) -> LoopFactor:
+    """``factor`` with the ends that name no robot and session given to ``owner``."""
+    names = {}
+    for side in ("query", "match"):
+        if not getattr(factor, f"{side}_robot") and not getattr(factor, f"{side}_session"):
+            names[f"{side}_robot"], names[f"{side}_session"] = owner
+    return replace(factor, **names) if names else factor
+
+
 def optimise_fleet(
     odometry: dict[TrajectoryId, Trajectory], loops: list[LoopFactor], config: PoseGraphConfig
 ) -> PoseGraph:
@@ -130,9 +139,11 @@ def run_fleet_posegraph(
     odom_topic: str = "/odom",
     gt_topic: str | None = None,
     config: PoseGraphConfig | None = None,
+    loops_of: list[tuple[TrajectoryId, str | Path]] = (),
 ) -> FleetSummary:
     """Odometry of every input + the loops of every source -> files in ``out_dir`` (see the
-    module docstring). ``PairVPRError`` subclasses for unusable input."""
+    module docstring); ``loops_of``: sources of one robot-session, whose loop ends that name no
+    robot and session are its own. ``PairVPRError`` subclasses for unusable input."""
     from pair_vpr_ros.offline.posegraph import PoseGraphSummary, _track
 
     config = config or PoseGraphConfig()
@@ -142,13 +153,13 @@ def run_fleet_posegraph(
     odometry, truth = {}, {}
     for item in inputs:
         scratch = PoseGraphSummary()
-        with bag_io.open_bag(item.bag) as reader:
-            try:
+        try:
+            with bag_io.open_bag(item.bag) as reader:
                 odometry[item.id] = _track(reader, odom_topic, "odometry", scratch)
                 if gt_topic:
                     truth[item.id] = _track(reader, gt_topic, "ground-truth", scratch)
-            except PoseGraphError as err:
-                raise PoseGraphError(f"trajectory {label(item.id)} ({item.bag}): {err}") from err
+        except PairVPRError as err:
+            raise type(err)(f"trajectory {label(item.id)} ({item.bag}): {err}") from err
         summary.warnings += [f"{label(item.id)}: {w}" for w in scratch.warnings]
         for reason, n in scratch.skipped.items():
             summary.skipped[f"{label(item.id)} {reason}"] = n
@@ -156,10 +167,10 @@ def run_fleet_posegraph(
             str(item.bag), len(odometry[item.id]) + sum(scratch.skipped.values())
         )
     loops: list[LoopFactor] = []
-    for path in loops_paths:
+    for owner, path in [(None, p) for p in loops_paths] + list(loops_of):
         source = read_loops(path)
         summary.loops_sources.append(source.line())
-        loops += source.factors
+        loops += [own(f, owner) for f in source.factors] if owner else source.factors
     summary.loops_read = len(loops)
     graph = optimise_fleet(odometry, loops, config)
     _summarise(summary, graph)
@@ -172,6 +183,10 @@ def _summarise(summary: FleetSummary, graph: PoseGraph) -> None:
     summary.loop_outliers = int((~graph.loop_inliers()).sum())
     for reason, n in graph.counts.skipped.items():
         summary.skipped[reason] = summary.skipped.get(reason, 0) + n
+        if reason.startswith("loop: robot-session "):
+            summary.warnings.append(
+                f"{n} loops skipped: {reason[6:]} (give its --trajectory ROBOT SESSION BAG)"
+            )
     for track in graph.tracks:
         item = summary.trajectories[label(track.trajectory)]
         item.nodes, item.joined = len(track.nodes), track.joined
@@ -233,9 +248,12 @@ def fleet_main(args: Any, config: PoseGraphConfig) -> None:
 
     if args.inject_false_loops:
         raise ConfigError("--inject-false-loops takes one robot's BAG, not --trajectory")
+    if not args.loops and not args.loops_of:
+        raise UsageError("--trajectory needs loops: --loops PATH or --loops-of ROBOT SESSION PATH")
     inputs = [TrajectoryInput(r, s, Path(b)) for r, s, b in args.trajectory]
-    summary = run_fleet_posegraph(inputs, args.loops, args.out, args.odom_topic, args.gt_topic,
-                                  config)  # fmt: skip
+    owned = [((r, s), p) for r, s, p in args.loops_of or ()]
+    summary = run_fleet_posegraph(inputs, args.loops or [], args.out, args.odom_topic,
+                                  args.gt_topic, config, owned)  # fmt: skip
     for warning in summary.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     for line in summary.loops_sources:

@@ -43,7 +43,7 @@ class Node:
     travel: float = 0.0
 
 
-@dataclass
+@dataclass(eq=False)
 class Track:
     """One robot-session. ``joined``: its nodes are in the optimisation (the first trajectory
     from the start, the others once their loops place them in its frame); until then its

@@ -126,3 +126,23 @@ def test_factor_msg_works_on_plain_constructors():
     types = {name: SimpleNamespace for name in lf.FACTOR_MSG_TYPES}
     msg = lf.factor_msg(lf.factor_from_record(posed_record()), types)
     assert lf.factor_from_msg(msg) == lf.factor_from_record(posed_record())
+
+
+def test_robot_and_session_ride_in_the_frame_ids():
+    from dataclasses import asdict, replace
+
+    plain = lf.factor_from_record(posed_record())
+    assert (plain.query_robot, plain.query_session, plain.match_robot, plain.match_session) == (
+        "", "", "", ""
+    )  # fmt: skip
+    factor = replace(plain, query_robot="b", query_session="day1", match_robot="a",
+                     match_session="20261125T120000Z")  # fmt: skip
+    msg = lf.factor_msg(factor, TS.types)
+    assert msg.child_frame_id == "cam_q@b@day1"
+    assert msg.header.frame_id == "cam_m@a@20261125T120000Z"
+    back = TS.deserialize_cdr(TS.serialize_cdr(msg, lf.FACTOR_TYPE), lf.FACTOR_TYPE)
+    assert lf.factor_from_msg(back) == factor
+    assert lf.untag_frame("a@b") == ("a@b", "", "")  # not a tag: the frame id as it is
+    record = {**asdict(posed_record()), "query_robot": "b", "match_session": None}
+    assert lf.factor_from_record(record).query_robot == "b"  # JSON null: ""
+    assert lf.factor_from_record(record).match_session == ""

@@ -1,0 +1,201 @@
+"""`python -m pair_vpr_ros.offline.fleet_report FLEET_DIR`: the demo fleet's figures.
+
+Reads what ``scripts/demo_fleet.sh`` wrote into ``FLEET_DIR``: ``fleet.json`` and the bags
+(ground truth), each drive's replay (``replay/<robot>_<session>/loops.json``, replayed in the
+order of ``fleet.json``, each with the earlier drives' maps as prior maps) and the pose graph
+(``posegraph/posegraph.json``), and writes ``summary.json``:
+
+``inter_robot`` / ``inter_session``
+    accepted loops between two robots / two sessions of one robot: ``true`` and ``false``
+    (a loop is true when its two keyframes' ground-truth positions lie within ``radius_m``),
+    ``precision``; ``possible``: query keyframes with a keyframe of such a prior drive within
+    ``radius_m``; ``recall``: those with an accepted true loop of the kind / ``possible``.
+``relocalisation``
+    per later session of a robot: keyframes (replay records, in stamp order) until its first
+    accepted true loop into an earlier session of the robot (the first one counted).
+``trajectories``, ``all_in_one_frame``
+    per robot-session ATE (SE(3)-aligned) of odometry and optimised trajectory, their ratio, and
+    the ATE after the first robot's alignment only; all in one frame when each is within 1 m.
+``targets``: issue 22's targets, each with the figure and whether it is met.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pair_vpr_ros.cli import run_cli
+from pair_vpr_ros.errors import PoseGraphError
+from pair_vpr_ros.offline import bag_io
+from pair_vpr_ros.offline.posegraph import PoseGraphSummary, _track
+
+
+def _ground_truth(fleet: Path, drives: list[dict]) -> dict[tuple[str, str], Any]:
+    out = {}
+    for d in drives:
+        with bag_io.open_bag(fleet / d["bag"]) as reader:
+            out[(d["robot"], d["session"])] = _track(
+                reader, "/ground_truth", "ground-truth", PoseGraphSummary()
+            )
+    return out
+
+
+def _position(truth: Any, stamp: float) -> np.ndarray:
+    i = int(np.clip(np.searchsorted(truth.stamps, stamp), 1, len(truth.stamps) - 1))
+    j = i if abs(truth.stamps[i] - stamp) < abs(truth.stamps[i - 1] - stamp) else i - 1
+    return truth.poses[j, :2]
+
+
+def _kind(query: tuple[str, str], match: tuple[str, str]) -> str:
+    if query[0] != match[0]:
+        return "inter_robot"
+    return "inter_session" if query[1] != match[1] else "intra"
+
+
+def _records(fleet: Path, drive: dict) -> list[dict]:
+    path = fleet / "replay" / f"{drive['robot']}_{drive['session']}" / "loops.json"
+    if not path.is_file():
+        raise PoseGraphError(f"no replay of {drive['robot']}/{drive['session']}: {path} missing")
+    records = json.loads(path.read_text())
+    return sorted(records, key=lambda r: r["query_stamp"])
+
+
+def loop_figures(fleet: Path, radius_m: float = 10.0) -> dict[str, Any]:
+    """Loop counts by kind, recall denominators and relocalisation (see module docstring)."""
+    drives = json.loads((fleet / "fleet.json").read_text())["drives"]
+    truth = _ground_truth(fleet, drives)
+    ids = [(d["robot"], d["session"]) for d in drives]
+    kinds = {k: {"true": 0, "false": 0, "possible": 0, "found": 0}
+             for k in ("inter_robot", "inter_session", "intra")}  # fmt: skip
+    relocalisation, identities = {}, 0
+    for n, drive in enumerate(drives):
+        me, priors = ids[n], ids[:n]
+        first_session = next(i for i in ids if i[0] == me[0])
+        reloc = None
+        for k, record in enumerate(_records(fleet, drive), start=1):
+            at = _position(truth[me], record["query_stamp"])
+            for kind in ("inter_robot", "inter_session"):
+                near = [p for p in priors if _kind(me, p) == kind and np.min(np.linalg.norm(
+                    truth[p].poses[:, :2] - at, axis=1)) <= radius_m]  # fmt: skip
+                kinds[kind]["possible"] += bool(near)
+            if not record.get("accepted"):
+                continue
+            other = (record.get("match_robot") or me[0], record.get("match_session") or me[1])
+            identities += bool(record.get("match_robot"))
+            if other not in truth:
+                continue
+            kind = _kind(me, other)
+            true = np.linalg.norm(_position(truth[other], record["match_stamp"]) - at) <= radius_m
+            kinds[kind]["true" if true else "false"] += 1
+            kinds[kind]["found"] += bool(true)
+            if reloc is None and true and kind == "inter_session":
+                reloc = k
+        if me != first_session:
+            relocalisation[f"{me[0]}/{me[1]}"] = {"keyframes_until_relocalised": reloc}
+    for figures in kinds.values():
+        accepted = figures["true"] + figures["false"]
+        figures["precision"] = figures["true"] / accepted if accepted else None
+        possible = figures["possible"]
+        figures["recall"] = figures.pop("found") / possible if possible else None
+    return {**kinds, "relocalisation": relocalisation, "loops_naming_robots": identities,
+            "radius_m": radius_m}  # fmt: skip
+
+
+def trajectory_figures(posegraph_json: Path) -> dict[str, Any]:
+    """Per robot-session ATE before / after / in the first one's frame, from posegraph.json."""
+    data = json.loads(posegraph_json.read_text())
+    out = {}
+    for name, item in data["trajectories"].items():
+        errors = item.get("errors", {})
+        before = errors.get("odometry", {}).get("ate_rmse")
+        after = errors.get("optimised", {}).get("ate_rmse")
+        out[name] = {
+            "joined": item["joined"], "ate_odometry_m": before, "ate_optimised_m": after,
+            "ratio": after / before if before and after is not None else None,
+            "ate_in_reference_frame_m": errors.get("ate_in_reference_frame"),
+            "loops_within": item["loops_within"], "loops_between": item["loops_between"],
+        }  # fmt: skip
+    return out
+
+
+def _targets(loops: dict, trajs: dict) -> dict[str, Any]:
+    robot, reloc = loops["inter_robot"], loops["relocalisation"]
+    worst = [t["ate_in_reference_frame_m"] for t in trajs.values()]
+    ratios = [t["ratio"] for t in trajs.values()]
+    after = [t["ate_optimised_m"] for t in trajs.values()]
+    first = [r["keyframes_until_relocalised"] for r in reloc.values()]
+
+    def met(values: list, test: Any) -> bool:
+        return bool(values) and all(v is not None and test(v) for v in values)
+
+    return {
+        "inter_robot_precision>=0.95": met([robot["precision"]], lambda v: v >= 0.95),
+        "inter_robot_recall>=0.8": met([robot["recall"]], lambda v: v >= 0.8),
+        "relocalised_within_5_keyframes": met(first, lambda v: v <= 5),
+        "ate_ratio<=0.2": met(ratios, lambda v: v <= 0.2),
+        "ate<=0.5m": met(after, lambda v: v <= 0.5),
+        "all_in_one_frame_within_1m": met(worst, lambda v: v <= 1.0),
+    }
+
+
+def fleet_summary(fleet: str | Path, radius_m: float = 10.0) -> dict[str, Any]:
+    """``summary.json``'s content for the fleet folder ``fleet``."""
+    fleet = Path(fleet)
+    loops = loop_figures(fleet, radius_m)
+    trajs = trajectory_figures(fleet / "posegraph" / "posegraph.json")
+    in_frame = [t["ate_in_reference_frame_m"] for t in trajs.values()]
+    notes = []
+    if not loops["loops_naming_robots"]:
+        notes.append(
+            "no accepted loop names another robot or session: the replay does not "
+            "take --robot-id / --prior-map yet, so only loops within a drive exist"
+        )
+    return {
+        "inter_robot": loops["inter_robot"], "inter_session": loops["inter_session"],
+        "intra": loops["intra"], "relocalisation": loops["relocalisation"],
+        "radius_m": radius_m, "trajectories": trajs,
+        "all_in_one_frame": bool(in_frame) and all(v is not None and v <= 1.0 for v in in_frame),
+        "bytes_per_keyframe": None,  # the fleet exchange over ROS 2 is not part of this replay
+        "targets": _targets(loops, trajs), "notes": notes,
+        "png": str(fleet / "posegraph" / "posegraph.png"),
+    }  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m pair_vpr_ros.offline.fleet_report",
+        description="the demo fleet's figures -> FLEET/summary.json",
+    )
+    p.add_argument("fleet", type=Path, help="folder scripts/demo_fleet.sh wrote (fleet.json)")
+    p.add_argument(
+        "--radius",
+        type=float,
+        default=10.0,
+        help="a loop is true within this many metres (default: %(default)s)",
+    )
+    return run_cli(p, _run, argv)
+
+
+def _run(args: argparse.Namespace) -> None:
+    summary = fleet_summary(args.fleet, args.radius)
+    (args.fleet / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    for kind in ("inter_robot", "inter_session", "intra"):
+        f = summary[kind]
+        print(f"{kind}: {f['true']} true, {f['false']} false, precision {f['precision']}, "
+              f"recall {f['recall']} of {f['possible']} possible")  # fmt: skip
+    print(f"relocalisation: {summary['relocalisation']}")
+    for name, t in summary["trajectories"].items():
+        print(f"{name}: {t}")
+    print(f"targets: {summary['targets']}")
+    for note in summary["notes"]:
+        print(f"note: {note}")
+    print(f"wrote {args.fleet / 'summary.json'}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
