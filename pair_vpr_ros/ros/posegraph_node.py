@@ -13,11 +13,17 @@ Outputs: ``corrected_path`` (``nav_msgs/Path`` of the optimised nodes in ``map_f
 ``path_period`` s), ``map_to_odom`` (``geometry_msgs/TransformStamped``, map -> odometry frame,
 after each update: relay it to ``/tf`` to correct everything that lives in the odometry frame) and
 ``corrected_odom`` (``nav_msgs/Odometry``: each odometry message moved into ``map_frame``).
+Several robot-sessions (``trajectories`` = ``a/day1=/a/odom, b/day1=/b/odom``): one odometry
+subscription per robot-session, one graph; the loops name their robots and sessions (the factor
+message's frame ids). The first is the map frame; each robot's outputs go to
+``<robot>/corrected_path``, ``<robot>/map_to_odom`` and ``<robot>/corrected_odom`` once it has
+joined the map frame.
 Only rclpy code lives here; the graph is ``posegraph.graph``, its parameters ``posegraph.params``.
 """
 
 from __future__ import annotations
 
+import functools
 import sys
 
 import rclpy
@@ -65,17 +71,24 @@ class PoseGraphNode(Node):
         if reasons:
             raise ConfigError("invalid parameters: " + "; ".join(reasons))
         self.values = v
-        self.graph = PoseGraph(params.posegraph_config(v))
-        self._odom_frame = v["odom_frame"]
+        entries = params.parse_trajectories(v["trajectories"], v["odom_topic"])
+        robots = [robot for robot, _, _ in entries]
+        if len(set(robots)) < len(robots):
+            raise ConfigError("trajectories: a robot is given twice (a node follows one live "
+                              "session per robot)")  # fmt: skip
+        self.graph = PoseGraph(params.posegraph_config(v), [(r, s) for r, s, _ in entries])
         self.loops_received = 0
         self.loops_undecodable = 0  # what became of the others: graph.counts
         qos = qos_profile_sensor_data if v["odom_qos"] == "sensor_data" else QoSProfile(depth=50)
-        self.create_subscription(Odometry, v["odom_topic"], self._on_odom, qos)
+        self.outputs: dict[tuple[str, str], _Outputs] = {}
+        for robot, session, topic in entries:
+            trajectory = (robot, session)
+            self.outputs[trajectory] = _Outputs(self, f"{robot}/" if robot else "",
+                                                v["odom_frame"])  # fmt: skip
+            callback = functools.partial(self._on_odom, trajectory=trajectory)
+            self.create_subscription(Odometry, topic, callback, qos)
         # Reliable and deep: loops are rare and each one matters (vpr_node publishes reliably).
         self.create_subscription(Odometry, v["loop_topic"], self._on_loop, QoSProfile(depth=100))
-        self.pub_path = self.create_publisher(Path, "corrected_path", 1)
-        self.pub_correction = self.create_publisher(TransformStamped, "map_to_odom", 10)
-        self.pub_odom = self.create_publisher(Odometry, "corrected_odom", 10)
         self.create_timer(v["path_period"], self.publish_path)
 
     def _on_loop(self, msg: Odometry) -> None:
@@ -89,23 +102,26 @@ class PoseGraphNode(Node):
         self.add_loop(factor)
 
     # ---- inputs --------------------------------------------------------------------------------
-    def _on_odom(self, msg: Odometry) -> None:
+    def _on_odom(self, msg: Odometry, trajectory: tuple[str, str] = ("", "")) -> None:
         now = self.get_clock().now().nanoseconds * 1e-9  # for a publisher that never stamps
         stamp, pose = message_stamp(msg, now), message_pose(msg)
-        reason = self.graph.add_odometry(stamp, pose)
+        reason = self.graph.add_odometry(stamp, pose, trajectory)
         if reason is not None:
             self.get_logger().warning(f"odometry at {stamp:.3f} s skipped: {reason}",
                                       throttle_duration_sec=5.0)  # fmt: skip
             return
-        self._odom_frame = self._odom_frame or msg.header.frame_id
+        out = self.outputs[trajectory]
+        out.odom_frame = out.odom_frame or msg.header.frame_id
         if self.graph.update():
             self._publish_correction(stamp)
-        corrected = self.graph.map_to_odom().compose(pose3(pose))
-        out = Odometry(header=msg.header, child_frame_id=msg.child_frame_id)
-        out.header.frame_id = self.values["map_frame"]
-        out.pose.pose = _pose_msg(pose7(corrected))
-        out.twist = msg.twist  # in the child frame: unchanged by the correction
-        self.pub_odom.publish(out)
+        if not self.graph.joined(trajectory):
+            return  # not in the map frame yet: nothing to correct it with
+        corrected = self.graph.map_to_odom(trajectory).compose(pose3(pose))
+        moved = Odometry(header=msg.header, child_frame_id=msg.child_frame_id)
+        moved.header.frame_id = self.values["map_frame"]
+        moved.pose.pose = _pose_msg(pose7(corrected))
+        moved.twist = msg.twist  # in the child frame: unchanged by the correction
+        out.odom.publish(moved)
 
     def add_loop(self, loop: LoopFactor) -> str:
         """Feed one loop into the graph and update; returns the graph's answer."""
@@ -121,24 +137,34 @@ class PoseGraphNode(Node):
 
     # ---- outputs -------------------------------------------------------------------------------
     def _publish_correction(self, stamp: float) -> None:
-        msg = TransformStamped()
-        msg.header.stamp = _stamp_msg(stamp)
-        msg.header.frame_id = self.values["map_frame"]
-        msg.child_frame_id = self._odom_frame or "odom"
-        x, y, z, qx, qy, qz, qw = pose7(self.graph.map_to_odom())
-        t, r = msg.transform.translation, msg.transform.rotation
-        t.x, t.y, t.z, r.x, r.y, r.z, r.w = x, y, z, qx, qy, qz, qw
-        self.pub_correction.publish(msg)
+        """``map_to_odom`` of every trajectory in the map frame (the graph moves them all)."""
+        for trajectory, out in self.outputs.items():
+            if not self.graph.joined(trajectory) or not len(self.graph.node_stamps(trajectory)):
+                continue
+            msg = TransformStamped()
+            msg.header.stamp = _stamp_msg(stamp)
+            msg.header.frame_id = self.values["map_frame"]
+            msg.child_frame_id = out.odom_frame or "odom"
+            x, y, z, qx, qy, qz, qw = pose7(self.graph.map_to_odom(trajectory))
+            t, r = msg.transform.translation, msg.transform.rotation
+            t.x, t.y, t.z, r.x, r.y, r.z, r.w = x, y, z, qx, qy, qz, qw
+            out.map.publish(msg)
 
     def publish_path(self) -> None:
-        """Publish the optimised nodes as ``corrected_path`` (nothing before the first node); when
-        the odometry has stopped, also go on converging after a loop."""
-        stamps = self.graph.node_stamps()
-        if not len(stamps):
+        """Publish each joined trajectory's optimised nodes as its ``corrected_path`` (nothing
+        before its first node); when the odometry has stopped, also go on converging after a
+        loop."""
+        newest = [s[-1] for t in self.outputs if len(s := self.graph.node_stamps(t))]
+        if not newest:
             return
         if self.graph.update():
-            self._publish_correction(float(stamps[-1]))
-        poses = self.graph.optimised_poses()
+            self._publish_correction(float(max(newest)))
+        for trajectory, out in self.outputs.items():
+            stamps = self.graph.node_stamps(trajectory)
+            if len(stamps) and self.graph.joined(trajectory):
+                out.path.publish(self._path(stamps, self.graph.optimised_poses(trajectory)))
+
+    def _path(self, stamps, poses) -> Path:
         path = Path()
         path.header.frame_id = self.values["map_frame"]
         path.header.stamp = _stamp_msg(float(stamps[-1]))
@@ -147,7 +173,18 @@ class PoseGraphNode(Node):
             item.header.frame_id = path.header.frame_id
             item.header.stamp = _stamp_msg(float(stamp))
             path.poses.append(item)
-        self.pub_path.publish(path)
+        return path
+
+
+class _Outputs:
+    """One robot-session's publishers (``prefix``: '' for a single robot, else ``robot/``) and
+    the frame of its odometry."""
+
+    def __init__(self, node: Node, prefix: str, odom_frame: str) -> None:
+        self.path = node.create_publisher(Path, f"{prefix}corrected_path", 1)
+        self.map = node.create_publisher(TransformStamped, f"{prefix}map_to_odom", 10)
+        self.odom = node.create_publisher(Odometry, f"{prefix}corrected_odom", 10)
+        self.odom_frame = odom_frame
 
 
 def main(argv: list[str] | None = None) -> int:

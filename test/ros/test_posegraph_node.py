@@ -170,3 +170,45 @@ def test_process_stops_cleanly_and_refuses_bad_parameters():
     proc.send_signal(signal.SIGINT)
     assert proc.wait(30.0) == 0, "".join(lines)
     assert "ready: odometry odom, loops loop_closure/factor" in "".join(lines)
+
+
+def test_several_robots_one_graph_outputs_per_robot(ros):
+    """trajectories = 'a/s1=/a/odom, b/s1=/b/odom': odometry of each on its topic, loops naming
+    the robots in the factor message; b's outputs appear once it has joined a's frame."""
+    import fleet_drives as fd
+
+    from pair_vpr_ros.loop_factor import factor_from_msg
+
+    a, b = fd.robot(0, seed=1), fd.robot(60, seed=2)
+    rng = np.random.default_rng(0)
+    loops = fd.loops(b, a, ("b", "s1"), ("a", "s1"), 60, rng, start=100)
+    node = PoseGraphNode(parameter_overrides=[
+        Parameter("trajectories", value="a/s1=/a/odom, b/s1=/b/odom"),
+        Parameter("camera_to_base", value=list(drives.CAMERA)),
+    ])  # fmt: skip
+    try:
+        out = node.outputs[("b", "s1")]
+        assert (out.path.topic_name, out.map.topic_name, out.odom.topic_name) == (
+            "/b/corrected_path", "/b/map_to_odom", "/b/corrected_odom"
+        )  # fmt: skip
+        k = 0
+        for i, stamp in enumerate(a[0]):
+            node._on_odom(odom_msg(stamp, a[2][i]), trajectory=("a", "s1"))
+            node._on_odom(odom_msg(stamp, b[2][i]), trajectory=("b", "s1"))
+            while k < len(loops) and loops[k].query_stamp <= stamp:
+                assert node.add_loop(factor_from_msg(factor_msg(loops[k], CLASSES))) in (
+                    "added", "waiting", "pending"
+                )  # fmt: skip
+                k += 1
+        node.publish_path()
+        assert node.graph.joined(("b", "s1")) and node.graph.counts.loops_added == len(loops)
+        assert fd.world_error(node.graph, ("b", "s1"), b, a) < 1.0
+    finally:
+        node.destroy_node()
+
+
+def test_a_robot_twice_refuses_to_start(ros):
+    with pytest.raises(ConfigError, match="trajectories: a robot is given twice"):
+        PoseGraphNode(parameter_overrides=[
+            Parameter("trajectories", value="a/s1=/a/odom, a/s2=/a2/odom")
+        ])  # fmt: skip
