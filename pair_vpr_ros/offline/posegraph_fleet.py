@@ -19,7 +19,7 @@ join it once their loops agree on where they are (``posegraph.joining``). Writes
 from __future__ import annotations
 
 import re
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +37,7 @@ from pair_vpr_ros.offline.trajectories import (
     write_tum,
 )
 from pair_vpr_ros.posegraph.graph import PoseGraph, PoseGraphConfig
+from pair_vpr_ros.posegraph.loops import own
 from pair_vpr_ros.posegraph.tracks import TrajectoryId, label
 
 SAFE_ID = re.compile(r"[A-Za-z0-9_.-]+")
@@ -98,15 +99,6 @@ def check_inputs(inputs: list[TrajectoryInput]) -> None:
                 "session ids"
             )
         seen[item.id] = number
-
-
-def own(factor: LoopFactor, owner: TrajectoryId) -> LoopFactor:
-    """``factor`` with the ends that name no robot and session given to ``owner``."""
-    names = {}
-    for side in ("query", "match"):
-        if not getattr(factor, f"{side}_robot") and not getattr(factor, f"{side}_session"):
-            names[f"{side}_robot"], names[f"{side}_session"] = owner
-    return replace(factor, **names) if names else factor
 
 
 def optimise_fleet(

@@ -8,7 +8,7 @@ and its covariance; ``LoopFactor.gtsam_covariance()`` gives it in GTSAM's order 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import gtsam
 import numpy as np
@@ -60,3 +60,12 @@ def camera_pose(factor: LoopFactor) -> gtsam.Pose3:
     norm = float(np.sqrt(qx * qx + qy * qy + qz * qz + qw * qw))
     rot = gtsam.Rot3.Quaternion(qw / norm, qx / norm, qy / norm, qz / norm)
     return gtsam.Pose3(rot, np.asarray(factor.translation, dtype=np.float64))
+
+
+def own(factor: LoopFactor, owner: tuple[str, str]) -> LoopFactor:
+    """``factor`` with the ends that name no robot and session given to ``owner``."""
+    names = {}
+    for side in ("query", "match"):
+        if not getattr(factor, f"{side}_robot") and not getattr(factor, f"{side}_session"):
+            names[f"{side}_robot"], names[f"{side}_session"] = owner
+    return replace(factor, **names) if names else factor

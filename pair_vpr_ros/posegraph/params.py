@@ -24,8 +24,9 @@ PARAMS: tuple[ParamSpec, ...] = (
     _p("odom_qos", "sensor_data", "odometry QoS: sensor_data (best effort, hears every "
        "publisher) or reliable", choices=("sensor_data", "reliable"), **RO),
     _p("trajectories", "", "several robot-sessions: comma-separated ROBOT/SESSION=ODOM_TOPIC "
-       "(e.g. 'a/day1=/a/odom, b/day1=/b/odom'), the first one the map frame; SESSION may be "
-       "empty (any session of that robot); '' = one robot on odom_topic", **RO),
+       "(e.g. 'a/day1=/a/odom, b/day1=/b/odom'), the first one the map frame, each robot's loops "
+       "on /ROBOT/<loop_topic>; SESSION may be empty (any session of that robot); '' = one robot "
+       "on odom_topic and loop_topic", **RO),
     _p("map_frame", "map", "frame of the corrected path and parent of map_to_odom", **RO),
     _p("odom_frame", "", "child frame of map_to_odom ('' = the odometry's header.frame_id)", **RO),
     _p("path_period", 1.0, "seconds between corrected_path messages (the whole path each time)",

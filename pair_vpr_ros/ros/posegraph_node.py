@@ -15,7 +15,8 @@ after each update: relay it to ``/tf`` to correct everything that lives in the o
 ``corrected_odom`` (``nav_msgs/Odometry``: each odometry message moved into ``map_frame``).
 Several robot-sessions (``trajectories`` = ``a/day1=/a/odom, b/day1=/b/odom``): one odometry
 subscription per robot-session, one graph; the loops name their robots and sessions (the factor
-message's frame ids). The first is the map frame; each robot's outputs go to
+message's frame ids of a loop between two; a loop within one comes on its robot's
+``/<robot>/<loop_topic>``). The first is the map frame; each robot's outputs go to
 ``<robot>/corrected_path``, ``<robot>/map_to_odom`` and ``<robot>/corrected_odom`` once it has
 joined the map frame.
 Only rclpy code lives here; the graph is ``posegraph.graph``, its parameters ``posegraph.params``.
@@ -40,6 +41,7 @@ from pair_vpr_ros.loop_factor import LoopFactor, factor_from_msg
 from pair_vpr_ros.params import check_value
 from pair_vpr_ros.posegraph import params
 from pair_vpr_ros.posegraph.graph import PoseGraph
+from pair_vpr_ros.posegraph.loops import own
 from pair_vpr_ros.posegraph.transforms import pose3, pose7
 from pair_vpr_ros.ros.parameters import descriptor
 from pair_vpr_ros.types import message_pose, message_stamp, split_stamp
@@ -88,10 +90,18 @@ class PoseGraphNode(Node):
             callback = functools.partial(self._on_odom, trajectory=trajectory)
             self.create_subscription(Odometry, topic, callback, qos)
         # Reliable and deep: loops are rare and each one matters (vpr_node publishes reliably).
-        self.create_subscription(Odometry, v["loop_topic"], self._on_loop, QoSProfile(depth=100))
+        reliable = QoSProfile(depth=100)
+        if len(entries) == 1:
+            self.create_subscription(Odometry, v["loop_topic"], self._on_loop, reliable)
+        for robot, session, _ in entries if len(entries) > 1 else ():
+            # Each robot's vpr_node publishes its loops in its namespace: a loop within one
+            # robot-session carries no identity in the factor message, so it is this robot's.
+            owned = functools.partial(self._on_loop, owner=(robot, session))
+            topic = f"/{robot}/{v['loop_topic'].lstrip('/')}"
+            self.create_subscription(Odometry, topic, owned, reliable)
         self.create_timer(v["path_period"], self.publish_path)
 
-    def _on_loop(self, msg: Odometry) -> None:
+    def _on_loop(self, msg: Odometry, owner: tuple[str, str] | None = None) -> None:
         self.loops_received += 1
         try:
             factor = factor_from_msg(msg)
@@ -99,7 +109,7 @@ class PoseGraphNode(Node):
             self.loops_undecodable += 1
             self.get_logger().warning(f"loop message skipped: {err}", throttle_duration_sec=5.0)
             return
-        self.add_loop(factor)
+        self.add_loop(own(factor, owner) if owner else factor)
 
     # ---- inputs --------------------------------------------------------------------------------
     def _on_odom(self, msg: Odometry, trajectory: tuple[str, str] = ("", "")) -> None:

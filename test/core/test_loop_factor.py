@@ -128,7 +128,7 @@ def test_factor_msg_works_on_plain_constructors():
     assert lf.factor_from_msg(msg) == lf.factor_from_record(posed_record())
 
 
-def test_robot_and_session_ride_in_the_frame_ids():
+def test_robot_and_session_of_a_loop_between_two_ride_in_the_frame_ids():
     from dataclasses import asdict, replace
 
     plain = lf.factor_from_record(posed_record())
@@ -142,6 +142,11 @@ def test_robot_and_session_ride_in_the_frame_ids():
     assert msg.header.frame_id == "cam_m@a@20261125T120000Z"
     back = TS.deserialize_cdr(TS.serialize_cdr(msg, lf.FACTOR_TYPE), lf.FACTOR_TYPE)
     assert lf.factor_from_msg(back) == factor
+    # within one robot-session: the old encoding, the identity left to the topic it came on
+    within = replace(plain, query_robot="a", query_session="s", match_robot="a", match_session="s")
+    msg = lf.factor_msg(within, TS.types)
+    assert (msg.child_frame_id, msg.header.frame_id) == ("cam_q", "cam_m")
+    assert lf.factor_from_msg(msg) == plain
     assert lf.untag_frame("a@b") == ("a@b", "", "")  # not a tag: the frame id as it is
     record = {**asdict(posed_record()), "query_robot": "b", "match_session": None}
     assert lf.factor_from_record(record).query_robot == "b"  # JSON null: ""

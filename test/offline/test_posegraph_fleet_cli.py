@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from test_posegraph_cli import CAMERA, loop_record, write_odometry_bag
 
-from pair_vpr_ros.loop_factor import IDENTITY_FIELDS
+from pair_vpr_ros.loop_factor import IDENTITY
 from pair_vpr_ros.loop_messages import record_dict
 from pair_vpr_ros.offline.posegraph import main
 from pair_vpr_ros.offline.trajectories import read_tum
@@ -25,7 +25,7 @@ def write_loops(path, factors, identity: bool) -> None:
     for f in factors:
         record = record_dict(loop_record(f))
         if identity:
-            record.update({k: getattr(f, k) for k in IDENTITY_FIELDS})
+            record.update({k: getattr(f, k) for k in IDENTITY})
         records.append(record)
     path.mkdir(parents=True, exist_ok=True)
     (path / "loops.json").write_text(json.dumps(records))

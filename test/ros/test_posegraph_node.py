@@ -202,6 +202,13 @@ def test_several_robots_one_graph_outputs_per_robot(ros):
                 k += 1
         node.publish_path()
         assert node.graph.joined(("b", "s1")) and node.graph.counts.loops_added == len(loops)
+        # b's own loop on /b/loop_closure/factor: no identity in the message, b's by its topic
+        own = fd.loops(b, b, ("b", "s1"), ("b", "s1"), 0, rng, start=b[3], stop=b[3] + 1)[0]
+        msg = factor_msg(own, CLASSES)
+        assert msg.child_frame_id == "camera"
+        node._on_loop(msg, owner=("b", "s1"))
+        assert node.graph.loops[-1].factor.query_robot == "b"
+        assert node.graph.counts.loops_added == len(loops) + 1
         assert fd.world_error(node.graph, ("b", "s1"), b, a) < 1.0
     finally:
         node.destroy_node()
