@@ -3,7 +3,7 @@
 One world (seed, 3 laps of its loop) is driven by three robots, each from another point of the
 loop (a third of a drive apart) for ``frames`` frames, all starting at the same time: their
 routes overlap and so do their clocks. Robot ``a`` comes back the next day (clock + 24 h) for a
-second session in overcast light, driving the last stretch of the world's drive. Each drive
+second session in dusk light, driving the last stretch of the world's drive. Each drive
 keeps the lane offsets, parked cars and people of the world's laps it passes, its own odometry
 drift and image noise (its own seed), and its odometry starts at the origin of its own frame, as
 a robot's does: only the pose graph can put them in one frame. Ground truth: the world frame.
@@ -51,7 +51,7 @@ FLEET = (
     FleetDrive("a", "day1", 0.0, (DAY, DUSK, OVERCAST)),
     FleetDrive("b", "day1", 1 / 3, (DUSK, OVERCAST, DAY)),
     FleetDrive("c", "day1", 2 / 3, (OVERCAST, DAY, DUSK)),
-    FleetDrive("a", "day2", 1.0, (OVERCAST,) * 3, day=1),
+    FleetDrive("a", "day2", 1.0, (DUSK,) * 3, day=1),
 )
 
 

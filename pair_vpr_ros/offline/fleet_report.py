@@ -12,7 +12,8 @@ order of ``fleet.json``, each with the earlier drives' maps as prior maps) and t
     ``radius_m``; ``recall``: those with an accepted true loop of the kind / ``possible``.
 ``relocalisation``
     per later session of a robot: keyframes (replay records, in stamp order) until its first
-    accepted true loop into an earlier session of the robot (the first one counted).
+    accepted true loop into an earlier session of the robot (the first one counted:
+    ``keyframes_until_relocalised``) and into any earlier drive (``keyframes_until_in_the_map``).
 ``trajectories``, ``all_in_one_frame``
     per robot-session ATE (SE(3)-aligned) of odometry and optimised trajectory, their ratio, and
     the ATE after the first robot's alignment only; all in one frame when each is within 1 m.
@@ -76,7 +77,7 @@ def loop_figures(fleet: Path, radius_m: float = 10.0) -> dict[str, Any]:
     for n, drive in enumerate(drives):
         me, priors = ids[n], ids[:n]
         first_session = next(i for i in ids if i[0] == me[0])
-        reloc = None
+        reloc = in_map = None
         for k, record in enumerate(_records(fleet, drive), start=1):
             at = _position(truth[me], record["query_stamp"])
             for kind in ("inter_robot", "inter_session"):
@@ -95,8 +96,12 @@ def loop_figures(fleet: Path, radius_m: float = 10.0) -> dict[str, Any]:
             kinds[kind]["found"] += bool(true)
             if reloc is None and true and kind == "inter_session":
                 reloc = k
+            if in_map is None and true and kind != "intra":
+                in_map = k
         if me != first_session:
-            relocalisation[f"{me[0]}/{me[1]}"] = {"keyframes_until_relocalised": reloc}
+            relocalisation[f"{me[0]}/{me[1]}"] = {
+                "keyframes_until_relocalised": reloc, "keyframes_until_in_the_map": in_map
+            }  # fmt: skip
     for figures in kinds.values():
         accepted = figures["true"] + figures["false"]
         figures["precision"] = figures["true"] / accepted if accepted else None
