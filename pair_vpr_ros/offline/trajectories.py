@@ -217,8 +217,8 @@ def plot_fleet(
     colours = plt.get_cmap("tab10").colors
     for k, key in enumerate(before):
         name, colour = "/".join(key) or "robot", colours[k % len(colours)]
-        for ax in axes if key in truth else ():
-            ax.plot(*truth[key].poses[:, :2].T, "-", color="0.75", lw=2.5, zorder=0)
+        if key in truth:
+            axes[1].plot(*truth[key].poses[:, :2].T, "-", color="0.75", lw=2.5, zorder=0)
         axes[0].plot(*before[key].poses[:, :2].T, "-", color=colour, lw=1.2, label=name)
         xy = after[key].poses[:, :3] @ move[:3, :3].T + move[:3, 3]
         axes[1].plot(xy[:, 0], xy[:, 1], "-", color=colour, lw=1.2, label=name)
@@ -228,8 +228,8 @@ def plot_fleet(
                  {"color": "k" if joins else "tab:green", "lw": 0.5, "alpha": 0.5})  # fmt: skip
         axes[1].plot(xy[:, 0], xy[:, 1], **style)
     axes[0].set_title("before: odometry, each robot-session in its own frame", fontsize=10)
-    axes[1].set_title("after: pose graph, all in the first one's frame (grey: ground truth, "
-                      "black: loops between, red: outliers)", fontsize=9)  # fmt: skip
+    axes[1].set_title("after: one frame (grey: truth, black: loops between robot-sessions, "
+                      "red: outliers)", fontsize=9)  # fmt: skip
     for ax in axes:
         ax.set(xlabel="x [m]", ylabel="y [m]", aspect="equal")
         ax.grid(alpha=0.3)

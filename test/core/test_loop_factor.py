@@ -60,12 +60,20 @@ def test_factor_carries_both_sides_identity_and_old_records_read_as_empty():
     assert {k: getattr(lf.factor_from_record(old), k) for k in WHO} == dict.fromkeys(WHO, "")
 
 
-def test_odometry_encoding_stays_as_it_was_and_does_not_carry_the_identity():
-    factor = lf.factor_from_record(posed_record(**WHO))
+def test_odometry_encoding_stays_as_it_was_within_one_robot_session():
+    """A loop within one robot-session: the old encoding, identity left to the topic it came
+    on (posegraph_node reads each robot's loops on its own topic)."""
+    within = dict(query_robot="r1", query_session="s2", match_robot="r1", match_session="s2")
+    factor = lf.factor_from_record(posed_record(**within))
     msg = lf.factor_msg(factor, TS.types)
     back = TS.deserialize_cdr(TS.serialize_cdr(msg, lf.FACTOR_TYPE), lf.FACTOR_TYPE)
     assert back.header.frame_id == "cam_m" and back.child_frame_id == "cam_q"
-    assert lf.factor_from_msg(back) == replace(factor, **dict.fromkeys(WHO, ""))
+    assert lf.factor_from_msg(back) == replace(factor, **dict.fromkeys(within, ""))
+    # between two robot-sessions (new with issue 22) both frame ids carry their side
+    between = lf.factor_from_record(posed_record(**WHO))
+    msg = lf.factor_msg(between, TS.types)
+    assert (msg.child_frame_id, msg.header.frame_id) == ("cam_q@r1@s2", "cam_m@r0@s1")
+    assert lf.factor_from_msg(msg) == between
 
 
 @pytest.mark.parametrize("status", ["metric", "scale-free", "metric-odometry"])

@@ -25,7 +25,7 @@ def test_drives_overlap_in_place_and_time():
     # b starts where a is a third of its drive later: the routes overlap
     np.testing.assert_allclose(b.poses[0], a.poses[20])
     assert np.min(np.linalg.norm(a.poses[:, :2] - a2.poses[0, :2], axis=1)) < 6.0  # a revisit
-    assert a2.lighting_of(0).name == "overcast" and a.lighting_of(0).name == "day"
+    assert a2.lighting_of(0).name == "dusk" and a.lighting_of(0).name == "day"
     assert {d.lightings[0].name for d in FLEET[:3]} == {"day", "dusk", "overcast"}
     with pytest.raises(ConfigError, match="frames=10 per drive must be at least 24"):
         fleet_worlds(frames=10)
