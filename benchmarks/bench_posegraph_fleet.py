@@ -25,7 +25,7 @@ import numpy as np
 
 from pair_vpr_ros.demo.camera import Camera, camera_to_base
 from pair_vpr_ros.offline import bag_io
-from pair_vpr_ros.offline.posegraph import PoseGraphSummary, _track
+from pair_vpr_ros.offline.posegraph import PoseGraphSummary, read_track
 from pair_vpr_ros.offline.posegraph_fleet import optimise_fleet
 from pair_vpr_ros.offline.trajectories import Trajectory, reference_alignment, trajectory_errors
 from pair_vpr_ros.posegraph.graph import PoseGraphConfig
@@ -49,8 +49,8 @@ def read(fleet: Path) -> dict:
     for entry in json.loads((fleet / "fleet.json").read_text())["drives"]:
         scratch = PoseGraphSummary()
         with bag_io.open_bag(fleet / entry["bag"]) as reader:
-            odom = _track(reader, "/odom", "odometry", scratch)
-            truth = _track(reader, "/ground_truth", "ground truth", scratch)
+            odom = read_track(reader, "/odom", "odometry", scratch)
+            truth = read_track(reader, "/ground_truth", "ground truth", scratch)
         drives[(entry["robot"], entry["session"])] = (odom, truth)
     return drives
 

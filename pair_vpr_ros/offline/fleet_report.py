@@ -33,14 +33,14 @@ import numpy as np
 from pair_vpr_ros.cli import run_cli
 from pair_vpr_ros.errors import PoseGraphError
 from pair_vpr_ros.offline import bag_io
-from pair_vpr_ros.offline.posegraph import PoseGraphSummary, _track
+from pair_vpr_ros.offline.posegraph import PoseGraphSummary, read_track
 
 
 def _ground_truth(fleet: Path, drives: list[dict]) -> dict[tuple[str, str], Any]:
     out = {}
     for d in drives:
         with bag_io.open_bag(fleet / d["bag"]) as reader:
-            out[(d["robot"], d["session"])] = _track(
+            out[(d["robot"], d["session"])] = read_track(
                 reader, "/ground_truth", "ground-truth", PoseGraphSummary()
             )
     return out

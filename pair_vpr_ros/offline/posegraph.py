@@ -100,7 +100,7 @@ def optimise(
     return graph, np.asarray(times, dtype=np.float64)
 
 
-def _track(reader: Any, topic: str, what: str, summary: PoseGraphSummary) -> Trajectory:
+def read_track(reader: Any, topic: str, what: str, summary: PoseGraphSummary) -> Trajectory:
     """The poses of ``topic`` as a trajectory; a topic without poses is a ``PoseGraphError``.
     Poses with NaN / inf values (left out by ``read_poses``) are counted in ``summary``."""
     track, error = bag_io.read_poses(reader, bag_io.choose_pose_topic(reader, topic))
@@ -144,8 +144,8 @@ def run_posegraph(
         raise ConfigError("injecting false loops needs ground truth: pass --gt-topic")
     summary = PoseGraphSummary(config=asdict(config))
     with bag_io.open_bag(bag) as reader:
-        odometry = _track(reader, odom_topic, "odometry", summary)
-        truth = _track(reader, gt_topic, "ground-truth", summary) if gt_topic else None
+        odometry = read_track(reader, odom_topic, "odometry", summary)
+        truth = read_track(reader, gt_topic, "ground-truth", summary) if gt_topic else None
     source = read_loops(loops_path)
     unusable = summary.skipped.get("odometry: pose has NaN or infinite values", 0)
     summary.odometry_messages, summary.loops_read = len(odometry) + unusable, len(source.factors)

@@ -18,7 +18,9 @@ join it once their loops agree on where they are (``posegraph.joining``). Writes
 
 from __future__ import annotations
 
+import json
 import re
+import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,6 +31,7 @@ from pair_vpr_ros.errors import ConfigError, PairVPRError, UsageError
 from pair_vpr_ros.loop_factor import LoopFactor
 from pair_vpr_ros.offline import bag_io
 from pair_vpr_ros.offline.loop_io import read_loops
+from pair_vpr_ros.offline.posegraph import PoseGraphSummary, read_track
 from pair_vpr_ros.offline.trajectories import (
     Trajectory,
     plot_fleet,
@@ -136,8 +139,6 @@ def run_fleet_posegraph(
     """Odometry of every input + the loops of every source -> files in ``out_dir`` (see the
     module docstring); ``loops_of``: sources of one robot-session, whose loop ends that name no
     robot and session are its own. ``PairVPRError`` subclasses for unusable input."""
-    from pair_vpr_ros.offline.posegraph import PoseGraphSummary, _track
-
     config = config or PoseGraphConfig()
     config.validate()
     check_inputs(inputs)
@@ -147,9 +148,9 @@ def run_fleet_posegraph(
         scratch = PoseGraphSummary()
         try:
             with bag_io.open_bag(item.bag) as reader:
-                odometry[item.id] = _track(reader, odom_topic, "odometry", scratch)
+                odometry[item.id] = read_track(reader, odom_topic, "odometry", scratch)
                 if gt_topic:
-                    truth[item.id] = _track(reader, gt_topic, "ground-truth", scratch)
+                    truth[item.id] = read_track(reader, gt_topic, "ground-truth", scratch)
         except PairVPRError as err:
             raise type(err)(f"trajectory {label(item.id)} ({item.bag}): {err}") from err
         summary.warnings += [f"{label(item.id)}: {w}" for w in scratch.warnings]
@@ -229,15 +230,11 @@ def _write(
         e.query_key) for e in graph.loops], dtype=bool)  # fmt: skip
     plot_fleet(out / "posegraph.png", before, after, truth, to_truth, segments,
                graph.loop_inliers(), between)  # fmt: skip
-    import json
-
     (out / "posegraph.json").write_text(json.dumps(asdict(summary), indent=1) + "\n")
 
 
 def fleet_main(args: Any, config: PoseGraphConfig) -> None:
     """The ``--trajectory`` form of ``pairvpr-posegraph`` (argparse namespace in, lines out)."""
-    import sys
-
     if args.inject_false_loops:
         raise ConfigError("--inject-false-loops takes one robot's BAG, not --trajectory")
     if not args.loops and not args.loops_of:

@@ -11,7 +11,7 @@ import pytest
 from pair_vpr_ros.demo.fleet import DAY_NS, FLEET, fleet_worlds, write_fleet_bags
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.offline import bag_io
-from pair_vpr_ros.offline.posegraph import PoseGraphSummary, _track
+from pair_vpr_ros.offline.posegraph import PoseGraphSummary, read_track
 
 
 def test_drives_overlap_in_place_and_time():
@@ -40,8 +40,8 @@ def test_bags_have_the_robot_topics_and_local_odometry(tmp_path):
     with bag_io.open_bag(tmp_path / "b_day1.mcap") as reader:
         assert {"/camera/image_raw", "/camera/camera_info", "/camera/depth/image_raw", "/odom",
                 "/ground_truth"} <= set(reader.topics)  # fmt: skip
-        odom = _track(reader, "/odom", "odometry", PoseGraphSummary())
-        truth = _track(reader, "/ground_truth", "ground truth", PoseGraphSummary())
+        odom = read_track(reader, "/odom", "odometry", PoseGraphSummary())
+        truth = read_track(reader, "/ground_truth", "ground truth", PoseGraphSummary())
     np.testing.assert_allclose(odom.poses[0], [0, 0, 0, 0, 0, 0, 1], atol=1e-12)
     assert np.linalg.norm(truth.poses[0, :2]) > 1.0  # the world frame is elsewhere
     assert len(odom) == len(truth) == 24
