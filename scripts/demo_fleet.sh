@@ -9,6 +9,7 @@ cd "$(dirname "$0")/.."
 VENV=${1:-.venv}
 OUT=${OUT:-demo_out}/fleet
 FRAMES=${FRAMES:-300}
+TOP_K=${TOP_K:-}  # e.g. TOP_K=3: re-rank 3 candidates (config/demo.yaml: 1), slower, finds more
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST MPLBACKEND=Agg
 PY="$VENV/bin/python"
 
@@ -27,6 +28,7 @@ priors=() trajectories=() loops=()
 while read -r robot session bag; do
     name="${robot}_${session}"
     extra=()
+    [ -n "$TOP_K" ] && extra+=(--top-k "$TOP_K")
     [ $IDENTITY = 1 ] && extra+=(--robot-id "$robot" --session-id "$session")
     if [ $PRIOR = 1 ]; then for map in "${priors[@]}"; do extra+=(--prior-map "$map"); done; fi
     "$VENV/bin/pairvpr-bag-replay" "$OUT/$bag" --topic /camera/image_raw \
