@@ -13,173 +13,33 @@ Ctrl-C).
 from __future__ import annotations
 
 import json
-import math
 import time
-from collections import deque
-from collections.abc import Callable, Iterator
 from contextlib import nullcontext
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
-from pair_vpr_ros.detector import Candidate, DetectorConfig, LoopRecord
-from pair_vpr_ros.errors import ConfigError, OutputError, PairVPRError
+from pair_vpr_ros.detector import DetectorConfig
+from pair_vpr_ros.errors import OutputError, PairVPRError
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
 from pair_vpr_ros.identity import resolve_identity
-from pair_vpr_ros.imaging import MAX_PIXELS
 from pair_vpr_ros.model import PairVPRModel
 from pair_vpr_ros.offline import bag_io, replay_notes
 from pair_vpr_ros.offline.bag_geometry import attach, open_geometry
-from pair_vpr_ros.offline.bag_io import BagFrame, LoopBagWriter
+from pair_vpr_ros.offline.bag_io import LoopBagWriter
 from pair_vpr_ros.offline.bag_stereo import with_right
 from pair_vpr_ros.offline.outputs import check_map_dir, check_writable, prepare_out
 from pair_vpr_ros.offline.pose_topics import choose_pose_topics
+from pair_vpr_ros.offline.replay_loop import ReplayRun, drive
+from pair_vpr_ros.offline.replay_options import ReplayOptions, ReplaySummary
 from pair_vpr_ros.offline.report import KeyframeInfo, write_report
-from pair_vpr_ros.offline.sources import FrameCounts, bag_frames
-from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
-from pair_vpr_ros.place_map import IndexConfig
+from pair_vpr_ros.pipeline import LoopClosurePipeline
 from pair_vpr_ros.prior_maps import open_prior_maps
 from pair_vpr_ros.types import PoseTrack
 from pair_vpr_ros.weights import Weights, check_runtime, load_model
-
-
-@dataclass(frozen=True)
-class ReplayOptions:
-    """What a replay reads and writes (the detector's settings are a ``DetectorConfig``).
-
-    Topics: None picks by the bag's contents (the only image / depth / camera_info topic; pose
-    and ground-truth topics as ``pose_topics.choose_pose_topics`` says), ``"none"`` uses none.
-    ``pose_topic`` poses are attached to keyframes (and saved in the map); ``gt_topic`` is the
-    evaluation's ground truth. Depth is matched to images within ``depth_tolerance`` s, poses
-    within ``pose_tolerance`` s. ``map_dir`` defaults to ``OUT/map``; a saved map (or a folder
-    of other files) there is refused unless ``overwrite``.
-    """
-
-    topic: str | None = None
-    pose_topic: str | None = None
-    gt_topic: str | None = None
-    depth_topic: str | None = None
-    camera_info_topic: str | None = None
-    right_topic: str | None = None  # stereo: rectified right image (bag_stereo.py)
-    right_camera_info_topic: str | None = None
-    gt_radius: float = 10.0  # m: a loop is true when its keyframes lie this close
-    pose_tolerance: float = 0.2
-    depth_tolerance: float = 0.02
-    batch_size: int = 8
-    max_frames: int | None = None
-    max_image_pixels: int = MAX_PIXELS
-    device: str = "cpu"
-    precision: str = "fp32"  # and backend: as the node's parameters
-    backend: str = "torch"
-    openvino_cache_dir: str = "auto"  # '' = no cache
-    write_bag: bool = False
-    map_dir: str | Path | None = None
-    save_map: bool = True
-    overwrite: bool = False
-    progress: bool = True
-    robot_id: str = ""  # '' = "robot" (identity.py; a replay has no namespace)
-    session_id: str = ""  # '' = the start time, UTC
-    prior_maps: tuple[str | Path, ...] = ()  # read-only maps searched with the live one
-    # Called with each choice of topic as soon as it is made, before the model loads (the
-    # command line prints them as the run's first lines); they are in summary.notes either way.
-    announce: Callable[[str], None] | None = None
-    index: str | IndexConfig = "flat"  # the map's index (kind "milvus": docs/milvus.md)
-
-    def check(self) -> None:
-        """ConfigError naming the first value out of range."""
-        if not (math.isfinite(self.gt_radius) and self.gt_radius > 0):
-            raise ConfigError(
-                f"gt_radius must be a finite number of metres > 0, got {self.gt_radius}"
-            )
-
-    def map_path(self, out: Path) -> Path:
-        return Path(self.map_dir) if self.map_dir else out / "map"
-
-
-@dataclass
-class ReplaySummary:
-    """What one replay did; ``error`` says where it stopped when it did not finish."""
-
-    bag: str
-    topic: str
-    pose_topic: str | None  # attached to keyframes (saved in the map)
-    gt_topic: str | None = None  # ground truth of ``evaluation``
-    depth_topic: str | None = None
-    camera_info_topic: str | None = None
-    frames: int = 0  # image messages read
-    skipped: int = 0  # messages that did not deserialise or convert
-    skip_reasons: dict[str, int] = field(default_factory=dict)  # up to 10 distinct reasons
-    bad_poses: int = 0  # pose messages with NaN / inf values, skipped
-    stamps_backwards: int = 0  # usable images stamped earlier than the one before
-    stamps_repeated: int = 0  # ... stamped the same as the one before
-    geometry_skips: dict[str, int] = field(default_factory=dict)  # depth / camera_info problems
-    keyframes: int = 0
-    candidates: int = 0  # loop records (best candidate per queried keyframe)
-    pipeline_counts: dict[str, int] = field(default_factory=dict)  # rate_limited, encoded, ...
-    loops: int = 0  # accepted loop closures
-    seconds: float = 0.0
-    fps: float = 0.0
-    out_dir: str = ""
-    map_dir: str | None = None
-    bag_out: str | None = None
-    evaluation: dict[str, Any] | None = None
-    config: dict[str, Any] = field(default_factory=dict)  # the DetectorConfig used
-    model: str = ""  # the model's fingerprint (weights, input size, descriptor size)
-    robot: str = ""  # the query side of every loop: this replay's robot and session
-    session: str = ""
-    prior_maps: list[dict[str, Any]] = field(default_factory=list)  # dir, keyframes, sessions
-    loops_by_match: dict[str, int] = field(default_factory=dict)  # "robot/session" -> loops
-    warnings: list[str] = field(default_factory=list)
-    notes: list[str] = field(default_factory=list)  # how each topic was picked
-    error: str | None = None
-    interrupted: bool = False  # stopped by Ctrl-C (``error`` says after how many messages)
-
-    def line(self) -> str:
-        return (
-            f"frames {self.frames}, keyframes {self.keyframes}, loops {self.loops}, "
-            f"skipped {self.skipped}, {self.seconds:.1f} s, {self.fps:.1f} frames/s"
-        )
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-
-@dataclass
-class _Run:
-    """State of one replay loop (frames in flight between the reader and the pipeline)."""
-
-    summary: ReplaySummary
-    counts: FrameCounts = field(default_factory=FrameCounts)
-    pending: deque[BagFrame] = field(default_factory=deque)
-    records: list[LoopRecord] = field(default_factory=list)
-    global_top1: list[LoopRecord] = field(default_factory=list)  # global-only baseline
-    stamps: list[float] = field(default_factory=list)  # of every image read: the plotted path
-
-    def frames(self, read: Iterator[BagFrame], source: str) -> Iterator[Frame]:
-        """Usable frames for the pipeline, each kept in ``pending`` until its outcome comes;
-        the stamp of every frame read is noted (its ground-truth position is the path)."""
-
-        def noting_stamps() -> Iterator[BagFrame]:
-            for bf in read:
-                self.stamps.append(bf.stamp)
-                yield bf
-
-        for frame, bf in bag_frames(noting_stamps(), self.counts, source):
-            self.pending.append(bf)
-            yield frame
-
-
-def _global_top1(record: LoopRecord, best: Candidate) -> LoopRecord:
-    """The record ranking by global similarity alone would give: the top FAISS candidate."""
-    return replace(
-        record, match_id=best.id, match_stamp=best.stamp, match_frame_id=best.frame_id,
-        match_robot=best.robot, match_session=best.session,
-        global_similarity=best.global_similarity, pair_score=float("nan"), rank_before=1,
-        rank_after=1, accepted=False, reason="global top-1",
-    )  # fmt: skip
 
 
 def _keyframes(
@@ -208,43 +68,6 @@ def _read_pose_topic(reader: Any, summary: ReplaySummary, topic: str | None) -> 
     summary.bad_poses += track.rejected
     summary.warnings += [w for w in (error, bad) if w]
     return track
-
-
-def _drive(
-    run: _Run,
-    pipe: LoopClosurePipeline,
-    frames: Iterator[Frame],
-    batch_size: int,
-    writer: LoopBagWriter | None,
-    bar: tqdm,
-) -> None:
-    """Pipeline outcomes -> records, counts, output bag; Ctrl-C stops like a read error."""
-    summary = run.summary
-    try:
-        for outcome in pipe.process_many(frames, batch_size=batch_size):
-            bf = run.pending.popleft()
-            assert abs(bf.stamp - outcome.stamp) < 1e-9, "outcomes must come in frame order"
-            if outcome.keyframe_id is not None:
-                summary.keyframes += 1
-            if writer is not None and bf.cdr is not None:
-                writer.write_image(bf.cdr, bf.log_time_ns)
-            if outcome.loop is not None:
-                run.records.append(outcome.loop)
-                if outcome.loop.query_id >= 0:
-                    run.global_top1.append(_global_top1(outcome.loop, outcome.candidates[0]))
-                if outcome.loop.accepted:
-                    summary.loops += 1
-                    key = f"{outcome.loop.match_robot}/{outcome.loop.match_session}"
-                    summary.loops_by_match[key] = summary.loops_by_match.get(key, 0) + 1
-                    if writer is not None:
-                        writer.write_loop(outcome.loop, bf.log_time_ns)
-            bar.update(run.counts.frames - bar.n)
-            bar.set_postfix(keyframes=summary.keyframes, loops=summary.loops, refresh=False)
-    except KeyboardInterrupt:
-        summary.error = f"interrupted after {run.counts.frames} image messages"
-        summary.interrupted = True
-    except PairVPRError as err:  # the output bag or the map could not be written (disk full)
-        summary.error = f"stopped after {run.counts.frames} image messages: {err}"
 
 
 def replay_bag(
@@ -286,7 +109,7 @@ def replay_bag(
         poses = _read_pose_topic(reader, summary, chosen.pose)
         truth = poses if chosen.gt == chosen.pose else _read_pose_topic(reader, summary, chosen.gt)
         bag_out = prepare_out(out, o.write_bag)
-        run = _Run(summary)
+        run = ReplayRun(summary)
         geo, summary.depth_topic, summary.camera_info_topic, notes = open_geometry(
             reader, o.depth_topic, o.camera_info_topic, o.depth_tolerance,
             run.counts.geometry_skips,
@@ -327,7 +150,7 @@ def replay_bag(
             tqdm(total=total, unit="frame", desc="replay", disable=not o.progress) as bar,
             writer if writer is not None else nullcontext(),
         ):
-            _drive(run, pipe, source, o.batch_size, writer, bar)
+            drive(run, pipe, source, o.batch_size, writer, bar)
         summary.bag_out = str(bag_out) if writer is not None else None
         summary.seconds = time.perf_counter() - start
     _finish(run, pipe, out, o, truth)
@@ -335,7 +158,7 @@ def replay_bag(
 
 
 def _finish(
-    run: _Run, pipe: LoopClosurePipeline, out: Path, o: ReplayOptions, truth: PoseTrack | None
+    run: ReplayRun, pipe: LoopClosurePipeline, out: Path, o: ReplayOptions, truth: PoseTrack | None
 ) -> None:
     """Save the map, write the report and summary.json (also after a failure part-way)."""
     summary, counts = run.summary, run.counts
