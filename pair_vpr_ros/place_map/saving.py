@@ -1,0 +1,179 @@
+"""Save and load of a `PlaceMap` (`MapSaving`, the class it inherits them from): atomic, crash-safe
+saves (the steps are in persist.py) and loads that check everything before they trust it.
+
+`MapSaving` works on the PlaceMap's own state (its index, metadata, dense store, directory lock);
+it is not used on its own.
+"""
+
+from __future__ import annotations
+
+import os
+import sqlite3
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from pair_vpr_ros.errors import MapError, MapFingerprintError
+from pair_vpr_ros.identity import DEFAULT_ROBOT, LEGACY_SESSION
+from pair_vpr_ros.place_map import persist
+from pair_vpr_ros.place_map.dense_store import DenseStore
+from pair_vpr_ros.place_map.files import LOCK_NAME, DirLock, fsync_path
+from pair_vpr_ros.place_map.manifest import MANIFEST_NAME, Manifest, read_manifest, remove_stale
+
+if TYPE_CHECKING:
+    from pair_vpr_ros.place_map.place_map import PlaceMap
+
+
+class MapSaving:
+    """`save` and `load` of PlaceMap (place_map.py holds the state they work on)."""
+
+    def save(self, directory: str | os.PathLike, overwrite: bool = False) -> Path:
+        """Atomically make `directory` hold this map (created if needed) -> its resolved path.
+
+        A crash at any moment leaves the previous save in `directory` loadable and intact. After
+        a save the map continues in that directory: later saves there only append dense tokens.
+        A map of another model saved there is refused (MapFingerprintError) unless `overwrite`.
+        A failed save into a folder it created leaves no folder behind.
+        """
+        self._check_writable("save")
+        target = Path(directory).expanduser().resolve()
+        if target != self._home and not overwrite:
+            self._refuse_other_model(target)
+        created = not target.exists()
+        try:
+            target.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise MapError(f"cannot create map directory {target}: {err.strerror}") from err
+        try:
+            new_lock = DirLock(target) if target != self._home else None
+        except MapError:
+            if created:
+                _remove_new_folder(target)
+            raise
+        in_place = self._dense_committed and target == self._home
+        try:
+            manifest, copied = persist.save(target, self._parts(), in_place)
+        except BaseException as err:
+            if new_lock is not None:
+                new_lock.release()
+                if created:
+                    _remove_new_folder(target)
+            if isinstance(err, (OSError, sqlite3.Error, RuntimeError)):  # RuntimeError: FAISS
+                raise MapError(
+                    f"saving the place map to {target} failed ({err}); the previous save there "
+                    "(if any) is unchanged: free disk space or pick another directory and retry"
+                ) from err
+            raise
+        self._after_commit(target, manifest, copied, new_lock)
+        return target
+
+    def _refuse_other_model(self, target: Path) -> None:
+        if not (target / MANIFEST_NAME).is_file():
+            return
+        try:
+            theirs = read_manifest(target).fingerprint
+        except MapError:
+            return  # a damaged save: the save replaces it as before
+        if self.fingerprint and theirs and theirs != self.fingerprint:
+            raise MapFingerprintError(
+                f"map directory {target} holds a map of another model (fingerprint {theirs!r}, "
+                f"this map's is {self.fingerprint!r}): save into another directory, or pass "
+                "overwrite=True to replace it"
+            )
+
+    def _parts(self) -> persist.MapParts:
+        return persist.MapParts(
+            self._index, self._meta, self._dense, self.desc_dim, self.dense_shape, self.fingerprint
+        )
+
+    def _after_commit(
+        self, d: Path, manifest: Manifest, copied: Path | None, lock: DirLock | None
+    ) -> None:
+        """Bookkeeping once `d` holds the new save; if it fails, the next save copies again."""
+        self._dense_committed = False
+        if copied is None:
+            self._dense.owned = False  # a save names this file now: never move or delete it
+        if lock is not None:
+            if self._lock is not None:
+                self._lock.release()
+            self._lock, self._home = lock, d
+        persist.reached("committed")
+        try:
+            if copied is not None:  # continue in the new copy; the old file stays with its save
+                old = self._dense
+                self._dense = DenseStore(
+                    copied,
+                    self.dense_shape,
+                    old.crcs,
+                    cache_size=self._cache_size,
+                    verify_reads=self._verify_reads,
+                )
+                self._discard(old)
+            self._dense_committed = True
+            fsync_path(d)  # make the manifest switch durable before deleting what it replaced
+        except OSError as err:
+            raise MapError(
+                f"the place map was saved to {d}, but finishing the save failed ({err}); "
+                "save again to make sure it is on disk"
+            ) from err
+        remove_stale(d, manifest.file_names() | {MANIFEST_NAME, LOCK_NAME})
+        persist.reached("cleaned")
+
+    @classmethod
+    def load(
+        cls,
+        directory: str | os.PathLike,
+        expected_fingerprint: str | None = None,
+        *,
+        read_only: bool = False,
+        ef_search: int | None = None,
+        verify_dense: bool = False,
+        dense_cache_size: int = 128,
+        verify_dense_reads: bool = True,
+        work_dir: str | os.PathLike | None = None,
+        legacy_identity: tuple[str, str] = (DEFAULT_ROBOT, LEGACY_SESSION),
+    ) -> PlaceMap:
+        """Open a saved map to continue mapping (or only to query, with read_only=True).
+        legacy_identity: (robot, session) of the keyframes of a format-1 map (`load_note`).
+
+        expected_fingerprint: refuse (MapFingerprintError) a map built by another model.
+        ef_search: override the saved HNSW ef_search. verify_dense: CRC-check every dense entry
+        now (reads the whole dense file). A writable load locks the directory against other
+        writers (read-only loads may share it); the saved copy changes only on the next save.
+        """
+        d = Path(directory).expanduser().resolve()
+        if not (d / MANIFEST_NAME).is_file():
+            read_manifest(d)  # raises the MapError that explains what is missing
+        obj = cls.__new__(cls)
+        obj._setup(dense_cache_size, verify_dense_reads, work_dir)
+        try:
+            obj._lock = None if read_only else DirLock(d)
+            parts = persist.open_saved(
+                d,
+                expected_fingerprint,
+                obj._tmp / "meta.sqlite",
+                read_only=read_only,
+                ef_search=ef_search,
+                cache_size=obj._cache_size,
+                verify_reads=obj._verify_reads,
+                legacy=legacy_identity,
+            )
+            obj._index, obj._meta, obj._dense = parts.index, parts.meta, parts.dense
+            if verify_dense:
+                obj._dense.verify_all()
+        except BaseException:
+            obj.close()
+            raise
+        obj.desc_dim, obj.dense_shape = parts.desc_dim, parts.dense_shape
+        obj.fingerprint = parts.fingerprint
+        obj._home, obj._dense_committed, obj._read_only = d, True, read_only
+        obj.load_note = parts.note
+        return obj
+
+
+def _remove_new_folder(target: Path) -> None:
+    """Undo a folder a failed save created: its lock file, then the folder if it is empty."""
+    (target / LOCK_NAME).unlink(missing_ok=True)
+    try:
+        target.rmdir()
+    except OSError:
+        pass  # not empty: something else wrote there; leave it
