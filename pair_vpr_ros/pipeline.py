@@ -11,98 +11,37 @@ every map service (save, load, clear, mode and parameter changes) to the one map
 threads read only what that thread copied out (`MapControl.state`). A pipeline may move to
 another thread between calls (the place map's SQLite connection is opened for that). The model
 is only read, so two pipelines on two threads may share one (the node's background map build).
+
+Its inputs and outputs (`Frame`, `FrameOutcome`, `PipelineCounts`) are in frames.py, its map's
+life cycle (new, checked, saved, loaded, cleared) in pipeline_maps.py (`PipelineMaps`).
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Iterable, Iterator
-from dataclasses import asdict, dataclass, field, replace
-from pathlib import Path
+from dataclasses import replace
 
 import numpy as np
 import torch
 
-from pair_vpr_ros.detector import Candidate, DetectorConfig, LoopDetector, LoopRecord
-from pair_vpr_ros.errors import ConfigError, MapFingerprintError, MapUnavailableError
-from pair_vpr_ros.geometry.camera import CameraModel
+from pair_vpr_ros.detector import Candidate, DetectorConfig, LoopDetector
+from pair_vpr_ros.errors import ConfigError, MapUnavailableError
+from pair_vpr_ros.frames import Frame, FrameOutcome, PipelineCounts, frame_due, match_candidate
 from pair_vpr_ros.geometry.features import Features
 from pair_vpr_ros.geometry.keyframes import GeometryConfig, KeyframeGeometry
 from pair_vpr_ros.geometry.odometry_scale import Neighbour
-from pair_vpr_ros.identity import LEGACY_SESSION, Identity
+from pair_vpr_ros.identity import Identity
 from pair_vpr_ros.map_search import MapSearch
 from pair_vpr_ros.model import PairVPRModel, preprocess_batch
 from pair_vpr_ros.model.decoder import default_chunk
+from pair_vpr_ros.pipeline_maps import PipelineMaps
 from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
-from pair_vpr_ros.prior_maps import refuse_prior_target
 from pair_vpr_ros.recency import ClockWatch
 from pair_vpr_ros.scoring import dense_pair_scores, encode_for_map, map_pair_scores
-from pair_vpr_ros.types import Pose
 
 
-@dataclass
-class Frame:
-    """One camera frame: RGB uint8 [H,W,3], header stamp in seconds, optional pose
-    (x, y, z, qx, qy, qz, qw), optional aligned depth [H,W] float32 metres (NaN / 0: none) and
-    the camera's intrinsics (needed for a relative pose); stereo: the rectified right image
-    [H,W,3] and the baseline (m), keyframes without depth get it from them (geometry/stereo.py)."""
-
-    stamp: float
-    rgb: np.ndarray
-    frame_id: str = ""
-    pose: Pose | None = None
-    source: str = ""
-    depth: np.ndarray | None = None
-    camera: CameraModel | None = None
-    right: np.ndarray | None = None
-    baseline: float = 0.0
-
-
-@dataclass
-class FrameOutcome:
-    stamp: float
-    keyframe_id: int | None = None  # id in the map when the frame was added
-    skipped: str = ""  # why the frame was not a keyframe ("" when it was)
-    loop: LoopRecord | None = None  # the best candidate after re-ranking, accepted or not
-    # Candidates in global (FAISS) order with their pair scores: [0] is what ranking by global
-    # similarity alone would return.
-    candidates: list[Candidate] = field(default_factory=list)
-    timings_ms: dict[str, float] = field(default_factory=dict)
-    # > 0: the stamps jumped back this many seconds before this frame, which starts a session
-    clock_jump_s: float = 0.0
-
-
-@dataclass
-class PipelineCounts:
-    """What a pipeline did with its frames since it was made. The node's `/diagnostics` and
-    the replay's `summary.json` (`pipeline_counts`) report these names."""
-
-    rate_limited: int = 0  # skipped unencoded: closer than min_frame_interval to the last one
-    encoded: int = 0
-    similar_to_keyframe: int = 0  # encoded, but too similar to the last keyframe
-    keyframes: int = 0
-    loops: int = 0  # accepted loop closures
-    rejected: int = 0  # keyframes whose best candidate was not accepted
-    pose_metric: int = 0  # accepted loops with a metric relative pose (depth)
-    pose_metric_odometry: int = 0  # ... metric, monocular, scaled by an odometry baseline
-    pose_scale_free: int = 0  # ... with a rotation and a translation direction only
-    pose_none: int = 0  # ... without a pose (the record's pose_reason says why)
-    depth_wrong_size: int = 0  # keyframes whose depth image did not fit (dropped)
-    intrinsics_wrong_size: int = 0  # keyframes whose intrinsics were for another size
-    features_damaged: int = 0  # stored features that could not be unpacked
-    candidates_scored: int = 0  # pair scores computed (candidates re-ranked, all keyframes)
-    rerank_budget_cut: int = 0  # keyframes whose re-ranking stopped at rerank_budget_ms
-    clock_jumps: int = 0  # stamps that went back by more than CLOCK_JUMP_S: new sessions
-    stereo_depth: int = 0  # keyframes whose depth came from the stereo pair
-    stereo_invalid: int = 0  # keyframes whose stereo pair could not give depth (unrectified..)
-    map_searches_skipped: int = 0  # keyframes not queried: the map's Milvus did not answer
-    map_keyframes_pending: int = 0  # now: keyframes kept until the map's Milvus answers again
-
-    def to_dict(self) -> dict[str, int]:
-        return asdict(self)
-
-
-class LoopClosurePipeline:
+class LoopClosurePipeline(PipelineMaps):
     """Frames -> encoder -> keyframe selection -> map query -> pair re-ranking -> LoopRecords.
 
     Not thread-safe: one thread at a time (see the module docstring).
@@ -156,33 +95,6 @@ class LoopClosurePipeline:
         """ "mapping" (query, then add each keyframe) or "localization" (query only)."""
         self.set_config(self.config.updated(mode=mode))
 
-    def _new_map(self) -> PlaceMap:
-        desc_dim, dense_shape = self._new_map_shapes()
-        return PlaceMap(
-            desc_dim=desc_dim,
-            dense_shape=dense_shape,
-            fingerprint=self.model.fingerprint,
-            index=self.index_kind,
-        )
-
-    def _check_fingerprint(self, place_map: PlaceMap) -> None:
-        if place_map.fingerprint != self.model.fingerprint:
-            raise MapFingerprintError(
-                f"the map was built with model {place_map.fingerprint!r} but this pipeline runs "
-                f"{self.model.fingerprint!r}: use the same weights and image size, or rebuild it"
-            )
-        want = self._new_map_shapes()
-        if (place_map.desc_dim, place_map.dense_shape) != want:
-            raise MapFingerprintError(
-                f"the map holds descriptors of {place_map.desc_dim} and dense tokens of "
-                f"{list(place_map.dense_shape)}, this model makes {want[0]} and {list(want[1])} "
-                "(its manifest was edited?): rebuild the map with this model"
-            )
-
-    def _new_map_shapes(self) -> tuple[int, tuple[int, int]]:
-        cfg = self.model.config
-        return cfg.desc_dim, (self.model.num_patches, cfg.embed_dim)
-
     def _reset_tracking(self) -> None:
         self.maps.reset(self._place_map)
         self._clock.reset()
@@ -194,48 +106,6 @@ class LoopClosurePipeline:
         self._last_encoded = None
         self._last_desc = None
         self.detector.reset()
-
-    def save_map(self, directory: str | Path, overwrite: bool = False) -> Path:
-        refuse_prior_target(directory, self.maps.priors)  # a prior map is never written
-        return self._place_map.save(directory, overwrite=overwrite)
-
-    def load_map(self, directory: str | Path) -> int:
-        """Replace the map by a saved one (same model required); returns its keyframe count.
-
-        Reloading the folder the current map was saved to discards its unsaved keyframes (the
-        folder is locked by the current map, so that one is closed first)."""
-        refuse_prior_target(directory, self.maps.priors)  # it is searched already, read-only
-        current = self._place_map
-        same = current.directory is not None and current.directory == Path(directory).resolve()
-        if same:
-            current.close()
-        loaded = None
-        try:
-            loaded = PlaceMap.load(
-                directory, expected_fingerprint=self.model.fingerprint,
-                legacy_identity=(self.identity.robot, LEGACY_SESSION),
-            )  # fmt: skip
-            self._check_fingerprint(loaded)
-        except Exception:
-            if loaded is not None:
-                loaded.close()
-            if same:  # the old map is gone: continue on an empty one rather than none
-                self._place_map = self._new_map()
-                self._reset_tracking()
-            raise
-        self._place_map = loaded
-        self._reset_tracking()
-        if not same:
-            current.close()
-        return len(loaded)
-
-    def clear_map(self) -> None:
-        self._place_map.clear()
-        self._reset_tracking()
-
-    def close(self) -> None:
-        self._place_map.close()
-        self.maps.close_priors()
 
     # ---- processing ------------------------------------------------------------------------
     def due(self, stamp: float) -> bool:
@@ -397,18 +267,3 @@ class LoopClosurePipeline:
     def pair_scores(self, dense: np.ndarray, ids: list[int]) -> np.ndarray:
         """Query dense [N,D] against map keyframes `ids` -> bidirectional scores [K]."""
         return map_pair_scores(self.model, self._place_map, dense, ids, self.rerank_chunk)
-
-
-def match_candidate(outcome: FrameOutcome) -> Candidate | None:
-    """The candidate an outcome's loop record names (its rank before re-ranking is unique)."""
-    loop = outcome.loop
-    if loop is None:
-        return None
-    return next(c for c in outcome.candidates if c.rank_before == loop.rank_before)
-
-
-def frame_due(stamp: float, last: float | None, interval: float) -> bool:
-    """The frame-rate limit: is a frame at `stamp` (s) at least `interval` s from the last one
-    let through, at `last` (None: none yet)? The pipeline asks it before encoding; the node
-    asks it before queueing, so frames the pipeline would skip never wait in its queue."""
-    return last is None or abs(stamp - last) >= interval

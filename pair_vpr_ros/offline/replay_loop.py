@@ -12,10 +12,11 @@ from tqdm import tqdm
 
 from pair_vpr_ros.detector import Candidate, LoopRecord
 from pair_vpr_ros.errors import PairVPRError
+from pair_vpr_ros.frames import Frame
 from pair_vpr_ros.offline.bag_io import BagFrame, LoopBagWriter
 from pair_vpr_ros.offline.replay_options import ReplaySummary
 from pair_vpr_ros.offline.sources import FrameCounts, bag_frames
-from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
+from pair_vpr_ros.pipeline import LoopClosurePipeline
 
 
 @dataclass

@@ -13,11 +13,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from pair_vpr_ros.errors import BagError, ConfigError, ImageConversionError
+from pair_vpr_ros.frames import Frame
 from pair_vpr_ros.imaging import IMAGE_SUFFIXES, MAX_PIXELS, file_to_rgb
 from pair_vpr_ros.offline import bag_io
 from pair_vpr_ros.offline.bag_geometry import attach, open_geometry
 from pair_vpr_ros.offline.bag_io import BagFrame
-from pair_vpr_ros.pipeline import Frame
 
 DEPTH_TOLERANCE = 0.02  # s between an image and its depth image when building a map
 
