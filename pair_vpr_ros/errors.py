@@ -68,3 +68,12 @@ class PoseGraphError(PairVPRError):
 
 class GeometryInputError(PairVPRError):
     """Camera intrinsics or a depth image are missing, malformed or do not fit the image."""
+
+
+class FleetMessageError(PairVPRError):
+    """A fleet message (another robot's descriptor, score request or response) cannot be used.
+    `reason` is the short key receivers count it under ("malformed", "wrong model", ...)."""
+
+    def __init__(self, reason: str, detail: str = "") -> None:
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason = reason

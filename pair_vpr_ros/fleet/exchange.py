@@ -1,0 +1,256 @@
+"""`FleetExchange`: one robot's side of the fleet exchange, ROS-free and transport-free.
+
+It wraps the robot's `LoopClosurePipeline` and talks through `send(Outgoing)` and
+`receive(channel, bytes)`; the node maps channels to topics, `fleet.local.LocalBus` connects
+exchanges in one process. Per own keyframe: publish its descriptor (~1.1 KB), search the peers'
+descriptors, and send a score request (the query's dense tokens) to the owner of candidates
+that pass the detector's global floor, within the request budget. Per request received: score
+it (`owner.score_request`), answer, and return the inter-robot loop for publishing. Every
+message that cannot be used is counted under its reason in `counts.skipped`; none raises.
+
+Not thread-safe: drive it on the pipeline's thread (it reads the pipeline's map).
+"""
+
+from __future__ import annotations
+
+import math
+import secrets
+import time
+from collections import Counter, OrderedDict
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+
+from pair_vpr_ros.errors import ConfigError, FleetMessageError, PairVPRError
+from pair_vpr_ros.fleet.messages import KeyframeDescriptor, ScoreRequest, ScoreResponse, decode
+from pair_vpr_ros.fleet.messages import encode as encode_message
+from pair_vpr_ros.fleet.owner import InterRobotLoop, score_request
+from pair_vpr_ros.fleet.peers import PeerStore, RequestBudget
+from pair_vpr_ros.fleet.wire import check_name, model_tag
+from pair_vpr_ros.pipeline import FrameOutcome, LoopClosurePipeline
+
+CHANNELS = {"keyframes": KeyframeDescriptor, "request": ScoreRequest, "response": ScoreResponse}
+REMEMBERED = 4096  # request ids remembered for duplicate / late detection
+
+
+@dataclass(frozen=True)
+class FleetConfig:
+    """robot / session: this robot's identity; budget: score requests per period_s (0: send
+    descriptors only); top_k: peer keyframes searched per own keyframe; timeout_s: a request
+    unanswered this long is counted lost; peers: robots listened to (empty: any);
+    send_features: add the query's keyframe features to requests (owner computes the pose)."""
+
+    robot: str
+    session: str
+    budget: int = 4
+    period_s: float = 10.0
+    top_k: int = 3
+    timeout_s: float = 10.0
+    peers: tuple[str, ...] = ()
+    send_features: bool = True
+
+    def __post_init__(self) -> None:
+        try:
+            check_name("robot", self.robot)
+            check_name("session", self.session)
+        except FleetMessageError as err:
+            raise ConfigError(f"fleet {err.args[0].split(': ', 1)[1]}") from err
+        checks = {
+            "budget": self.budget >= 0,
+            "top_k": 1 <= self.top_k <= 64,
+            "period_s": math.isfinite(self.period_s) and self.period_s > 0,
+            "timeout_s": math.isfinite(self.timeout_s) and self.timeout_s > 0,
+        }
+        for name, ok in checks.items():
+            if not ok:
+                raise ConfigError(f"fleet {name}={getattr(self, name)!r} is out of range")
+        if self.robot in self.peers:
+            raise ConfigError(f"fleet peers {list(self.peers)} name this robot {self.robot!r}")
+
+
+@dataclass(frozen=True)
+class Outgoing:
+    channel: str  # "keyframes", "request" or "response"
+    target: str  # the owner robot of a request; "" = every robot
+    data: bytes
+
+
+@dataclass
+class FleetCounts:
+    keyframes: int = 0  # own keyframes whose descriptor was published
+    sent: Counter = field(default_factory=Counter)  # channel -> messages
+    sent_bytes: Counter = field(default_factory=Counter)  # channel -> bytes
+    received: Counter = field(default_factory=Counter)
+    received_bytes: Counter = field(default_factory=Counter)
+    skipped: Counter = field(default_factory=Counter)  # reason -> messages not used
+    ignored: int = 0  # own descriptors heard back, responses meant for other robots
+    budget_cut: int = 0  # requests not sent: the period's budget was spent
+    timeouts: int = 0  # requests unanswered within timeout_s
+    loops_accepted: int = 0  # inter-robot loops this robot accepted as owner
+    loops_rejected: int = 0  # requests this robot scored as owner without accepting
+    loops_confirmed: int = 0  # own requests answered "accepted" by the owner
+
+    def summary(self) -> dict:
+        """Counts plus bytes per own keyframe and per accepted loop (requester side)."""
+        out = {k: dict(v) if isinstance(v, Counter) else v for k, v in asdict(self).items()}
+        kf, total = self.keyframes, sum(self.sent_bytes.values())
+        out["descriptor_bytes_per_keyframe"] = self.sent_bytes["keyframes"] / kf if kf else 0.0
+        out["bytes_per_keyframe"] = total / kf if kf else 0.0
+        loops = self.loops_confirmed
+        out["request_bytes_per_confirmed_loop"] = (
+            self.sent_bytes["request"] / loops if loops else 0.0
+        )
+        return out
+
+
+class FleetExchange:
+    """One robot's fleet exchange around its pipeline (see the module docstring)."""
+
+    def __init__(
+        self,
+        pipeline: LoopClosurePipeline,
+        config: FleetConfig,
+        send: Callable[[Outgoing], None],
+        clock: Callable[[], float] = time.monotonic,
+        first_request_id: int | None = None,
+    ) -> None:
+        self.pipe, self.config, self.send, self.clock = pipeline, config, send, clock
+        self.tag = model_tag(pipeline.model.fingerprint)
+        self.store = PeerStore(
+            config.robot, pipeline.model.config.desc_dim, self.tag, config.peers
+        )
+        self.budget = RequestBudget(config.budget, config.period_s)
+        self.counts = FleetCounts()
+        self._next_id = secrets.randbits(31) if first_request_id is None else first_request_id
+        self._pending: OrderedDict[int, float] = OrderedDict()  # request id -> sent at
+        self._closed: OrderedDict[int, str] = OrderedDict()  # id -> "answered" / "timed out"
+        self._scored: OrderedDict[tuple[str, str, int], None] = OrderedDict()  # as owner
+        self._published: set[int] = set()
+
+    # ---- own keyframes -------------------------------------------------------------------
+    def on_keyframe(self, outcome: FrameOutcome) -> int:
+        """Publish the descriptor of a new own keyframe and request scores for peer candidates
+        that pass the global floor (within the budget); -> requests sent."""
+        kf_id = outcome.keyframe_id
+        if kf_id is None:
+            return 0
+        pm, c = self.pipe.place_map, self.config
+        desc = pm.get_desc([kf_id])[0]
+        msg = KeyframeDescriptor(c.robot, c.session, self.tag, kf_id, outcome.stamp, desc)
+        self._send("keyframes", "", msg)
+        self._published.add(kf_id)
+        self.counts.keyframes += 1
+        self.expire()
+        hits = self.store.search(desc, c.top_k, self.pipe.config.global_floor)
+        sent = 0
+        for (robot, session), found in hits.items():
+            if not self.budget.take(self.clock()):
+                self.counts.budget_cut += 1
+                continue
+            dense = pm.get_dense([kf_id])[0]
+            features = pm.features(kf_id) if c.send_features else b""
+            req = ScoreRequest(c.robot, c.session, self.tag, self._next_id, robot, session, kf_id,
+                               outcome.stamp, [h.keyframe_id for h in found],
+                               [h.similarity for h in found], dense, features)  # fmt: skip
+            self._send("request", robot, req)
+            self._pending[self._next_id] = self.clock()
+            self._next_id = (self._next_id + 1) % (1 << 32)
+            sent += 1
+        return sent
+
+    def expire(self) -> int:
+        """Count requests unanswered for timeout_s as lost (an owner that left); -> how many."""
+        now, gone = self.clock(), []
+        for rid, sent_at in self._pending.items():
+            if now - sent_at >= self.config.timeout_s or now < sent_at:
+                gone.append(rid)
+        for rid in gone:
+            del self._pending[rid]
+            self._remember(self._closed, rid, "timed out")
+        self.counts.timeouts += len(gone)
+        return len(gone)
+
+    @property
+    def pending(self) -> int:
+        return len(self._pending)
+
+    # ---- messages from other robots ------------------------------------------------------
+    def receive(self, channel: str, data: bytes) -> InterRobotLoop | None:
+        """Handle one message of `channel`; -> the inter-robot loop decided when it was a score
+        request (accepted or not), else None. Never raises on bad input: counts it."""
+        self.counts.received[channel] += 1
+        self.counts.received_bytes[channel] += len(data)
+        try:
+            msg = decode(data)
+            if not isinstance(msg, CHANNELS.get(channel, ())):
+                raise FleetMessageError("wrong channel", f"{type(msg).__name__} on {channel}")
+            if msg.model != self.tag:
+                raise FleetMessageError("wrong model", f"from robot {msg.robot!r}")
+            if isinstance(msg, KeyframeDescriptor):
+                self._descriptor(msg)
+            elif isinstance(msg, ScoreRequest):
+                return self._request(msg)
+            else:
+                self._response(msg)
+        except FleetMessageError as err:
+            self.counts.skipped[err.reason] += 1
+        return None
+
+    def _descriptor(self, msg: KeyframeDescriptor) -> None:
+        own = (msg.robot, msg.session) == (self.config.robot, self.config.session)
+        if own and msg.keyframe_id in self._published:
+            self.counts.ignored += 1  # our own, heard back on the shared topic
+            return
+        self.store.add(msg)
+
+    def _request(self, req: ScoreRequest) -> InterRobotLoop | None:
+        if req.robot == self.config.robot:
+            raise FleetMessageError("own robot", f"a request from {req.robot!r}")
+        key = (req.robot, req.session, req.request_id)
+        if key in self._scored:
+            raise FleetMessageError("duplicate", f"request {req.request_id} of {req.robot!r}")
+        try:
+            loop, response = score_request(self.pipe, req, self.config.robot, self.config.session)
+        except FleetMessageError:
+            raise
+        except (PairVPRError, ValueError, RuntimeError) as err:
+            raise FleetMessageError("scoring failed", str(err)) from err
+        self._remember(self._scored, key, None)
+        self._send("response", "", response)
+        if loop.record.accepted:
+            self.counts.loops_accepted += 1
+        else:
+            self.counts.loops_rejected += 1
+        return loop
+
+    def _response(self, msg: ScoreResponse) -> None:
+        if msg.requester_robot != self.config.robot:
+            self.counts.ignored += 1  # on the shared response topic, for another robot
+            return
+        if msg.requester_session != self.config.session:
+            raise FleetMessageError("stale session", f"response for {msg.requester_session!r}")
+        if self._pending.pop(msg.request_id, None) is None:
+            state = self._closed.get(msg.request_id)
+            reason = {"answered": "duplicate", "timed out": "late"}.get(state, "unknown request")
+            raise FleetMessageError(reason, f"response to request {msg.request_id}")
+        self._remember(self._closed, msg.request_id, "answered")
+        self.counts.loops_confirmed += int(msg.accepted)
+
+    # ---- helpers ---------------------------------------------------------------------------
+    def _send(self, channel: str, target: str, msg) -> None:
+        data = encode_message(msg)
+        self.counts.sent[channel] += 1
+        self.counts.sent_bytes[channel] += len(data)
+        self.send(Outgoing(channel, target, data))
+
+    @staticmethod
+    def _remember(memory: OrderedDict, key, value) -> None:
+        memory[key] = value
+        while len(memory) > REMEMBERED:
+            memory.popitem(last=False)
+
+    def summary(self) -> dict:
+        """Counts, bytes and the peer store (keyframes per robot/session, estimated missing)."""
+        out = self.counts.summary()
+        out.update(peer_keyframes=self.store.owners(), peer_missing=self.store.missing(),
+                   peer_reordered=self.store.reordered, pending=self.pending)  # fmt: skip
+        return out

@@ -1,0 +1,113 @@
+"""Owner-side re-ranking: the robot that owns candidate keyframes scores them against another
+robot's query with its own stored dense tokens, and decides the inter-robot loop.
+
+Pair-VPR's pair classifier needs both images' dense tokens. The requester sends its query's
+tokens once (one keyframe, ~0.8 MB at ViT-B/322 fp16) with the ids of the owner's candidates;
+the owner scores all of them against tokens it already has. The reverse (the owner sending K
+candidates' tokens) would cost K times more. The query's packed keyframe features (~140 KB of
+SIFT at 1000 keypoints; empty without geometry) travel too, so the owner can verify the pair and
+compute the relative pose T_match_query with the same geometry code as an intra-robot loop.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from pair_vpr_ros.detector import Candidate, LoopRecord, rank_by_pair_score
+from pair_vpr_ros.errors import FleetMessageError
+from pair_vpr_ros.fleet.messages import ScoreRequest, ScoreResponse
+from pair_vpr_ros.pipeline import LoopClosurePipeline, map_pair_scores
+
+IDENTITY = ("query_robot", "query_session", "match_robot", "match_session")
+
+
+@dataclass
+class InterRobotLoop:
+    """A loop between the requester's query keyframe and the owner's match keyframe."""
+
+    record: LoopRecord
+    query_robot: str
+    query_session: str
+    match_robot: str
+    match_session: str
+
+    def to_dict(self) -> dict:
+        """The record's keys (loops.json) with both sides' robot and session."""
+        out = self.record.to_dict()
+        out.update({name: getattr(self, name) for name in IDENTITY})
+        return out
+
+
+def check_request(pipe: LoopClosurePipeline, req: ScoreRequest, robot: str, session: str) -> None:
+    """FleetMessageError (its reason is counted) when this robot cannot score `req`."""
+    if req.owner_robot != robot:
+        raise FleetMessageError("not for this robot", f"request for {req.owner_robot!r}")
+    if req.owner_session != session:
+        raise FleetMessageError("stale session", f"request for session {req.owner_session!r}")
+    want = (pipe.model.num_patches, pipe.model.config.embed_dim)
+    if tuple(req.dense.shape) != want:
+        raise FleetMessageError("wrong size", f"dense {list(req.dense.shape)}, not {list(want)}")
+    size = len(pipe.place_map)
+    bad = [i for i in req.candidate_ids if not 0 <= i < size]
+    if bad or len(set(req.candidate_ids)) != len(req.candidate_ids):
+        raise FleetMessageError("unknown keyframe", f"ids {bad or req.candidate_ids} of {size}")
+
+
+def score_request(
+    pipe: LoopClosurePipeline, req: ScoreRequest, robot: str, session: str
+) -> tuple[InterRobotLoop, ScoreResponse]:
+    """Pair-score the owner's candidates of `req` (checked first) -> the loop decision (accepted
+    when the best score reaches the detector's score_threshold and, with geometric
+    verification on, the pair verifies) and the response for the requester."""
+    check_request(pipe, req, robot, session)
+    pm = pipe.place_map
+    cands = []
+    pairs = zip(req.candidate_ids, req.similarities, strict=True)
+    for rank, (kf_id, sim) in enumerate(pairs, start=1):
+        meta = pm.meta(kf_id)
+        cands.append(Candidate(kf_id, meta.stamp, meta.frame_id, float(sim), rank))
+    scores = map_pair_scores(pipe.model, pm, req.dense, req.candidate_ids, pipe.rerank_chunk)
+    best = rank_by_pair_score(cands, scores)[0]
+    c = pipe.config
+    record = LoopRecord(
+        query_id=req.query_id, query_stamp=req.query_stamp, query_frame_id="",
+        match_id=best.id, match_stamp=best.stamp, match_frame_id=best.frame_id,
+        pair_score=best.pair_score, global_similarity=best.global_similarity,
+        rank_before=best.rank_before, rank_after=1, candidates=len(cands), scored=len(cands),
+    )  # fmt: skip
+    record.reason = "" if best.pair_score >= c.score_threshold else "score below threshold"
+    query = pipe.geometry.unpack(req.features)
+    if not record.reason and c.geometric_verification:
+        record.inliers, record.inlier_ratio = pipe.geometry.verify(query, _features(pipe, best.id))
+        if record.inliers < c.min_inliers:
+            record.reason = f"geometric verification failed ({record.inliers} inliers)"
+    record.accepted = not record.reason
+    if record.accepted and pipe.geometry.config.relative_pose:
+        pipe.geometry.pose(record, query, _features(pipe, best.id), _neighbours(pipe, best.id))
+    meta = pm.meta(best.id)
+    loop = InterRobotLoop(record, req.robot, req.session, getattr(meta, "robot", "") or robot,
+                          getattr(meta, "session", "") or session)  # fmt: skip
+    _identify(record, loop)
+    response = ScoreResponse(robot, session, req.model, req.request_id, req.robot, req.session,
+                             req.query_id, best.id, best.stamp, best.pair_score, len(cands),
+                             record.accepted, record.pose_status)  # fmt: skip
+    return loop, response
+
+
+def _identify(record: LoopRecord, loop: InterRobotLoop) -> None:
+    """Fill the record's robot / session fields where LoopRecord has them (issue 22 part 1)."""
+    for name in IDENTITY:
+        if hasattr(record, name):
+            setattr(record, name, getattr(loop, name))
+
+
+def _features(pipe: LoopClosurePipeline, kf_id: int):
+    return pipe.geometry.unpack(pipe.place_map.features(kf_id))
+
+
+def _neighbours(pipe: LoopClosurePipeline, match_id: int) -> list:
+    """Map keyframes next to the match, for the scale of a monocular loop (as the pipeline)."""
+    pm, span = pipe.place_map, pipe.geometry.config.pose.scale_neighbours
+    near = [pm.meta(i) for i in range(match_id - span, match_id + span + 1)
+            if i != match_id and 0 <= i < len(pm)]  # fmt: skip
+    return pipe.geometry.neighbours(pm.meta(match_id), near, lambda i: _features(pipe, i))

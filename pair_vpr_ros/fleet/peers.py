@@ -1,0 +1,116 @@
+"""Other robots' keyframe descriptors, searched in this robot's process, and the per-period
+budget that bounds how many score requests (each carrying ~0.8 MB of dense tokens) go out.
+
+One `DescriptorIndex` (exact inner product) holds every peer keyframe; row i belongs to
+`owners[i]` (robot, session) and is that robot's keyframe `keyframe_ids[i]`.
+"""
+
+from __future__ import annotations
+
+from collections import Counter, defaultdict
+from dataclasses import dataclass
+
+import numpy as np
+
+from pair_vpr_ros.errors import FleetMessageError
+from pair_vpr_ros.fleet.messages import KeyframeDescriptor
+from pair_vpr_ros.place_map.index import DescriptorIndex
+
+NORM_TOLERANCE = 0.01  # float16 rounding moves |desc| by ~1e-3; more means not L2-normalised
+
+
+@dataclass(frozen=True)
+class PeerHit:
+    """One peer keyframe found for a query: its owner, its id in the owner's map, similarity."""
+
+    robot: str
+    session: str
+    keyframe_id: int
+    stamp: float
+    similarity: float
+
+
+class PeerStore:
+    """Descriptors heard from other robots (never this robot's own)."""
+
+    def __init__(self, robot: str, dim: int, tag: bytes, peers: tuple[str, ...] = ()) -> None:
+        self.robot, self.dim, self.tag, self.peers = robot, int(dim), tag, tuple(peers)
+        self.index = DescriptorIndex(self.dim)
+        self.rows: list[tuple[str, str, int, float]] = []  # (robot, session, kf id, stamp)
+        self._seen: set[tuple[str, str, int]] = set()
+        self._newest: dict[tuple[str, str], int] = {}
+        self._count: Counter[tuple[str, str]] = Counter()
+        self.reordered = 0  # arrived after a newer keyframe of the same robot-session (kept)
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def check(self, msg: KeyframeDescriptor) -> None:
+        """FleetMessageError (with the reason it is counted under) when `msg` cannot be kept."""
+        if msg.model != self.tag:
+            raise FleetMessageError("wrong model", f"descriptor of robot {msg.robot!r}")
+        if msg.robot == self.robot:
+            raise FleetMessageError("own robot", f"a descriptor names this robot {msg.robot!r}")
+        if self.peers and msg.robot not in self.peers:
+            raise FleetMessageError("unknown robot", f"{msg.robot!r} is not in fleet_peers")
+        if len(msg.descriptor) != self.dim:
+            raise FleetMessageError("wrong size", f"{len(msg.descriptor)}-d, not {self.dim}-d")
+        norm = float(np.linalg.norm(msg.descriptor.astype(np.float32)))
+        if abs(norm - 1.0) > NORM_TOLERANCE:
+            raise FleetMessageError("not normalised", f"|descriptor| = {norm:.3f}")
+        if (msg.robot, msg.session, msg.keyframe_id) in self._seen:
+            raise FleetMessageError("duplicate", f"{msg.robot}/{msg.session}#{msg.keyframe_id}")
+
+    def add(self, msg: KeyframeDescriptor) -> None:
+        """Keep a peer keyframe (checked first: FleetMessageError). A keyframe older than one
+        already heard is kept too (the map needs no order) and counted in `reordered`."""
+        self.check(msg)
+        key = (msg.robot, msg.session)
+        if msg.keyframe_id < self._newest.get(key, -1):
+            self.reordered += 1
+        self._newest[key] = max(self._newest.get(key, -1), msg.keyframe_id)
+        self._count[key] += 1
+        self._seen.add((msg.robot, msg.session, msg.keyframe_id))
+        desc = msg.descriptor.astype(np.float32)
+        self.index.add(desc / np.linalg.norm(desc))
+        self.rows.append((msg.robot, msg.session, msg.keyframe_id, msg.stamp))
+
+    def missing(self) -> int:
+        """Keyframes never heard (gaps in each robot-session's ids 0..newest): lost messages, or
+        keyframes a peer made before this robot listened."""
+        return sum(self._newest[key] + 1 - self._count[key] for key in self._newest)
+
+    def owners(self) -> dict[str, int]:
+        """{"robot/session": keyframes held}."""
+        return {f"{r}/{s}": n for (r, s), n in sorted(self._count.items())}
+
+    def search(self, desc: np.ndarray, k: int, floor: float) -> dict[tuple[str, str], list]:
+        """desc [dim] -> the `k` most similar peer keyframes with similarity >= `floor`,
+        grouped by owner (robot, session): {owner: [PeerHit], best first}, owners in the order
+        of their best hit."""
+        ids, sims = self.index.search(desc, k)
+        out: dict[tuple[str, str], list[PeerHit]] = defaultdict(list)
+        for i, sim in zip(ids.tolist(), sims.tolist(), strict=True):
+            if sim >= floor:
+                robot, session, kf_id, stamp = self.rows[i]
+                out[(robot, session)].append(PeerHit(robot, session, kf_id, stamp, sim))
+        return dict(out)
+
+
+class RequestBudget:
+    """At most `budget` score requests per `period_s` (Swarm-SLAM's inter-robot loop-closure
+    budget per detection period). A clock that goes back starts a new period."""
+
+    def __init__(self, budget: int, period_s: float) -> None:
+        self.budget, self.period_s = int(budget), float(period_s)
+        self._start: float | None = None
+        self._used = 0
+
+    def take(self, now: float) -> bool:
+        """Spend one request at time `now` (s); False when the period's budget is spent."""
+        if self._start is None or now < self._start or now - self._start >= self.period_s:
+            self._start, self._used = now, 0
+        if self._used >= self.budget:
+            return False
+        self._used += 1
+        return True

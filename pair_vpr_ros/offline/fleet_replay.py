@@ -1,0 +1,142 @@
+"""Several robots' recordings replayed in one process with the fleet exchange between them:
+the library behind `pairvpr-fleet-replay` (and `make demo-fleet`).
+
+Each robot gets its own `LoopClosurePipeline` (its own map) over one shared model and its own
+`FleetExchange`; a `LocalBus` carries the bytes. The robots' frames are merged by stamp, so a
+robot only hears the keyframes other robots made before its own (as live robots would). The
+budget and timeouts run on that merged stamp clock.
+"""
+
+from __future__ import annotations
+
+import heapq
+import json
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pair_vpr_ros.detector import DetectorConfig
+from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.fleet import Faults, FleetConfig, FleetExchange, InterRobotLoop, LocalBus
+from pair_vpr_ros.fleet.exchange import CHANNELS
+from pair_vpr_ros.geometry.keyframes import GeometryConfig
+from pair_vpr_ros.model import PairVPRModel
+from pair_vpr_ros.offline.sources import FrameCounts, source_frames
+from pair_vpr_ros.pipeline import Frame, FrameOutcome, LoopClosurePipeline
+
+
+@dataclass
+class FleetRobot:
+    """One robot of a fleet run: its identity and its frames (a bag or image folder path, or
+    Frames in time order). Robot ids must differ within a run."""
+
+    robot: str
+    session: str
+    source: str | Path | Iterable[Frame]
+
+
+@dataclass
+class FleetRun:
+    """What a fleet run found: inter-robot loops (accepted or not, in decision order), each
+    robot's own loop records, and each robot's exchange summary (counts, bytes)."""
+
+    loops: list[InterRobotLoop] = field(default_factory=list)
+    robot_loops: dict[str, list[dict]] = field(default_factory=dict)
+    exchanges: dict[str, dict] = field(default_factory=dict)
+    dropped: int = 0
+
+    def totals(self) -> dict[str, Any]:
+        """Fleet-wide bytes: per own keyframe (all messages) and per accepted loop (requests
+        and responses of the whole run / accepted inter-robot loops)."""
+        ex = self.exchanges.values()
+        keyframes = sum(e["keyframes"] for e in ex)
+        sent = {ch: sum(e["sent_bytes"].get(ch, 0) for e in ex) for ch in CHANNELS}
+        accepted = sum(1 for loop in self.loops if loop.record.accepted)
+        scoring = sent["request"] + sent["response"]
+        return {
+            "keyframes": keyframes, "bytes_sent": sent, "inter_robot_loops": accepted,
+            "inter_robot_rejected": len(self.loops) - accepted,
+            "descriptor_bytes_per_keyframe": sent["keyframes"] / keyframes if keyframes else 0.0,
+            "bytes_per_keyframe": sum(sent.values()) / keyframes if keyframes else 0.0,
+            "scoring_bytes_per_accepted_loop": scoring / accepted if accepted else None,
+            "dropped_by_bus": self.dropped,
+        }  # fmt: skip
+
+
+def run_fleet(
+    robots: list[FleetRobot],
+    model: PairVPRModel,
+    detector: DetectorConfig | None = None,
+    fleet: dict[str, Any] | None = None,
+    geometry: GeometryConfig | None = None,
+    faults: Faults | None = None,
+    batch_size: int = 8,
+) -> FleetRun:
+    """Replay `robots` together with the exchange on (`fleet`: FleetConfig options other than
+    robot / session, e.g. {"budget": 4, "period_s": 10.0})."""
+    names = [r.robot for r in robots]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"fleet robots {names} repeat an id: give each robot its own")
+    bus, run, streams = LocalBus(faults), FleetRun(), []
+    clock = [float("-inf")]
+    for r in robots:
+        pipe = LoopClosurePipeline(model, detector, geometry=geometry)
+        config = FleetConfig(robot=r.robot, session=r.session, **(fleet or {}))
+        ex = FleetExchange(pipe, config, bus.sender(r.robot), clock=lambda: clock[0],
+                           first_request_id=0)  # fmt: skip
+        bus.join(ex)
+        run.robot_loops[r.robot] = []
+        streams.append(_tagged(r.robot, pipe.process_many(_frames(r.source), batch_size)))
+    for stamp, robot, outcome in heapq.merge(*streams, key=lambda item: item[0]):
+        clock[0] = max(clock[0], stamp)
+        ex = bus.exchanges[robot]
+        if outcome.loop is not None:
+            run.robot_loops[robot].append(_own_record(outcome, ex.config))
+        ex.on_keyframe(outcome)
+        run.loops += bus.deliver()
+    run.loops += bus.deliver(flush=True)
+    for robot, ex in bus.exchanges.items():
+        ex.expire()
+        run.exchanges[robot] = ex.summary()
+        ex.pipe.close()
+    run.dropped = bus.dropped
+    return run
+
+
+def _frames(source: str | Path | Iterable[Frame]) -> Iterable[Frame]:
+    if isinstance(source, (str, Path)):
+        return source_frames(source, FrameCounts())
+    return source
+
+
+def _tagged(robot: str, outcomes: Iterator[FrameOutcome]) -> Iterator[tuple]:
+    for outcome in outcomes:
+        yield outcome.stamp, robot, outcome
+
+
+def _own_record(outcome: FrameOutcome, config: FleetConfig) -> dict:
+    out = outcome.loop.to_dict()
+    for side in ("query", "match"):
+        out.setdefault(f"{side}_robot", config.robot)
+        out.setdefault(f"{side}_session", config.session)
+    return out
+
+
+def write_fleet_run(run: FleetRun, out: str | Path) -> Path:
+    """OUT/inter_robot_loops.json (every decision, `accepted` marks the loops), OUT/<robot>/
+    loops.json (each robot's own decisions) and OUT/fleet_summary.json (totals, per robot)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    _write_json(out / "inter_robot_loops.json", [loop.to_dict() for loop in run.loops])
+    for robot, records in run.robot_loops.items():
+        (out / robot).mkdir(exist_ok=True)
+        _write_json(out / robot / "loops.json", records)
+    _write_json(out / "fleet_summary.json", {"totals": run.totals(), "robots": run.exchanges})
+    return out
+
+
+def _write_json(path: Path, data: Any) -> None:
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(data, indent=1, allow_nan=True) + "\n", encoding="utf-8")
+    tmp.replace(path)
