@@ -21,6 +21,7 @@ import yaml
 
 from pair_vpr_ros.detector import DetectorConfig, preset
 from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.fleet.params import FLEET_PARAMS
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
 from pair_vpr_ros.geometry.relpose import PoseConfig
 from pair_vpr_ros.identity import DEFAULT_ROBOT, RULE, name_problem
@@ -192,6 +193,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     _p("min_inliers", 15, "inliers needed with geometric_verification", 0, 100000),
 )  # fmt: skip
 
+PARAMS += tuple(_p(*row, **RO) for row in FLEET_PARAMS)  # fleet exchange: start-up only
 SPECS: dict[str, ParamSpec] = {p.name: p for p in PARAMS}
 DETECTOR_PARAMS = (
     "mode",
