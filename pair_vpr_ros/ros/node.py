@@ -73,11 +73,13 @@ from pair_vpr_ros.cli import EXIT_ERROR, EXIT_OK
 from pair_vpr_ros.detector import LoopRecord
 from pair_vpr_ros.devices import check_device
 from pair_vpr_ros.errors import ConfigError, ImageConversionError, PairVPRError
+from pair_vpr_ros.fleet import InterRobotLoop
 from pair_vpr_ros.geometry.camera_notes import demo_model_note, fallback_intrinsics_note
 from pair_vpr_ros.identity import resolve_identity
 from pair_vpr_ros.imaging import msg_to_rgb
 from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline, frame_due
 from pair_vpr_ros.prior_maps import open_prior_maps
+from pair_vpr_ros.ros.fleet import FleetLink
 from pair_vpr_ros.ros.geometry_inputs import GeometryInputs
 from pair_vpr_ros.ros.maps import MapControl
 from pair_vpr_ros.ros.outputs import MARKER_TOPIC, LoopOutputs, publish_while_up
@@ -154,6 +156,13 @@ class VprNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
         self._make_interfaces(v)
+        self.fleet = None
+        if v["fleet_enable"]:
+            try:
+                self.fleet = FleetLink(self, self.maps, v, self._publish_fleet_loop)
+            except ConfigError:
+                self.maps.close()
+                raise
         self._worker = threading.Thread(target=self._work, name="vpr_worker", daemon=True)
         if start_worker:
             self._worker.start()
@@ -338,6 +347,8 @@ class VprNode(Node):
                 self.stats.add_ms(key, ms)
             if outcome.loop is not None:
                 self._publish_loop(outcome.loop, frame.pose, match_pose)
+            if self.fleet is not None:
+                self.fleet.on_outcome(outcome)
         except Exception as err:  # noqa: BLE001 - the worker must outlive any one frame
             if not self._stop.is_set():
                 self.stats.counts.errors += 1
@@ -357,6 +368,19 @@ class VprNode(Node):
         elif record.accepted:
             counts.loops_unordered += 1
             self.get_logger().warning(note, throttle_duration_sec=10.0)
+
+    def _publish_fleet_loop(self, loop: InterRobotLoop) -> None:
+        """An inter-robot loop this robot decided as owner: published like a loop, but never
+        on the LIO-SAM pair topic (two robots' stamps)."""
+        record = loop.record
+        if not (record.accepted or self.values["publish_rejected"]):
+            return
+        self.outputs.publish(record, (None, None), self.values["marker_frame_id"], 0, pair=False)
+        if record.accepted:
+            self.get_logger().info(
+                f"inter-robot loop: {loop.query_robot} keyframe {record.query_id} -> "
+                f"{loop.match_robot} keyframe {record.match_id}, score {record.pair_score:.3f}"
+            )
 
     # ---- diagnostics, autosave, services --------------------------------------------------------
     def diagnostic_values(self) -> dict[str, str]:
@@ -414,6 +438,8 @@ class VprNode(Node):
             "session": self.identity.session,
             "prior_maps": self._prior_summary,  # dir, keyframes, sessions (fixed at start-up)
         }
+        if self.fleet is not None:
+            info["fleet"] = self.fleet.state()
         return True, json.dumps(info)
 
     def _clear(self) -> tuple[bool, str]:

@@ -9,6 +9,7 @@ by its resolved name (`-r /loop_closure/json:=/loops_json` without a base remap)
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 from functools import cache
 
@@ -96,11 +97,16 @@ class LoopOutputs:
         poses: tuple[Pose | None, Pose | None],
         marker_frame_id: str,
         number: int,
+        pair: bool = True,
     ) -> tuple[bool, str]:
         """Send `record` (accepted, or rejected with publish_rejected): pair (accepted and
-        ordered), detail, json, typed, factor (with a relative pose), markers (both poses known,
-        in `marker_frame_id`, marker id `number`) -> (pair sent, what the log should say)."""
+        ordered; never with `pair` False: an inter-robot loop's stamps are two robots' clocks,
+        which a single-robot back end like LIO-SAM must not see), detail, json, typed, factor
+        (with a relative pose), markers (both poses known, in `marker_frame_id`, marker id
+        `number`) -> (pair sent, what the log should say)."""
         content = lm.loop_messages(record)
+        if not pair:
+            content = dataclasses.replace(content, pair=None)
         detail = Float64MultiArray(data=content.detail)
         detail.layout.dim = [
             MultiArrayDimension(label=x, size=1, stride=1) for x in content.detail_labels

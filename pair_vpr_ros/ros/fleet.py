@@ -1,0 +1,118 @@
+"""vpr_node's fleet exchange on ROS 2 topics (thin: the logic is `fleet.FleetExchange`).
+
+Topics carry the fleet codec's bytes in `std_msgs/UInt8MultiArray` (the typed messages of
+`pair_vpr_ros_interfaces` had not landed when this was written; the codec is the contract):
+
+    fleet_keyframes_topic (shared)      every robot's keyframe descriptors, ~1.1 KB each
+    fleet_request_topic/<robot_id>      score requests to that robot (the query's dense tokens)
+    fleet_response_topic (shared)       the owners' answers, ~60 bytes each
+
+Everything that touches the pipeline runs on the map thread of `MapControl` (messages are
+handed over from the subscription callbacks), like a frame or a map service.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from array import array
+from collections.abc import Callable
+from functools import partial
+from typing import Any
+
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_msgs.msg import UInt8MultiArray
+
+from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.fleet import FleetExchange, InterRobotLoop, Outgoing
+from pair_vpr_ros.fleet.params import fleet_config
+from pair_vpr_ros.pipeline import FrameOutcome
+from pair_vpr_ros.ros.maps import MapControl
+from pair_vpr_ros.ros.outputs import publish_while_up
+
+TOPIC_TOKEN = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
+DEPTH = {"keyframes": 100, "request": 4, "response": 50}
+
+
+def identity(node: Node, values: dict[str, Any]) -> tuple[str, str]:
+    """(robot, session): the robot_id / session_id parameters where the node has them (issue
+    22 part 1), else the namespace without slashes (else "robot") and the start time, UTC."""
+    robot = values.get("robot_id") or node.get_namespace().strip("/").replace("/", "_")
+    session = values.get("session_id") or time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    return robot or "robot", session
+
+
+class FleetLink:
+    """Topics <-> one `FleetExchange` around the node's live pipeline."""
+
+    def __init__(
+        self,
+        node: Node,
+        maps: MapControl,
+        values: dict[str, Any],
+        on_loop: Callable[[InterRobotLoop], None],
+    ) -> None:
+        robot, session = identity(node, values)
+        if not TOPIC_TOKEN.fullmatch(robot):
+            raise ConfigError(
+                f"fleet robot id {robot!r} cannot name a request topic: use letters, digits "
+                "and _ (starting with a letter), e.g. -p robot_id:=robot_1"
+            )
+        config = fleet_config(values, robot, session)
+        self._node, self._maps, self._on_loop = node, maps, on_loop
+        self.exchange = maps.call(lambda: FleetExchange(maps.pipeline, config, self._send))
+        self._qos = {k: QoSProfile(depth=d, reliability=ReliabilityPolicy.RELIABLE)
+                     for k, d in DEPTH.items()}  # fmt: skip
+        self._request_topic = values["fleet_request_topic"].rstrip("/")
+        self._pubs = {
+            "keyframes": self._publisher(values["fleet_keyframes_topic"], "keyframes"),
+            "response": self._publisher(values["fleet_response_topic"], "response"),
+        }
+        self._owners: dict[str, Any] = {}  # owner robot -> its request publisher
+        group = MutuallyExclusiveCallbackGroup()
+        for channel, topic in (
+            ("keyframes", values["fleet_keyframes_topic"]),
+            ("request", f"{self._request_topic}/{robot}"),
+            ("response", values["fleet_response_topic"]),
+        ):
+            node.create_subscription(UInt8MultiArray, topic, partial(self._heard, channel),
+                                     self._qos[channel], callback_group=group)  # fmt: skip
+        node.create_timer(1.0, lambda: maps.submit(self._on_map_thread, self.exchange.expire))
+        self.summary = f"fleet exchange on as robot {robot!r}, session {session!r}"
+
+    def on_outcome(self, outcome: FrameOutcome) -> None:
+        """After a frame: publish a new keyframe's descriptor and requests (map thread)."""
+        if outcome.keyframe_id is not None:
+            self._maps.call(self._on_map_thread, self.exchange.on_keyframe, outcome)
+
+    def state(self) -> dict:
+        """The exchange's counts and bytes (copied on the map thread)."""
+        return self._maps.call(self.exchange.summary)
+
+    def _on_map_thread(self, fn: Callable, *args: Any) -> Any:
+        self.exchange.pipe = self._maps.pipeline  # a loaded or built map replaces it
+        return fn(*args)
+
+    def _heard(self, channel: str, msg: UInt8MultiArray) -> None:
+        data = msg.data.tobytes() if hasattr(msg.data, "tobytes") else bytes(msg.data)
+        self._maps.submit(self._receive, channel, data)
+
+    def _receive(self, channel: str, data: bytes) -> None:
+        loop = self._on_map_thread(self.exchange.receive, channel, data)
+        if loop is not None:
+            self._on_loop(loop)
+
+    def _publisher(self, topic: str, channel: str):
+        return self._node.create_publisher(UInt8MultiArray, topic, self._qos[channel])
+
+    def _send(self, out: Outgoing) -> None:
+        if out.channel == "request":
+            pub = self._owners.get(out.target)
+            if pub is None:
+                topic = f"{self._request_topic}/{out.target}"
+                pub = self._owners[out.target] = self._publisher(topic, "request")
+        else:
+            pub = self._pubs[out.channel]
+        publish_while_up(self._node, pub, UInt8MultiArray(data=array("B", out.data)))
