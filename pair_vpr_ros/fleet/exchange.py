@@ -18,7 +18,7 @@ import secrets
 import time
 from collections import Counter, OrderedDict
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, fields
 
 from pair_vpr_ros.errors import ConfigError, FleetMessageError, PairVPRError
 from pair_vpr_ros.fleet.messages import KeyframeDescriptor, ScoreRequest, ScoreResponse, decode
@@ -91,7 +91,9 @@ class FleetCounts:
 
     def summary(self) -> dict:
         """Counts plus bytes per own keyframe and per accepted loop (requester side)."""
-        out = {k: dict(v) if isinstance(v, Counter) else v for k, v in asdict(self).items()}
+        # not dataclasses.asdict: it rebuilds a Counter from (key, value) pairs, counting pairs
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        out = {k: dict(v) if isinstance(v, Counter) else v for k, v in out.items()}
         kf, total = self.keyframes, sum(self.sent_bytes.values())
         out["descriptor_bytes_per_keyframe"] = self.sent_bytes["keyframes"] / kf if kf else 0.0
         out["bytes_per_keyframe"] = total / kf if kf else 0.0

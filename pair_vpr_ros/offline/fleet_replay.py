@@ -17,13 +17,15 @@ from pathlib import Path
 from typing import Any
 
 from pair_vpr_ros.detector import DetectorConfig
-from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.errors import ConfigError, OutputError
 from pair_vpr_ros.fleet import Faults, FleetConfig, FleetExchange, InterRobotLoop, LocalBus
 from pair_vpr_ros.fleet.exchange import CHANNELS
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
 from pair_vpr_ros.model import PairVPRModel
 from pair_vpr_ros.offline.sources import FrameCounts, source_frames
 from pair_vpr_ros.pipeline import Frame, FrameOutcome, LoopClosurePipeline
+
+SUMMARY = "fleet_summary.json"
 
 
 @dataclass
@@ -34,6 +36,7 @@ class FleetRobot:
     robot: str
     session: str
     source: str | Path | Iterable[Frame]
+    topic: str | None = None  # image topic of a bag with several
 
 
 @dataclass
@@ -87,7 +90,8 @@ def run_fleet(
                            first_request_id=0)  # fmt: skip
         bus.join(ex)
         run.robot_loops[r.robot] = []
-        streams.append(_tagged(r.robot, pipe.process_many(_frames(r.source), batch_size)))
+        frames = _frames(r.source, r.topic)
+        streams.append(_tagged(r.robot, pipe.process_many(frames, batch_size)))
     for stamp, robot, outcome in heapq.merge(*streams, key=lambda item: item[0]):
         clock[0] = max(clock[0], stamp)
         ex = bus.exchanges[robot]
@@ -104,9 +108,9 @@ def run_fleet(
     return run
 
 
-def _frames(source: str | Path | Iterable[Frame]) -> Iterable[Frame]:
+def _frames(source: str | Path | Iterable[Frame], topic: str | None) -> Iterable[Frame]:
     if isinstance(source, (str, Path)):
-        return source_frames(source, FrameCounts())
+        return source_frames(source, FrameCounts(), image_topic=topic)
     return source
 
 
@@ -123,6 +127,20 @@ def _own_record(outcome: FrameOutcome, config: FleetConfig) -> dict:
     return out
 
 
+def check_fleet_out(out: str | Path, overwrite: bool = False) -> Path:
+    """The output folder of a fleet run, checked before any work: OutputError when it holds a
+    fleet run's results already (without `overwrite`) or is not a folder."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"--out {out} is a file: give a folder for the fleet run's outputs")
+    if (out / SUMMARY).exists() and not overwrite:
+        raise OutputError(
+            f"--out {out} holds a fleet run already ({SUMMARY}): give another folder or pass "
+            "--overwrite"
+        )
+    return out
+
+
 def write_fleet_run(run: FleetRun, out: str | Path) -> Path:
     """OUT/inter_robot_loops.json (every decision, `accepted` marks the loops), OUT/<robot>/
     loops.json (each robot's own decisions) and OUT/fleet_summary.json (totals, per robot)."""
@@ -132,7 +150,7 @@ def write_fleet_run(run: FleetRun, out: str | Path) -> Path:
     for robot, records in run.robot_loops.items():
         (out / robot).mkdir(exist_ok=True)
         _write_json(out / robot / "loops.json", records)
-    _write_json(out / "fleet_summary.json", {"totals": run.totals(), "robots": run.exchanges})
+    _write_json(out / SUMMARY, {"totals": run.totals(), "robots": run.exchanges})
     return out
 
 
