@@ -10,7 +10,7 @@ from exact_match import EXACT_MATCH
 
 from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.fleet import Faults, FleetConfig, FleetExchange, LocalBus
-from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
+from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline, map_pair_scores
 
 SESSION = "20261125T160000Z"
 
@@ -116,3 +116,23 @@ def test_faulty_network_counts_and_never_crashes(tiny_model, places):
     assert a.store.reordered + b.store.reordered > 0
     assert all(x.record.accepted for x in loops)
     assert a.store.missing() + b.store.missing() > 0
+
+
+def test_owner_scores_exactly_as_a_local_re_ranking_would(tiny_model, places):
+    """The owner's score for a request equals the pair score of the same two keyframes'
+    tokens, as the requester would compute with both maps at hand (float16 on the wire loses
+    nothing: the map stores float16)."""
+    bus, clock = LocalBus(), [0.0]
+    config = dict(EXACT_MATCH, global_floor=-1.0, top_k=3)
+    a = robot(tiny_model, bus, "a", clock, top_k=3)
+    b = robot(tiny_model, bus, "b", clock, top_k=3)
+    a.pipe.set_config(DetectorConfig(**config))
+    b.pipe.set_config(DetectorConfig(**config))
+    loops = drive(bus, [(a, 0, 0.0), (a, 1, 1.0), (a, 2, 2.0), (b, 3, 3.0)], places, clock)
+    assert len(loops) == 1
+    rec = loops[0].record
+    assert (rec.candidates, rec.scored) == (3, 3)
+    query = b.pipe.place_map.get_dense([0])[0]
+    expected = map_pair_scores(tiny_model, a.pipe.place_map, query, [0, 1, 2])
+    assert rec.pair_score == pytest.approx(float(expected.max()), abs=1e-6)
+    assert rec.match_id == int(np.argmax(expected))
