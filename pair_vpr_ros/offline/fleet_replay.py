@@ -37,6 +37,7 @@ class FleetRobot:
     session: str
     source: str | Path | Iterable[Frame]
     topic: str | None = None  # image topic of a bag with several
+    pose_topic: str | None = None  # poses attached to keyframes (default: the bag's only one)
 
 
 @dataclass
@@ -90,7 +91,7 @@ def run_fleet(
                            first_request_id=0)  # fmt: skip
         bus.join(ex)
         run.robot_loops[r.robot] = []
-        frames = _frames(r.source, r.topic)
+        frames = _frames(r)
         streams.append(_tagged(r.robot, pipe.process_many(frames, batch_size)))
     for stamp, robot, outcome in heapq.merge(*streams, key=lambda item: item[0]):
         clock[0] = max(clock[0], stamp)
@@ -108,10 +109,10 @@ def run_fleet(
     return run
 
 
-def _frames(source: str | Path | Iterable[Frame], topic: str | None) -> Iterable[Frame]:
-    if isinstance(source, (str, Path)):
-        return source_frames(source, FrameCounts(), image_topic=topic)
-    return source
+def _frames(robot: FleetRobot) -> Iterable[Frame]:
+    if isinstance(robot.source, (str, Path)):
+        return source_frames(robot.source, FrameCounts(), robot.topic, pose_topic=robot.pose_topic)
+    return robot.source
 
 
 def _tagged(robot: str, outcomes: Iterator[FrameOutcome]) -> Iterator[tuple]:

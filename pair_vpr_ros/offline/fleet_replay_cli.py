@@ -40,6 +40,9 @@ def build_parser() -> argparse.ArgumentParser:
         "fleet_* settings (default: the node's defaults)",
     )  # fmt: skip
     p.add_argument("--topic", help="image topic of bags with several")
+    p.add_argument(
+        "--pose-topic", help="pose topic attached to keyframes (default: a bag's only one)"
+    )
     p.add_argument("--device", default="cpu", help="torch device (default: %(default)s)")
     p.add_argument("--out", metavar="DIR", default="fleet_out", help="output folder")
     p.add_argument("--overwrite", action="store_true", help="replace a fleet run in --out")
@@ -52,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     values = read_params_file(args.params_file) if args.params_file else defaults()
-    robots = [FleetRobot(r, s, src, args.topic) for r, s, src in args.robot]
+    robots = [FleetRobot(r, s, src, args.topic, args.pose_topic) for r, s, src in args.robot]
     if len(robots) < 2:
         raise UsageError("--robot: give at least two robots (the exchange is between robots)")
     # the fleet options of the parameter file, checked once with the first robot's identity

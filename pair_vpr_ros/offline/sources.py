@@ -125,11 +125,11 @@ def folder_frames(
 
 
 def _bag_source(
-    path: Path, topic: str | None, counts: FrameCounts, max_pixels: int
+    path: Path, topic: str | None, counts: FrameCounts, max_pixels: int, pose_topic: str | None
 ) -> Iterator[Frame]:
     with bag_io.open_bag(path) as reader:
         topic = bag_io.choose_image_topic(reader, topic)
-        pose_topic = bag_io.choose_pose_topic(reader)
+        pose_topic = bag_io.choose_pose_topic(reader, pose_topic)
         poses = None
         if pose_topic:
             poses, error = bag_io.read_poses(reader, pose_topic)
@@ -151,15 +151,16 @@ def source_frames(
     image_topic: str | None = None,
     period: float = 1.0,
     max_pixels: int = MAX_PIXELS,
+    pose_topic: str | None = None,
 ) -> Iterator[Frame]:
-    """Frames of a bag (header stamps; poses when the bag has one pose topic) or of an image
-    folder (stamps ``i * period`` s). Unusable images (also those over ``max_pixels``) are
-    counted in ``counts``; a missing source is a ``ConfigError``, an unreadable bag (also
-    part-way) a ``BagError``."""
+    """Frames of a bag (header stamps; poses of ``pose_topic``, else of the bag's only pose
+    topic) or of an image folder (stamps ``i * period`` s). Unusable images (also those over
+    ``max_pixels``) are counted in ``counts``; a missing source is a ``ConfigError``, an
+    unreadable bag (also part-way) a ``BagError``."""
     path = check_source(source)
     if path.is_dir() and folder_images(path):
         return folder_frames(folder_images(path), counts, period, max_pixels)
-    return _bag_source(path, image_topic or None, counts, max_pixels)
+    return _bag_source(path, image_topic or None, counts, max_pixels, pose_topic)
 
 
 def check_source(source: str | Path) -> Path:
