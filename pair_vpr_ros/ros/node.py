@@ -171,6 +171,8 @@ class VprNode(Node):
             f"{self.maps.size()} keyframes, mode {v['mode']}, robot {self.identity.robot}, "
             f"session {self.identity.session}, {len(priors.maps)} prior maps"
         )
+        if self.fleet is not None:
+            self.summary += f"; {self.fleet.summary}"
 
     @property
     def pipeline(self) -> LoopClosurePipeline:
