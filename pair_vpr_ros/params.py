@@ -193,7 +193,10 @@ PARAMS: tuple[ParamSpec, ...] = (
     _p("min_inliers", 15, "inliers needed with geometric_verification", 0, 100000),
 )  # fmt: skip
 
-PARAMS += tuple(_p(*row, **RO) for row in FLEET_PARAMS)  # fleet exchange: start-up only
+PARAMS += tuple(  # fleet exchange: all start-up only; a row may end with keyword arguments
+    _p(*row[:-1], **RO, **row[-1]) if isinstance(row[-1], dict) else _p(*row, **RO)
+    for row in FLEET_PARAMS
+)
 SPECS: dict[str, ParamSpec] = {p.name: p for p in PARAMS}
 DETECTOR_PARAMS = (
     "mode",

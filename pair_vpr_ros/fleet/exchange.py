@@ -21,7 +21,14 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 
 from pair_vpr_ros.errors import ConfigError, FleetMessageError, PairVPRError
-from pair_vpr_ros.fleet.messages import KeyframeDescriptor, ScoreRequest, ScoreResponse, decode
+from pair_vpr_ros.fleet.messages import (
+    KeyframeDescriptor,
+    Message,
+    ScoreRequest,
+    ScoreResponse,
+    check,
+    decode,
+)
 from pair_vpr_ros.fleet.messages import encode as encode_message
 from pair_vpr_ros.fleet.owner import InterRobotLoop, score_request
 from pair_vpr_ros.fleet.peers import PeerStore, RequestBudget
@@ -71,7 +78,8 @@ class FleetConfig:
 class Outgoing:
     channel: str  # "keyframes", "request" or "response"
     target: str  # the owner robot of a request; "" = every robot
-    data: bytes
+    data: bytes  # the codec's bytes
+    message: Message | None = None  # the same message decoded (a typed transport sends this)
 
 
 @dataclass
@@ -111,7 +119,7 @@ class FleetExchange:
         self,
         pipeline: LoopClosurePipeline,
         config: FleetConfig,
-        send: Callable[[Outgoing], None],
+        send: Callable[[Outgoing], int | None],
         clock: Callable[[], float] = time.monotonic,
         first_request_id: int | None = None,
     ) -> None:
@@ -177,24 +185,47 @@ class FleetExchange:
 
     # ---- messages from other robots ------------------------------------------------------
     def receive(self, channel: str, data: bytes) -> InterRobotLoop | None:
-        """Handle one message of `channel`; -> the inter-robot loop decided when it was a score
-        request (accepted or not), else None. Never raises on bad input: counts it."""
-        self.counts.received[channel] += 1
-        self.counts.received_bytes[channel] += len(data)
+        """Handle the codec bytes of one message of `channel`; -> the inter-robot loop decided
+        when it was a score request (accepted or not), else None. Never raises on bad input:
+        counts it."""
+        self._count_received(channel, len(data))
         try:
-            msg = decode(data)
-            if not isinstance(msg, CHANNELS.get(channel, ())):
-                raise FleetMessageError("wrong channel", f"{type(msg).__name__} on {channel}")
-            if msg.model != self.tag:
-                raise FleetMessageError("wrong model", f"from robot {msg.robot!r}")
-            if isinstance(msg, KeyframeDescriptor):
-                self._descriptor(msg)
-            elif isinstance(msg, ScoreRequest):
-                return self._request(msg)
-            else:
-                self._response(msg)
+            return self._dispatch(channel, decode(data))
         except FleetMessageError as err:
             self.counts.skipped[err.reason] += 1
+        return None
+
+    def handle(self, channel: str, msg: Message, size: int) -> InterRobotLoop | None:
+        """As `receive`, for a message that arrived decoded (a typed ROS message converted by
+        `fleet.typed`) and took `size` bytes on the wire."""
+        self._count_received(channel, size)
+        try:
+            return self._dispatch(channel, check(msg))
+        except FleetMessageError as err:
+            self.counts.skipped[err.reason] += 1
+        return None
+
+    def reject(self, channel: str, size: int, reason: str) -> None:
+        """Count a message the transport could not even convert (a typed message that cannot
+        be a fleet message)."""
+        self._count_received(channel, size)
+        self.counts.skipped[reason] += 1
+
+    def _count_received(self, channel: str, size: int) -> None:
+        self.counts.received[channel] += 1
+        self.counts.received_bytes[channel] += size
+
+    def _dispatch(self, channel: str, msg: Message) -> InterRobotLoop | None:
+        if not isinstance(msg, CHANNELS.get(channel, ())):
+            raise FleetMessageError("wrong channel", f"{type(msg).__name__} on {channel}")
+        if msg.model != self.tag:
+            raise FleetMessageError("wrong model", f"from robot {msg.robot!r}")
+        if isinstance(msg, KeyframeDescriptor):
+            self._descriptor(msg)
+        elif isinstance(msg, ScoreRequest):
+            return self._request(msg)
+        else:
+            self._response(msg)
         return None
 
     def _descriptor(self, msg: KeyframeDescriptor) -> None:
@@ -238,11 +269,13 @@ class FleetExchange:
         self.counts.loops_confirmed += int(msg.accepted)
 
     # ---- helpers ---------------------------------------------------------------------------
-    def _send(self, channel: str, target: str, msg) -> None:
+    def _send(self, channel: str, target: str, msg: Message) -> None:
+        """Hand `msg` to the transport; its bytes are counted as the transport reports them
+        (a typed ROS message: its serialized size), else as the codec's."""
         data = encode_message(msg)
+        size = self.send(Outgoing(channel, target, data, msg))
         self.counts.sent[channel] += 1
-        self.counts.sent_bytes[channel] += len(data)
-        self.send(Outgoing(channel, target, data))
+        self.counts.sent_bytes[channel] += len(data) if size is None else size
 
     @staticmethod
     def _remember(memory: OrderedDict, key, value) -> None:

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pair_vpr_ros.errors import FleetMessageError
-from pair_vpr_ros.fleet.wire import Reader, Writer, check_name
+from pair_vpr_ros.fleet.wire import TAG_BYTES, Reader, Writer, check_name
 
 MAX_CANDIDATES = 64
 MAX_TOKENS = 1 << 14
@@ -131,14 +131,11 @@ def _encode_request(msg: ScoreRequest) -> bytes:
 def decode(data: bytes | bytearray | memoryview) -> Message:
     """Bytes -> the message they hold; FleetMessageError with a countable `reason` otherwise."""
     r = Reader(data)
-    if not r.robot or not r.session:
-        raise FleetMessageError("malformed", "empty robot or session id")
     if r.kind == b"D":
         kf_id, stamp, dim = r.unpack("IdH")
         desc = r.array(dim, "<f2")
         r.end()
-        _finite("descriptor", stamp, desc)
-        return KeyframeDescriptor(r.robot, r.session, r.tag, kf_id, stamp, desc)
+        return check(KeyframeDescriptor(r.robot, r.session, r.tag, kf_id, stamp, desc))
     if r.kind == b"Q":
         return _decode_request(r)
     request_id = r.unpack("I")[0]
@@ -146,10 +143,9 @@ def decode(data: bytes | bytearray | memoryview) -> Message:
     query_id, match_id, match_stamp, score, scored, accepted = r.unpack("IIdfBB")
     status = r.text()
     r.end()
-    _finite("response", match_stamp, np.float32(score))
-    return ScoreResponse(r.robot, r.session, r.tag, request_id, requester, requester_session,
-                         query_id, match_id, match_stamp, float(score), scored, bool(accepted),
-                         status)  # fmt: skip
+    return check(ScoreResponse(r.robot, r.session, r.tag, request_id, requester,
+                               requester_session, query_id, match_id, match_stamp, float(score),
+                               scored, bool(accepted), status))  # fmt: skip
 
 
 def _decode_request(r: Reader) -> ScoreRequest:
@@ -165,10 +161,28 @@ def _decode_request(r: Reader) -> ScoreRequest:
     dense = r.array(tokens * width, "<f2").reshape(tokens, width)
     features = r.take(r.unpack("I")[0])
     r.end()
-    _finite("request", query_stamp, sims, dense)
-    return ScoreRequest(r.robot, r.session, r.tag, request_id, owner, owner_session, query_id,
-                        query_stamp, ids.astype(int).tolist(), sims.astype(float).tolist(), dense,
-                        features)  # fmt: skip
+    return check(ScoreRequest(r.robot, r.session, r.tag, request_id, owner, owner_session,
+                              query_id, query_stamp, ids.astype(int).tolist(),
+                              sims.astype(float).tolist(), dense, features))  # fmt: skip
+
+
+def check(msg: Message) -> Message:
+    """What one message can show on its own, however it arrived (codec bytes or a typed ROS
+    message): names present, a model tag of 8 bytes, request sizes, finite numbers."""
+    if not msg.robot or not msg.session or len(msg.model) != TAG_BYTES:
+        raise FleetMessageError("malformed", "empty robot or session id, or no model tag")
+    if isinstance(msg, KeyframeDescriptor):
+        _finite("descriptor", msg.stamp, msg.descriptor)
+    elif isinstance(msg, ScoreRequest):
+        n = len(msg.candidate_ids)
+        if not 1 <= n <= MAX_CANDIDATES or len(msg.similarities) != n:
+            raise FleetMessageError("malformed", f"{n} candidates, {len(msg.similarities)} sims")
+        if not msg.owner_robot or not msg.owner_session or np.ndim(msg.dense) != 2:
+            raise FleetMessageError("malformed", "no owner, or dense tokens not [N, D]")
+        _finite("request", msg.query_stamp, np.asarray(msg.similarities), msg.dense)
+    else:
+        _finite("response", msg.match_stamp, np.float32(msg.pair_score))
+    return msg
 
 
 def _finite(what: str, stamp: float, *arrays: np.ndarray) -> None:

@@ -1,7 +1,7 @@
-"""vpr_node's fleet parameters (all start-up only): rows (name, default, description[, low,
-high]) that `params.PARAMS` turns into `ParamSpec`s (this module must not import `params`, which
-imports it), kept here so the fleet's settings sit with the fleet; `fleet_config` turns a
-parameter set into a `FleetConfig`."""
+"""vpr_node's fleet parameters, all start-up only: rows (name, default, description[, low,
+high][, {keyword: value}]) that `params.PARAMS` turns into `ParamSpec`s (this module must not
+import `params`, which imports it), kept here so the fleet's settings sit with the fleet;
+`fleet_config` turns a parameter set into a `FleetConfig`."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ FLEET_PARAMS: tuple[tuple, ...] = (
     ("fleet_enable", False, "share keyframe descriptors with other robots and score their "
        "requests (inter-robot loops, docs/fleet-exchange.md); off: nothing is sent or heard"),
     ("fleet_keyframes_topic", "/fleet/keyframes", "shared topic of every robot's keyframe "
-       "descriptors (std_msgs/UInt8MultiArray, ~1.1 KB each)"),
+       "descriptors (~1.1 KB each)"),
     ("fleet_request_topic", "/fleet/score_request", "score requests to robot R go to "
        "<this>/R (R: the owner's robot id); each carries one query's dense tokens"),
     ("fleet_response_topic", "/fleet/score_response", "shared topic of the owners' answers"),
@@ -26,6 +26,10 @@ FLEET_PARAMS: tuple[tuple, ...] = (
     ("fleet_timeout", 10.0, "a request unanswered this many seconds is counted lost",
        0.1, 3600.0),
     ("fleet_peers", "", "robot ids listened to, comma-separated ('' = any robot)"),
+    ("fleet_messages", "auto", "message types on the fleet topics: typed (pair_vpr_ros_interfaces"
+       "/KeyframeDescriptor, ScoreRequest, ScoreResponse), bytes (the fleet codec in "
+       "std_msgs/UInt8MultiArray) or auto (typed when that package is installed); every robot "
+       "of a fleet must use the same", {"choices": ("auto", "typed", "bytes")}),
     ("fleet_send_features", True, "send the query's keypoints with a request, so the owner "
        "can compute the loop's relative pose (~140 KB with 1000 SIFT keypoints)"),
 )  # fmt: skip

@@ -1,14 +1,14 @@
 """vpr_node's fleet exchange on ROS 2 topics (thin: the logic is `fleet.FleetExchange`).
 
-Topics carry the fleet codec's bytes in `std_msgs/UInt8MultiArray` (the typed messages of
-`pair_vpr_ros_interfaces` had not landed when this was written; the codec is the contract):
-
     fleet_keyframes_topic (shared)      every robot's keyframe descriptors, ~1.1 KB each
     fleet_request_topic/<robot_id>      score requests to that robot (the query's dense tokens)
-    fleet_response_topic (shared)       the owners' answers, ~60 bytes each
+    fleet_response_topic (shared)       the owners' answers, ~100 bytes each
 
-Everything that touches the pipeline runs on the map thread of `MapControl` (messages are
-handed over from the subscription callbacks), like a frame or a map service.
+`fleet_messages` picks the message types: typed (`pair_vpr_ros_interfaces` KeyframeDescriptor,
+ScoreRequest, ScoreResponse, converted by `fleet.typed`) or bytes (the fleet codec in
+`std_msgs/UInt8MultiArray`); auto = typed when that package is installed. Bytes sent and
+received are counted as serialized on the wire. Everything that touches the pipeline runs on
+the map thread of `MapControl` (messages are handed over from the subscription callbacks).
 """
 
 from __future__ import annotations
@@ -23,17 +23,25 @@ from typing import Any
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.serialization import serialize_message
 from std_msgs.msg import UInt8MultiArray
 
-from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.errors import ConfigError, FleetMessageError
 from pair_vpr_ros.fleet import FleetExchange, InterRobotLoop, Outgoing
 from pair_vpr_ros.fleet.params import fleet_config
+from pair_vpr_ros.fleet.typed import from_typed, pose_codes, to_typed
 from pair_vpr_ros.pipeline import FrameOutcome
 from pair_vpr_ros.ros.maps import MapControl
 from pair_vpr_ros.ros.outputs import publish_while_up
 
+try:  # built by `make setup` (scripts/build_interfaces.sh) or colcon in a ROS workspace
+    from pair_vpr_ros_interfaces import msg as typed_msgs
+except ImportError:  # the bytes transport needs only std_msgs
+    typed_msgs = None
+
 TOPIC_TOKEN = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 DEPTH = {"keyframes": 100, "request": 4, "response": 50}
+TYPED = {"keyframes": "KeyframeDescriptor", "request": "ScoreRequest", "response": "ScoreResponse"}
 
 
 def identity(node: Node, values: dict[str, Any]) -> tuple[str, str]:
@@ -42,6 +50,16 @@ def identity(node: Node, values: dict[str, Any]) -> tuple[str, str]:
     robot = values.get("robot_id") or node.get_namespace().strip("/").replace("/", "_")
     session = values.get("session_id") or time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
     return robot or "robot", session
+
+
+def typed_wanted(choice: str) -> bool:
+    """fleet_messages -> typed (True) or bytes; ConfigError for typed without the package."""
+    if choice == "typed" and typed_msgs is None:
+        raise ConfigError(
+            "fleet_messages is typed but pair_vpr_ros_interfaces is not installed: `make setup` "
+            "builds it (docs/interfaces.md), or use fleet_messages bytes on every robot"
+        )
+    return choice == "typed" or (choice == "auto" and typed_msgs is not None)
 
 
 class FleetLink:
@@ -61,6 +79,10 @@ class FleetLink:
                 "and _ (starting with a letter), e.g. -p robot_id:=robot_1"
             )
         config = fleet_config(values, robot, session)
+        self.typed = typed_wanted(values["fleet_messages"])
+        if self.typed:
+            self._classes = {name: getattr(typed_msgs, name) for name in TYPED.values()}
+            self._codes = pose_codes(typed_msgs.LoopClosure)
         self._node, self._maps, self._on_loop = node, maps, on_loop
         self.exchange = maps.call(lambda: FleetExchange(maps.pipeline, config, self._send))
         self._qos = {k: QoSProfile(depth=d, reliability=ReliabilityPolicy.RELIABLE)
@@ -77,10 +99,11 @@ class FleetLink:
             ("request", f"{self._request_topic}/{robot}"),
             ("response", values["fleet_response_topic"]),
         ):
-            node.create_subscription(UInt8MultiArray, topic, partial(self._heard, channel),
+            node.create_subscription(self._type(channel), topic, partial(self._heard, channel),
                                      self._qos[channel], callback_group=group)  # fmt: skip
         node.create_timer(1.0, lambda: maps.submit(self._on_map_thread, self.exchange.expire))
-        self.summary = f"fleet exchange on as robot {robot!r}, session {session!r}"
+        kind = "typed" if self.typed else "bytes"
+        self.summary = f"fleet exchange on as robot {robot!r}, session {session!r} ({kind})"
 
     def on_outcome(self, outcome: FrameOutcome) -> None:
         """After a frame: publish a new keyframe's descriptor and requests (map thread)."""
@@ -91,23 +114,36 @@ class FleetLink:
         """The exchange's counts and bytes (copied on the map thread)."""
         return self._maps.call(self.exchange.summary)
 
+    def _type(self, channel: str) -> type:
+        return self._classes[TYPED[channel]] if self.typed else UInt8MultiArray
+
     def _on_map_thread(self, fn: Callable, *args: Any) -> Any:
         self.exchange.pipe = self._maps.pipeline  # a loaded or built map replaces it
         return fn(*args)
 
-    def _heard(self, channel: str, msg: UInt8MultiArray) -> None:
-        data = msg.data.tobytes() if hasattr(msg.data, "tobytes") else bytes(msg.data)
-        self._maps.submit(self._receive, channel, data)
+    def _heard(self, channel: str, msg: Any) -> None:
+        self._maps.submit(self._receive, channel, msg)
 
-    def _receive(self, channel: str, data: bytes) -> None:
-        loop = self._on_map_thread(self.exchange.receive, channel, data)
+    def _receive(self, channel: str, msg: Any) -> None:
+        ex = self.exchange
+        if self.typed:
+            size = len(serialize_message(msg))
+            try:
+                loop = self._on_map_thread(ex.handle, channel, from_typed(msg, self._codes), size)
+            except FleetMessageError as err:
+                ex.reject(channel, size, err.reason)
+                return
+        else:
+            data = msg.data.tobytes() if hasattr(msg.data, "tobytes") else bytes(msg.data)
+            loop = self._on_map_thread(ex.receive, channel, data)
         if loop is not None:
             self._on_loop(loop)
 
     def _publisher(self, topic: str, channel: str):
-        return self._node.create_publisher(UInt8MultiArray, topic, self._qos[channel])
+        return self._node.create_publisher(self._type(channel), topic, self._qos[channel])
 
-    def _send(self, out: Outgoing) -> None:
+    def _send(self, out: Outgoing) -> int:
+        """Publish one message -> its serialized size in bytes."""
         if out.channel == "request":
             pub = self._owners.get(out.target)
             if pub is None:
@@ -115,4 +151,9 @@ class FleetLink:
                 pub = self._owners[out.target] = self._publisher(topic, "request")
         else:
             pub = self._pubs[out.channel]
-        publish_while_up(self._node, pub, UInt8MultiArray(data=array("B", out.data)))
+        if self.typed:
+            msg = to_typed(out.message, self._classes, self._codes)
+        else:
+            msg = UInt8MultiArray(data=array("B", out.data))
+        publish_while_up(self._node, pub, msg)
+        return len(serialize_message(msg))

@@ -45,9 +45,13 @@ def ros():
     rclpy.try_shutdown()
 
 
-def test_two_robots_close_a_loop_between_them_over_topics(ros):
+@pytest.mark.parametrize("messages", ["typed", "bytes"])
+def test_two_robots_close_a_loop_between_them_over_topics(ros, messages):
+    if messages == "typed":
+        pytest.importorskip("pair_vpr_ros_interfaces.msg")
     nodes, executor = ros
-    a, b = robot("a"), robot("b")
+    a, b = robot("a", fleet_messages=messages), robot("b", fleet_messages=messages)
+    assert a.fleet.typed == (messages == "typed")
     peer = rclpy.create_node("peer")
     nodes += [a, b, peer]
     got: dict[str, list] = {"json": [], "pair": []}
@@ -75,5 +79,9 @@ def test_two_robots_close_a_loop_between_them_over_topics(ros):
     wait_for(lambda: ex_b.counts.loops_confirmed == 1)
     assert a.fleet.exchange.counts.loops_accepted == 1
     assert dict(ex_b.counts.skipped) == {} and ex_b.counts.sent["request"] == 1
+    # bytes counted as serialized: the codec's, or CDR's for the typed message (+ overhead)
+    n, d = a.pipeline.model.num_patches, a.pipeline.model.config.embed_dim
+    assert n * d * 2 < ex_b.counts.sent_bytes["request"] < n * d * 2 + 400
+    assert 1024 < ex_b.counts.sent_bytes["keyframes"] / ex_b.counts.sent["keyframes"] < 1536
     info = a.fleet.state()
     assert info["keyframes"] == 3 and info["peer_keyframes"] == {f"b/{ex_b.config.session}": 2}
