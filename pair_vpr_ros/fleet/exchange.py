@@ -31,7 +31,7 @@ from pair_vpr_ros.fleet.messages import (
 )
 from pair_vpr_ros.fleet.messages import encode as encode_message
 from pair_vpr_ros.fleet.owner import InterRobotLoop, score_request
-from pair_vpr_ros.fleet.peers import PeerStore, RequestBudget
+from pair_vpr_ros.fleet.peers import SELECTIONS, PeerStore, Proposal, RequestBudget
 from pair_vpr_ros.fleet.wire import check_name, model_tag
 from pair_vpr_ros.pipeline import FrameOutcome, LoopClosurePipeline
 
@@ -44,7 +44,9 @@ class FleetConfig:
     """robot / session: this robot's identity; budget: score requests per period_s (0: send
     descriptors only); top_k: peer keyframes searched per own keyframe; timeout_s: a request
     unanswered this long is counted lost; peers: robots listened to (empty: any);
-    send_features: add the query's keyframe features to requests (owner computes the pose)."""
+    send_features: add the query's keyframe features to requests (owner computes the pose);
+    select: "best" (a period's most similar candidates, sent when it ends) or "first" (sent
+    at once while the budget lasts), see peers.RequestBudget."""
 
     robot: str
     session: str
@@ -54,6 +56,7 @@ class FleetConfig:
     timeout_s: float = 10.0
     peers: tuple[str, ...] = ()
     send_features: bool = True
+    select: str = "best"
 
     def __post_init__(self) -> None:
         try:
@@ -66,6 +69,7 @@ class FleetConfig:
             "top_k": 1 <= self.top_k <= 64,
             "period_s": math.isfinite(self.period_s) and self.period_s > 0,
             "timeout_s": math.isfinite(self.timeout_s) and self.timeout_s > 0,
+            "select": self.select in SELECTIONS,
         }
         for name, ok in checks.items():
             if not ok:
@@ -92,6 +96,7 @@ class FleetCounts:
     skipped: Counter = field(default_factory=Counter)  # reason -> messages not used
     ignored: int = 0  # own descriptors heard back, responses meant for other robots
     budget_cut: int = 0  # requests not sent: the period's budget was spent
+    query_gone: int = 0  # selected requests whose query keyframe left the map before sending
     timeouts: int = 0  # requests unanswered within timeout_s
     loops_accepted: int = 0  # inter-robot loops this robot accepted as owner
     loops_rejected: int = 0  # requests this robot scored as owner without accepting
@@ -128,7 +133,7 @@ class FleetExchange:
         self.store = PeerStore(
             config.robot, pipeline.model.config.desc_dim, self.tag, config.peers
         )
-        self.budget = RequestBudget(config.budget, config.period_s)
+        self.budget = RequestBudget(config.budget, config.period_s, config.select)
         self.counts = FleetCounts()
         self._next_id = secrets.randbits(31) if first_request_id is None else first_request_id
         self._pending: OrderedDict[int, float] = OrderedDict()  # request id -> sent at
@@ -139,33 +144,56 @@ class FleetExchange:
     # ---- own keyframes -------------------------------------------------------------------
     def on_keyframe(self, outcome: FrameOutcome) -> int:
         """Publish the descriptor of a new own keyframe and request scores for peer candidates
-        that pass the global floor (within the budget); -> requests sent."""
+        that pass the global floor (within the budget); -> requests sent now."""
         kf_id = outcome.keyframe_id
         if kf_id is None:
             return 0
-        pm, c = self.pipe.place_map, self.config
-        desc = pm.get_desc([kf_id])[0]
+        c = self.config
+        desc = self.pipe.place_map.get_desc([kf_id])[0]
         msg = KeyframeDescriptor(c.robot, c.session, self.tag, kf_id, outcome.stamp, desc)
         self._send("keyframes", "", msg)
         self._published.add(kf_id)
         self.counts.keyframes += 1
-        self.expire()
         hits = self.store.search(desc, c.top_k, self.pipe.config.global_floor)
-        sent = 0
-        for (robot, session), found in hits.items():
-            if not self.budget.take(self.clock()):
-                self.counts.budget_cut += 1
-                continue
-            dense = pm.get_dense([kf_id])[0]
-            features = pm.features(kf_id) if c.send_features else b""
-            req = ScoreRequest(c.robot, c.session, self.tag, self._next_id, robot, session, kf_id,
-                               outcome.stamp, [h.keyframe_id for h in found],
-                               [h.similarity for h in found], dense, features)  # fmt: skip
-            self._send("request", robot, req)
-            self._pending[self._next_id] = self.clock()
-            self._next_id = (self._next_id + 1) % (1 << 32)
-            sent += 1
-        return sent
+        proposals = [Proposal(found[0].similarity, kf_id, outcome.stamp, owner, found)
+                     for owner, found in hits.items()]  # fmt: skip
+        return self._propose(proposals)
+
+    def tick(self) -> int:
+        """Time passes (the node calls this every second): count timed-out requests, and send
+        what a period that ended selected; -> requests sent."""
+        return self._propose([])
+
+    def flush(self) -> int:
+        """Send what the current period selected so far (end of an offline run)."""
+        self.expire()
+        send, cut = self.budget.flush()
+        self.counts.budget_cut += cut
+        return sum(self._ask(p) for p in send)
+
+    def _propose(self, proposals: list[Proposal]) -> int:
+        self.expire()
+        send, cut = self.budget.offer(self.clock(), proposals)
+        self.counts.budget_cut += cut
+        return sum(self._ask(p) for p in send)
+
+    def _ask(self, p: Proposal) -> int:
+        """Send one score request with the query's dense tokens (and features); -> 1, or 0
+        when the query keyframe left the map meanwhile (cleared, or another map loaded)."""
+        pm, c = self.pipe.place_map, self.config
+        if p.query_id >= len(pm) or pm.meta(p.query_id).stamp != p.query_stamp:
+            self.counts.query_gone += 1
+            return 0
+        (robot, session), found = p.owner, p.hits
+        features = pm.features(p.query_id) if c.send_features else b""
+        req = ScoreRequest(c.robot, c.session, self.tag, self._next_id, robot, session,
+                           p.query_id, p.query_stamp, [h.keyframe_id for h in found],
+                           [h.similarity for h in found], pm.get_dense([p.query_id])[0],
+                           features)  # fmt: skip
+        self._send("request", robot, req)
+        self._pending[self._next_id] = self.clock()
+        self._next_id = (self._next_id + 1) % (1 << 32)
+        return 1
 
     def expire(self) -> int:
         """Count requests unanswered for timeout_s as lost (an owner that left); -> how many."""

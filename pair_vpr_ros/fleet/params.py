@@ -21,6 +21,9 @@ FLEET_PARAMS: tuple[tuple, ...] = (
     ("fleet_budget", 4, "score requests sent per fleet_period at most (0: descriptors only)",
        0, 1000),
     ("fleet_period", 10.0, "seconds of the request budget's period", 0.1, 3600.0),
+    ("fleet_select", "best", "which candidates the budget lets through: best (a period's most "
+       "similar, sent when the period ends) or first (sent at once while the budget lasts)",
+       {"choices": ("best", "first")}),
     ("fleet_top_k", 3, "peer keyframes searched per own keyframe (those at or above "
        "global_floor are sent to their owner for scoring)", 1, 64),
     ("fleet_timeout", 10.0, "a request unanswered this many seconds is counted lost",
@@ -47,4 +50,5 @@ def fleet_config(values: Mapping[str, Any], robot: str, session: str) -> FleetCo
         timeout_s=values["fleet_timeout"],
         peers=peers,
         send_features=values["fleet_send_features"],
+        select=values["fleet_select"],
     )

@@ -97,20 +97,56 @@ class PeerStore:
         return dict(out)
 
 
+@dataclass(frozen=True)
+class Proposal:
+    """A score request to be: own keyframe `query_id` against `hits` of one owner."""
+
+    similarity: float  # the best hit's: what "best" selection ranks by
+    query_id: int
+    query_stamp: float
+    owner: tuple[str, str]  # (robot, session)
+    hits: list[PeerHit]
+
+
+SELECTIONS = ("best", "first")
+
+
 class RequestBudget:
     """At most `budget` score requests per `period_s` (Swarm-SLAM's inter-robot loop-closure
-    budget per detection period). A clock that goes back starts a new period."""
+    budget per detection period). "first": proposals go out at once while the period's budget
+    lasts. "best": a period's proposals are held and, when it ends, the `budget` most similar
+    go out (up to one period later; fewer false and more true loops under a tight budget). A
+    clock that goes back ends the period."""
 
-    def __init__(self, budget: int, period_s: float) -> None:
-        self.budget, self.period_s = int(budget), float(period_s)
+    def __init__(self, budget: int, period_s: float, select: str = "best") -> None:
+        self.budget, self.period_s, self.select = int(budget), float(period_s), select
         self._start: float | None = None
         self._used = 0
+        self._held: list[Proposal] = []
 
-    def take(self, now: float) -> bool:
-        """Spend one request at time `now` (s); False when the period's budget is spent."""
-        if self._start is None or now < self._start or now - self._start >= self.period_s:
-            self._start, self._used = now, 0
-        if self._used >= self.budget:
-            return False
-        self._used += 1
-        return True
+    def _over(self, now: float) -> bool:
+        return self._start is not None and (
+            now < self._start or now - self._start >= self.period_s
+        )
+
+    def offer(self, now: float, proposals: list[Proposal]) -> tuple[list[Proposal], int]:
+        """Proposals made at `now` (s) -> (those to send now, how many the budget cut)."""
+        if self.select == "first":
+            if self._start is None or self._over(now):
+                self._start, self._used = now, 0
+            send = proposals[: max(self.budget - self._used, 0)]
+            self._used += len(send)
+            return send, len(proposals) - len(send)
+        out: tuple[list[Proposal], int] = ([], 0)
+        if self._over(now):
+            out = self.flush()
+        if self._start is None:
+            self._start = now
+        self._held += proposals
+        return out
+
+    def flush(self) -> tuple[list[Proposal], int]:
+        """End the period now: (the held proposals to send, best first; how many cut)."""
+        held = sorted(self._held, key=lambda p: -p.similarity)
+        self._held, self._start = [], None
+        return held[: self.budget], max(len(held) - self.budget, 0)

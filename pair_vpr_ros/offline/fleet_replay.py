@@ -100,6 +100,8 @@ def run_fleet(
             run.robot_loops[robot].append(_own_record(outcome, ex.config))
         ex.on_keyframe(outcome)
         run.loops += bus.deliver()
+    for ex in bus.exchanges.values():  # the last period's selected requests
+        ex.flush()
     run.loops += bus.deliver(flush=True)
     for robot, ex in bus.exchanges.items():
         ex.expire()

@@ -61,7 +61,8 @@ def _run(args: argparse.Namespace) -> int:
     # the fleet options of the parameter file, checked once with the first robot's identity
     options = fleet_config(values, robots[0].robot, robots[0].session)
     fleet = dict(budget=options.budget, period_s=options.period_s, top_k=options.top_k,
-                 timeout_s=options.timeout_s, send_features=options.send_features)  # fmt: skip
+                 timeout_s=options.timeout_s, send_features=options.send_features,
+                 select=options.select)  # fmt: skip
     out = check_fleet_out(args.out, args.overwrite)
     model = load_model(args.weights, device=args.device)
     run = run_fleet(robots, model, detector_config(values), fleet, geometry_config(values))

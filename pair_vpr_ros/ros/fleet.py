@@ -101,7 +101,7 @@ class FleetLink:
         ):
             node.create_subscription(self._type(channel), topic, partial(self._heard, channel),
                                      self._qos[channel], callback_group=group)  # fmt: skip
-        node.create_timer(1.0, lambda: maps.submit(self._on_map_thread, self.exchange.expire))
+        node.create_timer(1.0, lambda: maps.submit(self._on_map_thread, self.exchange.tick))
         kind = "typed" if self.typed else "bytes"
         self.summary = f"fleet exchange on as robot {robot!r}, session {session!r} ({kind})"
 

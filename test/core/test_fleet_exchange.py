@@ -22,8 +22,9 @@ def places():
 
 
 def robot(model, bus, name, clock, **fleet):
+    """Robot `name` on `bus`; requests go out at once ("first") unless `fleet` says."""
     pipe = LoopClosurePipeline(model, DetectorConfig(**EXACT_MATCH))
-    config = FleetConfig(robot=name, session=SESSION, **fleet)
+    config = FleetConfig(robot=name, session=SESSION, **{"select": "first", **fleet})
     ex = FleetExchange(pipe, config, bus.sender(name), clock=lambda: clock[0], first_request_id=0)
     bus.join(ex)
     return ex
@@ -136,3 +137,21 @@ def test_owner_scores_exactly_as_a_local_re_ranking_would(tiny_model, places):
     expected = map_pair_scores(tiny_model, a.pipe.place_map, query, [0, 1, 2])
     assert rec.pair_score == pytest.approx(float(expected.max()), abs=1e-6)
     assert rec.match_id == int(np.argmax(expected))
+
+
+def test_best_selection_sends_the_period_s_best_candidates_when_it_ends(tiny_model, places):
+    bus, clock = LocalBus(), [0.0]
+    a = robot(tiny_model, bus, "a", clock)
+    b = robot(tiny_model, bus, "b", clock, budget=1, period_s=10.0, select="best", top_k=1)
+    config = DetectorConfig(**dict(EXACT_MATCH, global_floor=-1.0))
+    b.pipe.set_config(config)
+    # every pair passes the floor: b's keyframes at 5 s and 6 s both propose; the exact
+    # repeat (place 1, similarity ~1) wins the period's one request
+    plan = [(a, 0, 0.0), (a, 1, 1.0), (b, 4, 5.0), (b, 1, 6.0)]
+    assert drive(bus, plan, places, clock) == []  # held until the period ends
+    assert b.counts.sent["request"] == 0
+    clock[0] = 15.0
+    assert b.tick() == 1
+    loops = bus.deliver()
+    assert [(x.record.query_id, x.record.match_id) for x in loops] == [(1, 1)]
+    assert (b.counts.budget_cut, b.counts.sent["request"]) == (1, 1)

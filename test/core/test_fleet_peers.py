@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from pair_vpr_ros.fleet import KeyframeDescriptor, model_tag
-from pair_vpr_ros.fleet.peers import PeerHit, PeerStore, RequestBudget
+from pair_vpr_ros.fleet.peers import PeerHit, PeerStore, Proposal, RequestBudget
 
 TAG = model_tag("m")
 
@@ -43,10 +43,24 @@ def test_missing_counts_gaps_per_robot_session():
     assert store.missing() == 2 + 1
 
 
-def test_budget_per_period():
-    budget = RequestBudget(2, period_s=10.0)
-    assert [budget.take(t) for t in (0.0, 1.0, 2.0, 9.9, 10.0, 10.5, 11.0)] == [
-        True, True, False, False, True, True, False,
-    ]  # fmt: skip
-    assert budget.take(3.0)  # the clock went back (a new session): a new period
-    assert not RequestBudget(0, 1.0).take(0.0)
+def proposal(sim, query_id=0):
+    return Proposal(sim, query_id, float(query_id), ("a", "s1"), [])
+
+
+def test_first_selection_sends_at_once_while_the_period_budget_lasts():
+    budget = RequestBudget(2, period_s=10.0, select="first")
+    sent = [len(budget.offer(t, [proposal(0.9)])[0]) for t in (0.0, 1.0, 2.0, 9.9, 10.0, 10.5, 11)]
+    assert sent == [1, 1, 0, 0, 1, 1, 0]
+    assert budget.offer(3.0, [proposal(0.9)]) == ([proposal(0.9)], 0)  # clock back: new period
+    assert RequestBudget(0, 1.0, "first").offer(0.0, [proposal(0.5)]) == ([], 1)
+
+
+def test_best_selection_sends_a_period_s_most_similar_when_it_ends():
+    budget = RequestBudget(2, period_s=10.0, select="best")
+    assert budget.offer(0.0, [proposal(0.7, 0)]) == ([], 0)
+    assert budget.offer(4.0, [proposal(0.9, 1), proposal(0.8, 2)]) == ([], 0)
+    assert budget.offer(9.0, [proposal(0.95, 3)]) == ([], 0)
+    # the period that began at 0 s ends: its 2 best of 4 go out, 2 cut; 0.6 opens the next
+    assert budget.offer(10.0, [proposal(0.6, 4)]) == ([proposal(0.95, 3), proposal(0.9, 1)], 2)
+    assert budget.flush() == ([proposal(0.6, 4)], 0)
+    assert budget.offer(12.0, []) == ([], 0)

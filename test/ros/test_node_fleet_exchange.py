@@ -20,7 +20,8 @@ from std_msgs.msg import Float64MultiArray, String
 
 from pair_vpr_ros.ros.node import VprNode
 
-FLEET = dict(EXACT, fleet_enable=True, relative_pose=False, keyframe_max_similarity=0.99999)
+FLEET = dict(EXACT, fleet_enable=True, relative_pose=False, keyframe_max_similarity=0.99999,
+             fleet_period=1.0)  # fmt: skip
 
 
 def robot(ns: str, **overrides) -> VprNode:

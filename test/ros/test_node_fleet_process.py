@@ -24,7 +24,8 @@ pytestmark = pytest.mark.slow  # two node processes
 PARAMS = dict(weights="random-tiny", global_floor=0.99999, score_threshold=-1e6,
               keyframe_max_similarity=0.99999, exclude_recent_s=2.5, exclude_recent_keyframes=1,
               top_k=1, min_frame_interval=0.0, qos="reliable", queue_size=50,
-              relative_pose=False, fleet_enable=True, fleet_messages="bytes")  # fmt: skip
+              relative_pose=False, fleet_enable=True, fleet_messages="bytes",
+              fleet_period=1.0)  # fmt: skip
 
 
 def node_args(ns: str) -> list[str]:
