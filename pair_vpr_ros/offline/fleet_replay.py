@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from tqdm import tqdm
+
 from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.errors import ConfigError, OutputError
 from pair_vpr_ros.fleet import Faults, FleetConfig, FleetExchange, InterRobotLoop, LocalBus
@@ -76,9 +78,10 @@ def run_fleet(
     geometry: GeometryConfig | None = None,
     faults: Faults | None = None,
     batch_size: int = 8,
+    progress: bool = False,
 ) -> FleetRun:
     """Replay `robots` together with the exchange on (`fleet`: FleetConfig options other than
-    robot / session, e.g. {"budget": 4, "period_s": 10.0})."""
+    robot / session, e.g. {"budget": 4, "period_s": 10.0}); `progress`: a tqdm bar."""
     names = [r.robot for r in robots]
     if len(set(names)) != len(names):
         raise ConfigError(f"fleet robots {names} repeat an id: give each robot its own")
@@ -93,7 +96,8 @@ def run_fleet(
         run.robot_loops[r.robot] = []
         frames = _frames(r)
         streams.append(_tagged(r.robot, pipe.process_many(frames, batch_size)))
-    for stamp, robot, outcome in heapq.merge(*streams, key=lambda item: item[0]):
+    merged = heapq.merge(*streams, key=lambda item: item[0])
+    for stamp, robot, outcome in tqdm(merged, unit="frame", desc="fleet", disable=not progress):
         clock[0] = max(clock[0], stamp)
         ex = bus.exchanges[robot]
         if outcome.loop is not None:

@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from pair_vpr_ros.cli import run_cli
 from pair_vpr_ros.errors import UsageError
@@ -46,6 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", help="torch device (default: %(default)s)")
     p.add_argument("--out", metavar="DIR", default="fleet_out", help="output folder")
     p.add_argument("--overwrite", action="store_true", help="replace a fleet run in --out")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
 
@@ -65,7 +67,8 @@ def _run(args: argparse.Namespace) -> int:
                  select=options.select)  # fmt: skip
     out = check_fleet_out(args.out, args.overwrite)
     model = load_model(args.weights, device=args.device)
-    run = run_fleet(robots, model, detector_config(values), fleet, geometry_config(values))
+    run = run_fleet(robots, model, detector_config(values), fleet, geometry_config(values),
+                    progress=not args.quiet)  # fmt: skip
     write_fleet_run(run, out)
     t = run.totals()
     print(
@@ -74,3 +77,7 @@ def _run(args: argparse.Namespace) -> int:
         f"descriptor and {t['bytes_per_keyframe']:.0f} B in all per keyframe; outputs in {out}"
     )
     return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

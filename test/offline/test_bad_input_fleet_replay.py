@@ -24,7 +24,7 @@ def argv(root, *extra, robots="ab"):
     out = []
     for r in robots:
         out += ["--robot", r, "s1", str(root / r)]
-    return [*out, "--weights", "random-tiny", "--out", str(root / "out"), *extra]
+    return [*out, "--weights", "random-tiny", "--quiet", "--out", str(root / "out"), *extra]
 
 
 def params(path, text):

@@ -81,7 +81,7 @@ def test_the_command_line_on_two_image_folders(places, tmp_path, capsys):
     lines = [f"    {k}: {v}" for k, v in CONFIG.items()]
     params.write_text("/**:\n  ros__parameters:\n" + "\n".join(lines) + "\n")
     argv = ["--robot", "a", "s1", str(tmp_path / "a"), "--robot", "b", "s2", str(tmp_path / "b"),
-            "--weights", "random-tiny", "--params-file", str(params), "--out",
+            "--weights", "random-tiny", "--params-file", str(params), "--quiet", "--out",
             str(tmp_path / "out")]  # fmt: skip
     assert main(argv) == 0
     assert "5 keyframes, 1 inter-robot loops (0 rejected)" in capsys.readouterr().out
