@@ -139,7 +139,7 @@ class FleetExchange:
         self._pending: OrderedDict[int, float] = OrderedDict()  # request id -> sent at
         self._closed: OrderedDict[int, str] = OrderedDict()  # id -> "answered" / "timed out"
         self._scored: OrderedDict[tuple[str, str, int], None] = OrderedDict()  # as owner
-        self._published: set[int] = set()
+        self._published: dict[int, float] = {}  # own keyframe id -> stamp, as published
 
     # ---- own keyframes -------------------------------------------------------------------
     def on_keyframe(self, outcome: FrameOutcome) -> int:
@@ -152,7 +152,7 @@ class FleetExchange:
         desc = self.pipe.place_map.get_desc([kf_id])[0]
         msg = KeyframeDescriptor(c.robot, c.session, self.tag, kf_id, outcome.stamp, desc)
         self._send("keyframes", "", msg)
-        self._published.add(kf_id)
+        self._published[kf_id] = outcome.stamp
         self.counts.keyframes += 1
         hits = self.store.search(desc, c.top_k, self.pipe.config.global_floor)
         proposals = [Proposal(found[0].similarity, kf_id, outcome.stamp, owner, found)
@@ -269,6 +269,7 @@ class FleetExchange:
         key = (req.robot, req.session, req.request_id)
         if key in self._scored:
             raise FleetMessageError("duplicate", f"request {req.request_id} of {req.robot!r}")
+        self._check_published(req.candidate_ids)
         try:
             loop, response = score_request(self.pipe, req, self.config.robot, self.config.session)
         except FleetMessageError:
@@ -282,6 +283,16 @@ class FleetExchange:
         else:
             self.counts.loops_rejected += 1
         return loop
+
+    def _check_published(self, ids: list[int]) -> None:
+        """Only keyframes this robot published, still the same ones (a map cleared or loaded
+        since gives the ids to other keyframes: "stale keyframe")."""
+        pm = self.pipe.place_map
+        for kf_id in ids:
+            if kf_id not in self._published:
+                raise FleetMessageError("unknown keyframe", f"id {kf_id} was never published")
+            if kf_id >= len(pm) or pm.meta(kf_id).stamp != self._published[kf_id]:
+                raise FleetMessageError("stale keyframe", f"id {kf_id} is another keyframe now")
 
     def _response(self, msg: ScoreResponse) -> None:
         if msg.requester_robot != self.config.robot:

@@ -221,3 +221,14 @@ def test_bad_fleet_config_is_a_clear_error(changes, message):
     with pytest.raises(ConfigError) as err:
         FleetConfig(**{"robot": "a", "session": S, **changes})
     assert str(err.value).startswith(message)
+
+
+def test_requests_for_keyframes_of_a_cleared_map_are_refused(owner):
+    ex, sent = owner
+    ex.pipe.clear_map()  # ids 0 and 1 were published; the map now holds another keyframe 0
+    rng = np.random.default_rng(9)
+    ex.pipe.process(Frame(50.0, rng.integers(0, 256, (48, 64, 3), np.uint8)))
+    for ids in ([0], [1]):
+        data = encode(request(ex, candidate_ids=ids, similarities=[0.9]))
+        assert ex.receive("request", data) is None
+    assert dict(ex.counts.skipped) == {"stale keyframe": 2} and sent == []
