@@ -16,7 +16,8 @@ from dataclasses import dataclass
 from pair_vpr_ros.detector import Candidate, LoopRecord, rank_by_pair_score
 from pair_vpr_ros.errors import FleetMessageError
 from pair_vpr_ros.fleet.messages import ScoreRequest, ScoreResponse
-from pair_vpr_ros.pipeline import LoopClosurePipeline, map_pair_scores
+from pair_vpr_ros.pipeline import LoopClosurePipeline
+from pair_vpr_ros.scoring import map_pair_scores
 
 IDENTITY = ("query_robot", "query_session", "match_robot", "match_session")
 
@@ -32,10 +33,8 @@ class InterRobotLoop:
     match_session: str
 
     def to_dict(self) -> dict:
-        """The record's keys (loops.json) with both sides' robot and session."""
-        out = self.record.to_dict()
-        out.update({name: getattr(self, name) for name in IDENTITY})
-        return out
+        """The record's keys (loops.json), both sides' robot and session among them."""
+        return self.record.to_dict()
 
 
 def check_request(pipe: LoopClosurePipeline, req: ScoreRequest, robot: str, session: str) -> None:
@@ -85,20 +84,14 @@ def score_request(
     if record.accepted and pipe.geometry.config.relative_pose:
         pipe.geometry.pose(record, query, _features(pipe, best.id), _neighbours(pipe, best.id))
     meta = pm.meta(best.id)
-    loop = InterRobotLoop(record, req.robot, req.session, getattr(meta, "robot", "") or robot,
-                          getattr(meta, "session", "") or session)  # fmt: skip
-    _identify(record, loop)
+    loop = InterRobotLoop(record, req.robot, req.session, meta.robot or robot,
+                          meta.session or session)  # fmt: skip
+    for name in IDENTITY:
+        setattr(record, name, getattr(loop, name))
     response = ScoreResponse(robot, session, req.model, req.request_id, req.robot, req.session,
                              req.query_id, best.id, best.stamp, best.pair_score, len(cands),
                              record.accepted, record.pose_status)  # fmt: skip
     return loop, response
-
-
-def _identify(record: LoopRecord, loop: InterRobotLoop) -> None:
-    """Fill the record's robot / session fields where LoopRecord has them (issue 22 part 1)."""
-    for name in IDENTITY:
-        if hasattr(record, name):
-            setattr(record, name, getattr(loop, name))
 
 
 def _features(pipe: LoopClosurePipeline, kf_id: int):

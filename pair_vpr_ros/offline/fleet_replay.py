@@ -23,6 +23,7 @@ from pair_vpr_ros.errors import ConfigError, OutputError
 from pair_vpr_ros.fleet import Faults, FleetConfig, FleetExchange, InterRobotLoop, LocalBus
 from pair_vpr_ros.fleet.exchange import CHANNELS
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
+from pair_vpr_ros.identity import Identity
 from pair_vpr_ros.model import PairVPRModel
 from pair_vpr_ros.offline.sources import FrameCounts, source_frames
 from pair_vpr_ros.pipeline import Frame, FrameOutcome, LoopClosurePipeline
@@ -88,8 +89,9 @@ def run_fleet(
     bus, run, streams = LocalBus(faults), FleetRun(), []
     clock = [float("-inf")]
     for r in robots:
-        pipe = LoopClosurePipeline(model, detector, geometry=geometry)
         config = FleetConfig(robot=r.robot, session=r.session, **(fleet or {}))
+        who = Identity(r.robot, r.session)
+        pipe = LoopClosurePipeline(model, detector, geometry=geometry, identity=who)
         ex = FleetExchange(pipe, config, bus.sender(r.robot), clock=lambda: clock[0],
                            first_request_id=0)  # fmt: skip
         bus.join(ex)
@@ -101,7 +103,7 @@ def run_fleet(
         clock[0] = max(clock[0], stamp)
         ex = bus.exchanges[robot]
         if outcome.loop is not None:
-            run.robot_loops[robot].append(_own_record(outcome, ex.config))
+            run.robot_loops[robot].append(outcome.loop.to_dict())
         ex.on_keyframe(outcome)
         run.loops += bus.deliver()
     for ex in bus.exchanges.values():  # the last period's selected requests
@@ -124,14 +126,6 @@ def _frames(robot: FleetRobot) -> Iterable[Frame]:
 def _tagged(robot: str, outcomes: Iterator[FrameOutcome]) -> Iterator[tuple]:
     for outcome in outcomes:
         yield outcome.stamp, robot, outcome
-
-
-def _own_record(outcome: FrameOutcome, config: FleetConfig) -> dict:
-    out = outcome.loop.to_dict()
-    for side in ("query", "match"):
-        out.setdefault(f"{side}_robot", config.robot)
-        out.setdefault(f"{side}_session", config.session)
-    return out
 
 
 def check_fleet_out(out: str | Path, overwrite: bool = False) -> Path:

@@ -14,7 +14,6 @@ the map thread of `MapControl` (messages are handed over from the subscription c
 from __future__ import annotations
 
 import re
-import time
 from array import array
 from collections.abc import Callable
 from functools import partial
@@ -30,6 +29,7 @@ from pair_vpr_ros.errors import ConfigError, FleetMessageError
 from pair_vpr_ros.fleet import FleetExchange, InterRobotLoop, Outgoing
 from pair_vpr_ros.fleet.params import fleet_config
 from pair_vpr_ros.fleet.typed import from_typed, pose_codes, to_typed
+from pair_vpr_ros.identity import Identity
 from pair_vpr_ros.pipeline import FrameOutcome
 from pair_vpr_ros.ros.maps import MapControl
 from pair_vpr_ros.ros.outputs import publish_while_up
@@ -42,14 +42,6 @@ except ImportError:  # the bytes transport needs only std_msgs
 TOPIC_TOKEN = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 DEPTH = {"keyframes": 100, "request": 4, "response": 50}
 TYPED = {"keyframes": "KeyframeDescriptor", "request": "ScoreRequest", "response": "ScoreResponse"}
-
-
-def identity(node: Node, values: dict[str, Any]) -> tuple[str, str]:
-    """(robot, session): the robot_id / session_id parameters where the node has them (issue
-    22 part 1), else the namespace without slashes (else "robot") and the start time, UTC."""
-    robot = values.get("robot_id") or node.get_namespace().strip("/").replace("/", "_")
-    session = values.get("session_id") or time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-    return robot or "robot", session
 
 
 def typed_wanted(choice: str) -> bool:
@@ -70,9 +62,10 @@ class FleetLink:
         node: Node,
         maps: MapControl,
         values: dict[str, Any],
+        identity: Identity,
         on_loop: Callable[[InterRobotLoop], None],
     ) -> None:
-        robot, session = identity(node, values)
+        robot, session = identity.robot, identity.session
         if not TOPIC_TOKEN.fullmatch(robot):
             raise ConfigError(
                 f"fleet robot id {robot!r} cannot name a request topic: use letters, digits "

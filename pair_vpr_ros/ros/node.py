@@ -159,7 +159,7 @@ class VprNode(Node):
         self.fleet = None
         if v["fleet_enable"]:
             try:
-                self.fleet = FleetLink(self, self.maps, v, self._publish_fleet_loop)
+                self.fleet = FleetLink(self, self.maps, v, self.identity, self._publish_fleet_loop)
             except ConfigError:
                 self.maps.close()
                 raise

@@ -20,6 +20,7 @@ from pair_vpr_ros.fleet import (
     encode,
     model_tag,
 )
+from pair_vpr_ros.identity import Identity
 from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
 
 S = "20261125T160000Z"
@@ -28,9 +29,8 @@ S = "20261125T160000Z"
 @pytest.fixture
 def owner(tiny_model):
     """Robot "a" with two keyframes in its map; what it sent is kept in `sent`."""
-    pipe = LoopClosurePipeline(
-        tiny_model, DetectorConfig(score_threshold=-1e6, keyframe_max_similarity=0.99999)
-    )
+    config = DetectorConfig(score_threshold=-1e6, keyframe_max_similarity=0.99999)
+    pipe = LoopClosurePipeline(tiny_model, config, identity=Identity("a", S))
     sent = []
     ex = FleetExchange(pipe, FleetConfig("a", S, peers=("b", "c")), sent.append, lambda: 0.0, 0)
     rng = np.random.default_rng(0)

@@ -10,7 +10,9 @@ from exact_match import EXACT_MATCH
 
 from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.fleet import Faults, FleetConfig, FleetExchange, LocalBus
-from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline, map_pair_scores
+from pair_vpr_ros.identity import Identity
+from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
+from pair_vpr_ros.scoring import map_pair_scores
 
 SESSION = "20261125T160000Z"
 
@@ -23,7 +25,8 @@ def places():
 
 def robot(model, bus, name, clock, **fleet):
     """Robot `name` on `bus`; requests go out at once ("first") unless `fleet` says."""
-    pipe = LoopClosurePipeline(model, DetectorConfig(**EXACT_MATCH))
+    who = Identity(name, SESSION)
+    pipe = LoopClosurePipeline(model, DetectorConfig(**EXACT_MATCH), identity=who)
     config = FleetConfig(robot=name, session=SESSION, **{"select": "first", **fleet})
     ex = FleetExchange(pipe, config, bus.sender(name), clock=lambda: clock[0], first_request_id=0)
     bus.join(ex)
