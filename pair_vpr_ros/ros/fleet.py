@@ -21,7 +21,7 @@ from typing import Any
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
 from std_msgs.msg import UInt8MultiArray
 
@@ -40,7 +40,9 @@ except ImportError:  # the bytes transport needs only std_msgs
     typed_msgs = None
 
 TOPIC_TOKEN = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
-DEPTH = {"keyframes": 100, "request": 4, "response": 50}
+# Descriptors are kept by their publisher (transient local) for robots that join or return
+# later: the newest 1000 (~1.1 MB) reach a late subscriber; requests and responses are not kept.
+DEPTH = {"keyframes": 1000, "request": 4, "response": 50}
 TYPED = {"keyframes": "KeyframeDescriptor", "request": "ScoreRequest", "response": "ScoreResponse"}
 
 
@@ -80,6 +82,7 @@ class FleetLink:
         self.exchange = maps.call(lambda: FleetExchange(maps.pipeline, config, self._send))
         self._qos = {k: QoSProfile(depth=d, reliability=ReliabilityPolicy.RELIABLE)
                      for k, d in DEPTH.items()}  # fmt: skip
+        self._qos["keyframes"].durability = DurabilityPolicy.TRANSIENT_LOCAL
         self._request_topic = values["fleet_request_topic"].rstrip("/")
         self._pubs = {
             "keyframes": self._publisher(values["fleet_keyframes_topic"], "keyframes"),

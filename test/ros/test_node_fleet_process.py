@@ -15,6 +15,7 @@ from node_harness import image_msg
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 from std_msgs.msg import String, UInt8MultiArray
+from std_srvs.srv import Trigger
 from test_node_process import start
 
 from pair_vpr_ros.fleet import decode
@@ -65,9 +66,21 @@ def test_two_node_processes_find_a_loop_between_them(monkeypatch):
         for i in range(3):
             pubs["a"].publish(image_msg(places[i], 100.0 + i))
         assert spin_until(lambda: heard.count("a") >= 3)
+        # b has them in its peer store (map_info), not only on the wire, before it revisits
+        client = peer.create_client(Trigger, "/b/vpr_node/map_info")
+        assert client.wait_for_service(timeout_sec=30.0)
+
+        def b_holds_a() -> bool:
+            future = client.call_async(Trigger.Request())
+            spin_until(future.done, timeout=10.0)
+            info = json.loads(future.result().message) if future.done() else {}
+            held = info.get("fleet", {}).get("peer_keyframes", {})
+            return sum(n for owner, n in held.items() if owner.startswith("a/")) >= 3
+
+        assert spin_until(b_holds_a)
         pubs["b"].publish(image_msg(places[3], 200.0))
         pubs["b"].publish(image_msg(places[1], 201.0))
-        assert spin_until(lambda: got), [line for _, _, lines in procs for line in lines]
+        assert spin_until(lambda: got), "".join(x for _, _, ls in procs for x in ls)
         record = json.loads(got[0].data)
         assert (record["query_id"], record["match_id"], record["accepted"]) == (1, 1, True)
         assert (record["query_stamp"], record["match_stamp"]) == (201.0, 101.0)
