@@ -40,8 +40,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from pair_vpr_ros.encoded_image import IMAGE_SUFFIXES, file_to_rgb
 from pair_vpr_ros.errors import DatasetError, ImageConversionError
-from pair_vpr_ros.imaging import IMAGE_SUFFIXES, file_to_rgb
 from pair_vpr_ros.model import preprocess
 
 GSV_COLUMNS = ("place_id", "year", "month", "northdeg", "city_id", "lat", "lon", "panoid")

@@ -15,7 +15,7 @@ from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
 from pair_vpr_ros.identity import Identity
-from pair_vpr_ros.imaging import MAX_PIXELS
+from pair_vpr_ros.image_pixels import MAX_PIXELS
 from pair_vpr_ros.model import PairVPRModel
 from pair_vpr_ros.offline.sources import FrameCounts, source_frames
 from pair_vpr_ros.pipeline import LoopClosurePipeline

@@ -12,9 +12,10 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from pair_vpr_ros.encoded_image import IMAGE_SUFFIXES, file_to_rgb
 from pair_vpr_ros.errors import BagError, ConfigError, ImageConversionError
 from pair_vpr_ros.frames import Frame
-from pair_vpr_ros.imaging import IMAGE_SUFFIXES, MAX_PIXELS, file_to_rgb
+from pair_vpr_ros.image_pixels import MAX_PIXELS
 from pair_vpr_ros.offline import bag_io
 from pair_vpr_ros.offline.bag_geometry import attach, open_geometry
 from pair_vpr_ros.offline.bag_io import BagFrame

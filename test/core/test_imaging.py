@@ -10,7 +10,6 @@ import cv2
 import numpy as np
 import pytest
 
-from pair_vpr_ros import imaging
 from pair_vpr_ros.errors import ImageConversionError
 from pair_vpr_ros.imaging import (
     SUPPORTED_ENCODINGS,
@@ -369,7 +368,7 @@ def test_opencv_errors_are_wrapped(monkeypatch: pytest.MonkeyPatch) -> None:
     def broken(*_args, **_kwargs):
         raise cv2.error("simulated failure")
 
-    monkeypatch.setattr(imaging.cv2, "cvtColor", broken)
+    monkeypatch.setattr(cv2, "cvtColor", broken)
     with pytest.raises(ImageConversionError, match="OpenCV could not convert it") as info:
         image_to_rgb("bgr8", 2, 2, 6, bytes(12))
     assert isinstance(info.value.__cause__, cv2.error)
