@@ -7,29 +7,44 @@ a failure part-way through, the image message index and stamp where reading stop
 
 Frame stamps are header stamps in float seconds (the time base LIO-SAM expects); a zero header
 stamp falls back to the bag's receive time. Poses are matched to frames by nearest header stamp.
+
+Opening a bag lives in ``bag_open`` and the loop-closure bag writer in ``loop_bag``; their public
+names (``open_bag``, ``check_bag_path``, ``jazzy_typestore``, ``BAG_SUFFIXES``, ``LoopBagWriter``)
+are re-exported here so ``from pair_vpr_ros.offline.bag_io import ...`` keeps working.
 """
 
 from __future__ import annotations
 
-import stat
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
-from functools import lru_cache, partial
-from pathlib import Path
+from functools import partial
 from typing import Any
 
 import numpy as np
-from rosbags.highlevel import AnyReader, AnyReaderError
-from rosbags.rosbag1 import ReaderError as Ros1ReaderError
-from rosbags.rosbag2 import ReaderError as Ros2ReaderError
-from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.typesys import Stores, get_typestore
+from rosbags.highlevel import AnyReader
 
-from pair_vpr_ros import loop_messages
-from pair_vpr_ros.errors import BagError, ImageConversionError, OutputError
+from pair_vpr_ros.errors import BagError, ImageConversionError
 from pair_vpr_ros.imaging import MAX_PIXELS, msg_to_rgb
+from pair_vpr_ros.offline.bag_open import BAG_SUFFIXES, check_bag_path, jazzy_typestore, open_bag
+from pair_vpr_ros.offline.loop_bag import LoopBagWriter
 from pair_vpr_ros.types import Pose, PoseTrack, message_pose, message_stamp
+
+__all__ = [
+    "BAG_SUFFIXES",
+    "IMAGE_TYPES",
+    "POSE_TYPES",
+    "BagFrame",
+    "LoopBagWriter",
+    "bad_poses_warning",
+    "check_bag_path",
+    "choose_image_topic",
+    "choose_pose_topic",
+    "iter_frames",
+    "jazzy_typestore",
+    "open_bag",
+    "read_poses",
+    "topics_of_types",
+]
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 POSE_TYPES = (
@@ -37,46 +52,6 @@ POSE_TYPES = (
     "geometry_msgs/msg/PoseStamped",
     "geometry_msgs/msg/PoseWithCovarianceStamped",
 )
-BAG_SUFFIXES = (".mcap", ".db3", ".bag")
-
-_SPECIAL_FILES = (
-    (stat.S_ISFIFO, "named pipe (FIFO)"),
-    (stat.S_ISSOCK, "socket"),
-    (stat.S_ISCHR, "character device"),
-    (stat.S_ISBLK, "block device"),
-    (stat.S_ISDIR, "folder"),
-)
-_METADATA_HINT = "the bag folder's metadata.yaml is damaged; `ros2 bag reindex` can rebuild it"
-_OPEN_HINTS = {  # first match wins
-    "File end magic is invalid": "the MCAP file is truncated or was never closed (recording "
-    "interrupted?); the MCAP CLI's `mcap recover` can rebuild it",
-    "File magic is invalid": "the file is not an MCAP / ROS 1 bag",
-    "seems to be empty": "the file is empty",
-    "files are missing": "a storage file that metadata.yaml lists is missing: copy the whole "
-    "bag folder",
-    "metadata": _METADATA_HINT,
-    "YAML": _METADATA_HINT,
-    "database": "the sqlite3 (.db3) file is corrupt, truncated or not a rosbag2 database",
-    "Bag index looks damaged": "the ROS 1 bag is truncated or was never closed; `rosbag "
-    "reindex` can rebuild its index",
-    "Bag version": "not a ROS 1 bag (version 2.0)",
-    "Rosbag2 version": "written by a rosbag2 newer than this rosbags release reads: upgrade "
-    "rosbags (pip install -U rosbags)",
-}
-
-
-def _open_hint(text: str, path: Path) -> str:
-    """What to do about an open failure whose message is `text`."""
-    hint = next((h for key, h in _OPEN_HINTS.items() if key in text), None)
-    if hint is None and "codec can't decode" in text:  # binary where text was expected
-        hint = _METADATA_HINT if path.is_dir() else "the file is not a bag"
-    return hint or "not a readable bag"
-
-
-@lru_cache(maxsize=1)
-def jazzy_typestore() -> Any:
-    """The ROS 2 Jazzy typestore (fallback definitions and the types this package writes)."""
-    return get_typestore(Stores.ROS2_JAZZY)
 
 
 @dataclass(frozen=True)
@@ -100,62 +75,6 @@ class BagFrame:
 
 def _bag_name(reader: AnyReader) -> str:
     return ", ".join(str(p) for p in reader.paths)
-
-
-def _check_regular(path: Path) -> None:
-    """A FIFO, socket or device named like a bag would block the reader (or never end)."""
-    if path.exists() and not path.is_file():
-        mode = path.stat().st_mode
-        kind = next((name for test, name in _SPECIAL_FILES if test(mode)), "not a regular file")
-        raise BagError(
-            f"{path} is a {kind}, not a regular file: reading it could block forever; copy the "
-            "recording to a file (or rosbag2 folder) first"
-        )
-
-
-def _resolve(path: Path) -> Path:
-    """Check ``path`` names something rosbags can open; a folder without metadata.yaml holding one
-    storage file is read through that file."""
-    if not path.exists():
-        raise BagError(
-            f"bag {path} does not exist: give a rosbag2 folder, a .mcap or .db3 file "
-            "or a ROS 1 .bag"
-        )
-    if path.is_dir():
-        storage = sorted(p for p in path.iterdir() if p.suffix in (".mcap", ".db3"))
-        for part in [path / "metadata.yaml", *storage]:
-            _check_regular(part)
-        if (path / "metadata.yaml").exists():
-            return path
-        if len(storage) == 1:
-            return storage[0]
-        raise BagError(
-            f"{path} is a folder without metadata.yaml and with {len(storage)} .mcap/.db3 files: "
-            "give a rosbag2 folder or one storage file"
-        )
-    _check_regular(path)
-    if path.suffix not in BAG_SUFFIXES:
-        raise BagError(
-            f"{path} is not a bag: expected a rosbag2 folder or a file ending in "
-            f"{', '.join(BAG_SUFFIXES)}"
-        )
-    return path
-
-
-@contextmanager
-def open_bag(path: str | Path) -> Iterator[AnyReader]:
-    """Open a bag for reading; any failure to open it is a ``BagError`` with a hint."""
-    resolved = _resolve(Path(path))
-    try:
-        reader = AnyReader([resolved], default_typestore=jazzy_typestore())
-        reader.open()
-    except (AnyReaderError, Ros1ReaderError, Ros2ReaderError, OSError, ValueError) as err:
-        text = " ".join(str(err).split()) or type(err).__name__  # one line (YAML errors)
-        raise BagError(f"cannot open bag {path}: {text} ({_open_hint(text, resolved)})") from err
-    try:
-        yield reader
-    finally:
-        reader.close()
 
 
 def topics_of_types(reader: AnyReader, msgtypes: tuple[str, ...]) -> dict[str, str]:
@@ -304,107 +223,3 @@ def iter_frames(
 
 def _jazzy_cdr(msg: Any, msgtype: str) -> bytes:
     return bytes(jazzy_typestore().serialize_cdr(msg, msgtype))
-
-
-class LoopBagWriter:
-    """Write loop closures (and optionally the replayed images) to a new rosbag2 folder (mcap).
-
-    Loop messages are the node's (``loop_messages``) on ``/loop_closure``,
-    ``/loop_closure/detail``, ``/loop_closure/json`` and (loops with a relative pose)
-    ``/loop_closure/factor``, each written at the receive time of its query image so the output
-    plays in step with the source bag. Use as a context manager; ``path`` must not exist.
-    """
-
-    def __init__(
-        self, path: str | Path, image_topic: str | None = None, image_msgtype: str = ""
-    ) -> None:
-        self.path = Path(path)
-        if self.path.exists():
-            raise BagError(f"output bag {self.path} exists already: remove it or write elsewhere")
-        self._ts = jazzy_typestore()
-        self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
-        self._image_topic, self._image_msgtype = image_topic, image_msgtype
-        self._connections: dict[str, Any] = {}
-
-    def __enter__(self) -> LoopBagWriter:
-        try:
-            self._writer.open()
-        except OSError as err:
-            raise BagError(f"cannot create output bag {self.path}: {err}") from err
-        ts = self._ts
-        float_array, string = loop_messages.FLOAT64_ARRAY_TYPE, loop_messages.STRING_TYPE
-        for topic, msgtype in (
-            (loop_messages.PAIR_TOPIC, float_array),
-            (loop_messages.DETAIL_TOPIC, float_array),
-            (loop_messages.JSON_TOPIC, string),
-            (loop_messages.FACTOR_TOPIC, loop_messages.FACTOR_TYPE),
-        ):
-            self._connections[topic] = self._writer.add_connection(
-                "/" + topic, msgtype, typestore=ts
-            )
-        if self._image_topic is not None:
-            self._connections["image"] = self._writer.add_connection(
-                self._image_topic, self._image_msgtype, typestore=ts
-            )
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        try:
-            self._writer.close()
-        except OSError as err:
-            if exc[0] is None:  # do not hide the error that ended the block
-                raise self._failed(err) from err
-
-    def _failed(self, err: OSError) -> OutputError:
-        return OutputError(
-            f"writing the output bag {self.path} failed ({err.strerror or err}); free disk "
-            "space or write elsewhere"
-        )
-
-    def _write(self, connection: Any, log_time_ns: int, cdr: bytes) -> None:
-        try:
-            self._writer.write(connection, log_time_ns, cdr)
-        except OSError as err:
-            raise self._failed(err) from err
-
-    def write_image(self, cdr: bytes, log_time_ns: int) -> None:
-        """Copy one image message (CDR bytes) at its original receive time."""
-        self._write(self._connections["image"], log_time_ns, cdr)
-
-    def write_loop(self, record: Any, log_time_ns: int) -> None:
-        """Write the messages of one loop closure at ``log_time_ns``."""
-        ts, content = self._ts, loop_messages.loop_messages(record)
-        array, layout, dim = (
-            ts.types["std_msgs/msg/Float64MultiArray"],
-            ts.types["std_msgs/msg/MultiArrayLayout"],
-            ts.types["std_msgs/msg/MultiArrayDimension"],
-        )
-        detail = array(
-            layout=layout(
-                dim=[dim(label=label, size=1, stride=1) for label in content.detail_labels],
-                data_offset=0,
-            ),
-            data=np.asarray(content.detail, dtype=np.float64),
-        )
-        text = ts.types["std_msgs/msg/String"](data=content.json)
-        msgs = []
-        if content.pair is not None:  # None: the match is not older (loop_messages.pair_data)
-            pair = array(layout=layout(dim=[], data_offset=0), data=np.asarray(content.pair))
-            msgs.append((loop_messages.PAIR_TOPIC, pair))
-        msgs += [
-            (loop_messages.DETAIL_TOPIC, detail),
-            (loop_messages.JSON_TOPIC, text),
-        ]
-        if content.factor is not None:
-            msgs.append(
-                (loop_messages.FACTOR_TOPIC, loop_messages.factor_msg(content.factor, ts.types))
-            )
-        for topic, msg in msgs:
-            cdr = ts.serialize_cdr(msg, msg.__msgtype__)
-            self._write(self._connections[topic], log_time_ns, cdr)
-
-
-def check_bag_path(path: str | Path) -> Path:
-    """The storage path of bag ``path``, or BagError (what is wrong, what to give) when it is
-    none; cheap, so a tool checks it before slow work such as finding and loading weights."""
-    return _resolve(Path(path))

@@ -26,7 +26,7 @@ from pair_vpr_ros.geometry.features import KINDS
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
 from pair_vpr_ros.identity import DEFAULT_ROBOT, RULE, name_problem
 from pair_vpr_ros.image_pixels import MAX_PIXELS
-from pair_vpr_ros.offline.bag_io import check_bag_path
+from pair_vpr_ros.offline.bag_open import check_bag_path
 from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
 from pair_vpr_ros.params import (
     SPECS,
