@@ -25,7 +25,8 @@ from tqdm import tqdm
 from pair_vpr_ros.cli import nonnegative_int, positive_float, positive_int, run_cli
 from pair_vpr_ros.detector import Candidate, rank_by_pair_score
 from pair_vpr_ros.errors import ConfigError, DatasetError
-from pair_vpr_ros.learn.datasets import EvalSet, ImageFiles, load_eval_set
+from pair_vpr_ros.learn.eval_sets import EvalSet, load_eval_set
+from pair_vpr_ros.learn.image_files import ImageFiles
 from pair_vpr_ros.model import PairVPR
 from pair_vpr_ros.pipeline import encode_for_map, map_pair_scores
 from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap

@@ -16,7 +16,8 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from pair_vpr_ros.errors import DatasetError
-from pair_vpr_ros.learn.datasets import PlaceCollection, read_rgb
+from pair_vpr_ros.learn.image_files import read_rgb
+from pair_vpr_ros.learn.places import PlaceCollection
 from pair_vpr_ros.learn.train.common import DistContext
 from pair_vpr_ros.learn.train.config import TrainConfig
 from pair_vpr_ros.model import preprocess

@@ -19,7 +19,7 @@ from torch.nn.parallel import DistributedDataParallel
 
 from pair_vpr_ros.cli import run_cli
 from pair_vpr_ros.errors import ConfigError, TrainingError
-from pair_vpr_ros.learn.datasets import concat_collections, load_places
+from pair_vpr_ros.learn.places import concat_collections, load_places
 from pair_vpr_ros.learn.train.common import (
     DistContext,
     init_distributed,
