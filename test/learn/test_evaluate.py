@@ -13,7 +13,7 @@ from synthetic_data import make_utm_eval_set
 
 from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.learn import evaluate
+from pair_vpr_ros.learn import recall
 from pair_vpr_ros.learn.datasets import load_eval_set, read_rgb
 from pair_vpr_ros.learn.evaluate import (
     EvalConfig,
@@ -45,7 +45,7 @@ def test_rerank_orders_the_first_k_hits_by_pair_score_and_keeps_the_tail(
 ) -> None:
     scores = {5: 0.1, 3: 0.9, 9: 0.5, 1: 2.0}
     monkeypatch.setattr(
-        evaluate, "map_pair_scores", lambda model, pmap, q, ids: np.array([scores[i] for i in ids])
+        recall, "map_pair_scores", lambda model, pmap, q, ids: np.array([scores[i] for i in ids])
     )
     hits = [(5, 0.9), (3, 0.8), (9, 0.7), (1, 0.6)]
     top3 = rerank(None, None, np.zeros((1, 1)), hits, k=3)

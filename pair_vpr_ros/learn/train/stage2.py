@@ -35,7 +35,7 @@ from torch import Tensor, nn
 
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.learn.eval_sets import load_eval_set
-from pair_vpr_ros.learn.evaluate import EvalConfig, evaluate_set
+from pair_vpr_ros.learn.recall import EvalConfig, evaluate_set
 from pair_vpr_ros.learn.train.common import DistContext, gather_batch, linear_decay, param_groups
 from pair_vpr_ros.learn.train.config import TrainConfig
 from pair_vpr_ros.learn.train.driver import Stage, stage_main, stage_parser, train
