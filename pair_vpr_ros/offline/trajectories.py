@@ -166,7 +166,7 @@ def plot_trajectories(
     drawn between its two optimised nodes (``loops [L, 2, 3]``): solid when the robust kernel
     agrees with the optimised trajectory (``inliers [L]`` bool), dotted red when it does not
     (the robust kernel has down-weighted it)."""
-    from pair_vpr_ros.offline.report import _pyplot
+    from pair_vpr_ros.offline.report_plots import _pyplot
 
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7, 7))
@@ -209,7 +209,7 @@ def plot_fleet(
     its own frame; right the optimised trajectories in the map frame, moved onto the ground
     truth by ``to_truth`` (the first trajectory's alignment, ``[4, 4]``) when given, with the
     loops (``[L, 2, 3]``; ``between [L]``: joins two trajectories; red dotted: outliers)."""
-    from pair_vpr_ros.offline.report import _pyplot
+    from pair_vpr_ros.offline.report_plots import _pyplot
 
     plt = _pyplot()
     move = np.eye(4) if to_truth is None else np.asarray(to_truth)
