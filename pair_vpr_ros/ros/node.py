@@ -33,7 +33,9 @@ saves to `map_dir` and then replaces the live map (`map_info` answers JSON with 
 state; a failed build keeps `/diagnostics` at ERROR until one succeeds). Outputs other than
 `loop_closure` live under its resolved name (`ros.outputs`). Entry point: `ros.entry`. Only
 rclpy code lives here; the parameter table is `params`, the queue / statistics `ros.runtime`,
-poses `types`, the map services `ros.maps`.
+poses `types`, the map services `ros.maps`. `VprNode` is built from the node's parameter handling
+(`ros.parameters`), its frame intake and worker (`ros.intake`) and its services and diagnostics
+(`ros.services`); this module keeps its start-up, loop publishing, shutdown and `main`.
 """
 
 from __future__ import annotations
@@ -46,73 +48,48 @@ if __name__ == "__main__":  # `python -m pair_vpr_ros.ros.node`: through the lig
 
     _sys.exit(_vpr_node())
 
-import json
 import signal
 import sys
 import threading
-import time
 from functools import partial
 
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
-from nav_msgs.msg import Odometry
-from rcl_interfaces.msg import SetParametersResult
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
-from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image
-from std_srvs.srv import SetBool, Trigger
 
 from pair_vpr_ros import params
 from pair_vpr_ros.cli import EXIT_ERROR, EXIT_OK
 from pair_vpr_ros.detector import LoopRecord
 from pair_vpr_ros.devices import check_device
-from pair_vpr_ros.errors import ConfigError, ImageConversionError, PairVPRError
+from pair_vpr_ros.errors import ConfigError, PairVPRError
 from pair_vpr_ros.fleet import InterRobotLoop
-from pair_vpr_ros.geometry.camera_notes import demo_model_note, fallback_intrinsics_note
 from pair_vpr_ros.identity import resolve_identity
-from pair_vpr_ros.imaging import msg_to_rgb
-from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline, frame_due
+from pair_vpr_ros.pipeline import LoopClosurePipeline
 from pair_vpr_ros.prior_maps import open_prior_maps
 from pair_vpr_ros.ros.fleet import FleetLink
 from pair_vpr_ros.ros.geometry_inputs import GeometryInputs
+from pair_vpr_ros.ros.intake import FrameIntake
 from pair_vpr_ros.ros.maps import MapControl
-from pair_vpr_ros.ros.outputs import MARKER_TOPIC, LoopOutputs, publish_while_up
-from pair_vpr_ros.ros.parameters import declared_default, descriptor, read_value
-from pair_vpr_ros.ros.runtime import (
-    FrameQueue,
-    NodeStats,
-    diagnostic_values,
-    precision_context,
-)
-from pair_vpr_ros.types import Pose, PoseTrack, message_pose, message_stamp
+from pair_vpr_ros.ros.outputs import MARKER_TOPIC, LoopOutputs
+from pair_vpr_ros.ros.parameters import ParameterHandling, declare_all
+from pair_vpr_ros.ros.runtime import FrameQueue, NodeStats, precision_context
+from pair_vpr_ros.ros.services import NodeServices
+from pair_vpr_ros.types import Pose, PoseTrack
 from pair_vpr_ros.weights import load_model
 
 __all__ = ["MARKER_TOPIC", "VprNode", "main"]
 RCLError = rclpy_implementation.RCLError
-POSE_TYPES = {
-    "odometry": Odometry,
-    "pose_stamped": PoseStamped,
-    "pose_with_covariance_stamped": PoseWithCovarianceStamped,
-}
 
 
-class VprNode(Node):
+class VprNode(ParameterHandling, FrameIntake, NodeServices, Node):
     """Frames in, loop closures out. `start_worker=False` leaves frames queued (tests)."""
 
     def __init__(self, *, start_worker: bool = True, **kwargs) -> None:
         super().__init__("vpr_node", **kwargs)
-        for spec in params.PARAMS:
-            self.declare_parameter(spec.name, declared_default(spec), descriptor(spec))
-        v = {spec.name: read_value(self, spec) for spec in params.PARAMS}
-        reasons = [r for name, value in v.items() if (r := params.check_value(name, value))]
-        if reasons:
-            raise ConfigError("invalid parameters: " + "; ".join(reasons))
+        v = declare_all(self)
         self.values = v
         device = check_device(v["device"])
         model = load_model(
@@ -186,176 +163,11 @@ class VprNode(Node):
             self.get_logger().info(text)
 
     def _make_interfaces(self, v: dict) -> None:
-        inputs, services = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
-        qos = qos_profile_sensor_data
-        if v["qos"] == "reliable":
-            qos = QoSProfile(
-                depth=max(10, v["queue_size"]), reliability=ReliabilityPolicy.RELIABLE
-            )
-        for msg_type, name in (
-            (Image, "image_topic"),
-            (CompressedImage, "compressed_image_topic"),
-        ):
-            if v[name]:
-                callback = partial(self._on_image, v[name])
-                self.create_subscription(msg_type, v[name], callback, qos, callback_group=inputs)
-        if v["depth_topic"]:
-            self.create_subscription(
-                Image, v["depth_topic"], self.geometry_inputs.on_depth, qos,
-                callback_group=MutuallyExclusiveCallbackGroup(),
-            )  # fmt: skip
-        if v["camera_info_topic"]:
-            self.create_subscription(
-                CameraInfo, v["camera_info_topic"], self._on_camera_info, qos,
-                callback_group=MutuallyExclusiveCallbackGroup(),
-            )  # fmt: skip
-        for msg_type, name, callback in (
-            (Image, "right_image_topic", self.geometry_inputs.on_right),
-            (CameraInfo, "right_camera_info_topic", self._on_right_camera_info),
-        ):  # stereo: depth for keyframes from the rectified pair (geometry/stereo.py)
-            if v[name]:
-                group = MutuallyExclusiveCallbackGroup()
-                self.create_subscription(msg_type, v[name], callback, qos, callback_group=group)
-        if v["pose_topic"]:
-            pose_type, group = POSE_TYPES[v["pose_type"]], MutuallyExclusiveCallbackGroup()
-            self.create_subscription(
-                pose_type, v["pose_topic"], self._on_pose, qos, callback_group=group
-            )
+        self._make_subscriptions(v)
         self.outputs = LoopOutputs(self)
         self.pub_pair = self.outputs.pair
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        for srv_type, name, handler in (
-            (SetBool, "~/set_localization", self._srv_localization),
-            (Trigger, "~/save_map", self._trigger(lambda: self.maps.save(self.values["map_dir"]))),
-            (Trigger, "~/load_map", self._trigger(lambda: self.maps.load(self.values["map_dir"]))),
-            (Trigger, "~/clear_map", self._trigger(self._clear)),
-            (Trigger, "~/build_map", self._trigger(self._start_build)),
-            (Trigger, "~/map_info", self._trigger(self._map_info)),
-        ):
-            self.create_service(srv_type, name, handler, callback_group=services)
-        diagnostics = MutuallyExclusiveCallbackGroup()
-        self.create_timer(v["diagnostics_period"], self._publish_diagnostics, diagnostics)
-        if v["autosave_period"] > 0:
-            self.create_timer(v["autosave_period"], self._autosave, services)
-
-    # ---- parameters --------------------------------------------------------------------------
-    def _say_once(self, note: str) -> None:
-        if note:
-            self.get_logger().warning(note)
-
-    def _warn_settings(self, v: dict) -> None:
-        """Settings that are valid alone but do nothing together: say so at once."""
-        self._demo_note: str | None = None
-        self._say_once(fallback_intrinsics_note(v))
-        if v["save_on_shutdown"] and not v["map_dir"]:
-            self.get_logger().warning(
-                "save_on_shutdown is true but map_dir is empty: nothing will be saved when the "
-                "node stops; set map_dir (-p map_dir:=/path/to/map or ros2 param set)"
-            )
-
-    def _on_set_parameters(self, changed: list[Parameter]) -> SetParametersResult:
-        reason = params.check_change(self.values, {p.name: p.value for p in changed})
-        return SetParametersResult(successful=reason is None, reason=reason or "")
-
-    def _after_set_parameters(self, changed: list[Parameter]) -> None:
-        self.values = {**self.values, **{p.name: p.value for p in changed}}
-        if any(p.name in ("save_on_shutdown", "map_dir") for p in changed):
-            self._warn_settings(self.values)
-        if any(p.name in params.DETECTOR_PARAMS for p in changed):
-            config = params.detector_config(self.values)
-            self.maps.set_config(config)
-            self._min_interval = config.min_frame_interval
-
-    # ---- inputs ------------------------------------------------------------------------------
-    def _on_image(self, topic: str, msg: Image | CompressedImage) -> None:
-        self.stats.counts.received += 1
-        stamp = message_stamp(msg, fallback=self.get_clock().now().nanoseconds / 1e9)
-        if not frame_due(stamp, self._last_queued, self._min_interval):
-            self.stats.counts.rate_limited += 1  # the pipeline would skip it: not queued
-            return
-        try:
-            rgb = msg_to_rgb(msg, max_pixels=self.values["max_image_pixels"])
-        except ImageConversionError as err:
-            self.stats.counts.invalid += 1
-            text = f"skipping a frame of {topic}: {err}"
-            self.get_logger().warning(text, throttle_duration_sec=5.0)
-            return
-        self._last_queued = stamp
-        frame = Frame(stamp=stamp, rgb=rgb, frame_id=msg.header.frame_id, source=topic)
-        if self.frames.put((frame, time.monotonic())):
-            self.stats.counts.dropped += 1
-            self.get_logger().warning(
-                "frame queue full: dropping the oldest frame (the model is slower than the "
-                "camera; raise min_frame_interval or queue_size)",
-                throttle_duration_sec=10.0,
-            )
-
-    def _on_right_camera_info(self, msg: CameraInfo) -> None:
-        problem = self.geometry_inputs.on_right_camera_info(msg)
-        if problem:
-            self.get_logger().warning(problem, throttle_duration_sec=10.0)
-
-    def _on_camera_info(self, msg: CameraInfo) -> None:
-        problem = self.geometry_inputs.on_camera_info(msg)
-        if problem:
-            self.get_logger().warning(problem, throttle_duration_sec=10.0)
-
-    def _on_pose(self, msg: Odometry | PoseStamped | PoseWithCovarianceStamped) -> None:
-        stamp = message_stamp(msg)
-        if not self.poses.add(stamp, message_pose(msg)):
-            self.stats.counts.bad_poses += 1
-            self.get_logger().warning(
-                f"skipping a pose of {self.values['pose_topic']} at stamp {stamp:.3f} s: it "
-                "holds NaN or infinite values (frames near it get no pose)",
-                throttle_duration_sec=5.0,
-            )
-
-    # ---- worker ------------------------------------------------------------------------------
-    def _work(self) -> None:
-        while not self._stop.is_set():
-            item = self.frames.get(timeout=0.2)
-            if item is not None:
-                self._process(*item)
-
-    def _process(self, frame: Frame, received: float) -> None:
-        frame.pose = self.poses.nearest(frame.stamp, self.values["pose_tolerance"])
-        inputs = self.geometry_inputs
-        frame.camera = inputs.camera_for(frame.rgb.shape[1], frame.rgb.shape[0])
-        frame.depth = inputs.depth_for(frame.stamp)
-        frame.right, frame.baseline = inputs.right_for(frame.stamp), inputs.baseline
-        self._say_once(inputs.silence_note(time.monotonic()))
-        if self._demo_note is None:  # the first frame: is the demo model on a real camera?
-            self._demo_note = demo_model_note(self.pipeline.model.fingerprint, frame.rgb)
-            self._say_once(self._demo_note)
-        if inputs.enabled_depth and frame.depth is None:
-            self.get_logger().warning(
-                f"frame without depth: {inputs.last_problem}", throttle_duration_sec=10.0
-            )
-        try:
-            outcome, match_pose = self.maps.process(frame)
-            self.stats.counts.processed += 1
-            if outcome.clock_jump_s:
-                self.get_logger().warning(
-                    f"image stamps went back {outcome.clock_jump_s:.3f} s (to {frame.stamp:.3f} "
-                    "s): a bag played again or a clock reset; starting a new session (the map "
-                    "keeps its keyframes; loops only to keyframes stamped at least "
-                    "exclude_recent_s apart, and the pair topic only when the match is older)",
-                    throttle_duration_sec=10.0,
-                )
-            now_ms = self.get_clock().now().nanoseconds / 1e6
-            self.stats.add_ms("latency", (time.monotonic() - received) * 1e3)
-            self.stats.add_ms("stamp_age", now_ms - frame.stamp * 1e3)
-            for key, ms in outcome.timings_ms.items():
-                self.stats.add_ms(key, ms)
-            if outcome.loop is not None:
-                self._publish_loop(outcome.loop, frame.pose, match_pose)
-            if self.fleet is not None:
-                self.fleet.on_outcome(outcome)
-        except Exception as err:  # noqa: BLE001 - the worker must outlive any one frame
-            if not self._stop.is_set():
-                self.stats.counts.errors += 1
-                text = f"frame at {frame.stamp:.3f} s failed: {type(err).__name__}: {err}"
-                self.get_logger().error(text, throttle_duration_sec=5.0)
+        self._make_services(v)
 
     def _publish_loop(self, record: LoopRecord, pose: Pose | None, match_pose: Pose | None):
         if not (record.accepted or self.values["publish_rejected"]):
@@ -383,85 +195,6 @@ class VprNode(Node):
                 f"inter-robot loop: {loop.query_robot} keyframe {record.query_id} -> "
                 f"{loop.match_robot} keyframe {record.match_id}, score {record.pair_score:.3f}"
             )
-
-    # ---- diagnostics, autosave, services --------------------------------------------------------
-    def diagnostic_values(self) -> dict[str, str]:
-        """Everything `/diagnostics` reports, as strings."""
-        return diagnostic_values(self.values, self.stats, self.frames, self.maps)
-
-    def _publish_diagnostics(self) -> None:
-        values = self.diagnostic_values()
-        problems = self.stats.problems()
-        level = DiagnosticStatus.WARN if problems else DiagnosticStatus.OK
-        if self.maps.build.error:  # until the next successful build
-            level, problems = (
-                DiagnosticStatus.ERROR,
-                "; ".join(x for x in (self.maps.build.error, problems) if x),
-            )
-        status = DiagnosticStatus(
-            name="vpr_node: loop closure",
-            hardware_id=self.values["device"],
-            level=level,
-            message=problems or f"{values['mode']}, {values['map_size']} keyframes",
-            values=[KeyValue(key=k, value=x) for k, x in values.items()],
-        )
-        msg = DiagnosticArray(status=[status])
-        msg.header.stamp = self.get_clock().now().to_msg()
-        publish_while_up(self, self.pub_diag, msg)
-
-    def _autosave(self) -> None:
-        result = self.maps.autosave(self.values["map_dir"])
-        if result is not None:
-            self._log("info" if result[0] else "error", f"autosave: {result[1]}")
-
-    @staticmethod
-    def _trigger(action):
-        def handle(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-            response.success, response.message = action()
-            return response
-
-        return handle
-
-    def _srv_localization(self, request: SetBool.Request, response: SetBool.Response):
-        mode = "localization" if request.data else "mapping"
-        result = self.set_parameters([Parameter("mode", value=mode)])[0]
-        response.success = result.successful
-        response.message = f"mode: {mode}" if result.successful else result.reason
-        return response
-
-    def _map_info(self) -> tuple[bool, str]:
-        """The live map and the last build as JSON (a script polls this after build_map)."""
-        info = {
-            "keyframes": self.maps.size(),
-            "mode": self.maps.state.mode,
-            "map_dir": self.values["map_dir"],
-            "build": self.maps.build.to_dict(),
-            "robot": self.identity.robot,
-            "session": self.identity.session,
-            "prior_maps": self._prior_summary,  # dir, keyframes, sessions (fixed at start-up)
-        }
-        if self.fleet is not None:
-            info["fleet"] = self.fleet.state()
-        return True, json.dumps(info)
-
-    def _clear(self) -> tuple[bool, str]:
-        result = self.maps.clear()
-        self.outputs.clear_markers()
-        return result
-
-    def _start_build(self) -> tuple[bool, str]:
-        v = self.values
-        return self.maps.start_build(
-            v["build_source"],
-            v["map_dir"],
-            params.detector_config(v),
-            image_topic=v["build_image_topic"] or None,
-            image_period=v["build_image_period"],
-            index=params.index_config(v),
-            max_pixels=v["max_image_pixels"],
-            geometry=params.geometry_config(v),
-            identity=self.identity,
-        )
 
     def shutdown(self) -> None:
         """Stop the worker and any build, save when asked to, release the map (idempotent)."""
