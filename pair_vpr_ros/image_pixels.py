@@ -7,7 +7,6 @@ range is the 1st..99th percentile of the finite values of a subsample, see `scal
 from __future__ import annotations
 
 import math
-import operator
 from typing import Any
 
 import numpy as np
@@ -66,16 +65,6 @@ def scale_to_uint8(values: np.ndarray) -> np.ndarray:
             out[~np.isfinite(values)] = 0.0
     np.clip(out, 0.0, 255.0, out=out)
     return out.astype(np.uint8)
-
-
-def _check_size(value: Any, name: str, where: str) -> int:
-    try:
-        number = operator.index(value)
-    except TypeError as err:
-        raise ImageConversionError(f"{where}: {name} must be an integer, got {value!r}") from err
-    if number <= 0:
-        raise ImageConversionError(f"{where}: {name} must be positive")
-    return number
 
 
 def check_pixels(width: int, height: int, max_pixels: int, where: str) -> None:
