@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # `make demo-fleet`: the demo world driven by a fleet (robots a, b, c on one clock from three
 # points of the loop; robot a again a day later at dusk), each drive replayed with its own
-# identity and the earlier drives' maps as prior maps, then one pose graph of all robot-sessions.
-# Writes demo_out/fleet/: the bags, replay/<robot>_<session>/, posegraph/<robot>/<session>/*.tum,
+# identity and the earlier drives' maps as prior maps, the fleet exchange between the robots'
+# first sessions, then one pose graph of all robot-sessions.
+# Writes demo_out/fleet/: the bags, replay/<robot>_<session>/, exchange/,
+# posegraph/<robot>/<session>/*.tum,
 # posegraph/posegraph.png (before/after) and summary.json (pairvpr docs: docs/posegraph-fleet.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -42,8 +44,25 @@ done < <("$PY" -c 'import json, sys
 for d in json.load(open(sys.argv[1]))["drives"]:
     print(d["robot"], d["session"], d["bag"])' "$OUT/fleet.json")
 
+# Fleet exchange between the robots' first sessions (one clock): descriptors shared, candidates
+# scored by their owner (config/demo.yaml's fleet_* settings: budget 4 requests per 10 s). Its
+# loops add to the replays' (a later session relocalises through the prior maps above); each
+# keyframe pair once: exchange/added_loops.json holds those no replay accepted.
+exchange=() seen=" "
+while read -r robot session bag; do
+    case "$seen" in *" $robot "*) continue ;; esac
+    seen+="$robot " exchange+=(--robot "$robot" "$session" "$OUT/$bag")
+done < <("$PY" -c 'import json, sys
+for d in json.load(open(sys.argv[1]))["drives"]:
+    print(d["robot"], d["session"], d["bag"])' "$OUT/fleet.json")
+"$VENV/bin/pairvpr-fleet-replay" "${exchange[@]}" --weights pair_vpr_ros/demo/assets/demo-small.pth \
+    --params-file config/demo.yaml --topic /camera/image_raw --pose-topic /odom \
+    --out "$OUT/exchange" --overwrite --quiet
+"$PY" -m pair_vpr_ros.offline.fleet_loops "$OUT"
+
 # The demo camera is an optical frame 1.6 m above base_link (the odometry's child frame).
-"$VENV/bin/pairvpr-posegraph" "${trajectories[@]}" "${loops[@]}" --odom-topic /odom \
+"$VENV/bin/pairvpr-posegraph" "${trajectories[@]}" "${loops[@]}" \
+    --loops "$OUT/exchange/added_loops.json" --odom-topic /odom \
     --gt-topic /ground_truth --camera-to-base "0 0 1.6 -0.5 0.5 -0.5 0.5" --out "$OUT/posegraph"
 "$PY" -m pair_vpr_ros.offline.fleet_report "$OUT"
 echo "demo-fleet: $OUT/summary.json, $OUT/posegraph/posegraph.png," \

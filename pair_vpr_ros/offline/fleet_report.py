@@ -2,7 +2,8 @@
 
 Reads what ``scripts/demo_fleet.sh`` wrote into ``FLEET_DIR``: ``fleet.json`` and the bags
 (ground truth), each drive's replay (``replay/<robot>_<session>/loops.json``, replayed in the
-order of ``fleet.json``, each with the earlier drives' maps as prior maps) and the pose graph
+order of ``fleet.json``, each with the earlier drives' maps as prior maps), the fleet exchange
+(``exchange/``) and the pose graph
 (``posegraph/posegraph.json``), and writes ``summary.json``:
 
 ``inter_robot`` / ``inter_session``
@@ -17,6 +18,14 @@ order of ``fleet.json``, each with the earlier drives' maps as prior maps) and t
 ``trajectories``, ``all_in_one_frame``
     per robot-session ATE (SE(3)-aligned) of odometry and optimised trajectory, their ratio, and
     the ATE after the first robot's alignment only; all in one frame when each is within 1 m.
+``exchange``, ``bytes_per_keyframe``, ``bytes_per_accepted_loop``
+    the first sessions' fleet exchange (``exchange/``, ``pairvpr-fleet-replay``; null without
+    one): its accepted loops judged alone (``true``, ``false``, ``precision``), how many were
+    ``added_to_graph`` (a pair no replay accepted: ``fleet_loops``) and ``found_by_a_replay_too``,
+    its bytes (``bytes_sent`` by channel); bytes per own keyframe of ``descriptors`` and of
+    ``all`` fleet messages, bytes per accepted inter-robot loop of ``scoring`` (requests and
+    responses) and of ``all``. The added loops count in ``inter_robot`` / ``inter_session``
+    (each keyframe pair once); recall counts distinct query keyframes.
 ``targets``: issue 22's targets, each with the figure and whether it is met.
 """
 
@@ -33,7 +42,10 @@ import numpy as np
 from pair_vpr_ros.cli import run_cli
 from pair_vpr_ros.errors import PoseGraphError
 from pair_vpr_ros.offline import bag_io
+from pair_vpr_ros.offline.fleet_loops import EXCHANGE, exchange_loops, read_drives, replay_records
 from pair_vpr_ros.offline.posegraph import PoseGraphSummary, read_track
+
+KINDS = ("inter_robot", "inter_session", "intra")
 
 
 def _ground_truth(fleet: Path, drives: list[dict]) -> dict[tuple[str, str], Any]:
@@ -58,57 +70,112 @@ def _kind(query: tuple[str, str], match: tuple[str, str]) -> str:
     return "inter_session" if query[1] != match[1] else "intra"
 
 
-def _records(fleet: Path, drive: dict) -> list[dict]:
-    path = fleet / "replay" / f"{drive['robot']}_{drive['session']}" / "loops.json"
-    if not path.is_file():
-        raise PoseGraphError(f"no replay of {drive['robot']}/{drive['session']}: {path} missing")
-    records = json.loads(path.read_text())
-    return sorted(records, key=lambda r: r["query_stamp"])
+class _Judge:
+    """Counts accepted loops by kind, true (both ends within ``radius_m``) or false, and the
+    query keyframes with a true loop of each kind."""
+
+    def __init__(self, truth: dict, radius_m: float) -> None:
+        self.truth, self.radius_m = truth, radius_m
+        self.kinds = {k: {"true": 0, "false": 0} for k in KINDS}
+        self.found: dict[str, set] = {k: set() for k in KINDS}
+
+    def __call__(self, me: tuple[str, str], record: dict) -> tuple[str, bool] | None:
+        """(kind, true) of an accepted loop queried by `me`, counted; None: unknown match."""
+        other = (record.get("match_robot") or me[0], record.get("match_session") or me[1])
+        if other not in self.truth or me not in self.truth:
+            return None
+        at = _position(self.truth[me], record["query_stamp"])
+        there = _position(self.truth[other], record["match_stamp"])
+        kind, true = _kind(me, other), bool(np.linalg.norm(there - at) <= self.radius_m)
+        self.kinds[kind]["true" if true else "false"] += 1
+        if true:
+            self.found[kind].add((*me, round(float(record["query_stamp"]), 6)))
+        return kind, true
+
+
+def _query(record: dict) -> tuple[str, str]:
+    return record["query_robot"], record["query_session"]
 
 
 def loop_figures(fleet: Path, radius_m: float = 10.0) -> dict[str, Any]:
-    """Loop counts by kind, recall denominators and relocalisation (see module docstring)."""
-    drives = json.loads((fleet / "fleet.json").read_text())["drives"]
+    """Loop counts by kind (the replays' loops and the exchange's added ones), recall
+    denominators, relocalisation and the exchange's own counts (see module docstring)."""
+    drives = read_drives(fleet)
     truth = _ground_truth(fleet, drives)
     ids = [(d["robot"], d["session"]) for d in drives]
-    kinds = {k: {"true": 0, "false": 0, "possible": 0, "found": 0}
-             for k in ("inter_robot", "inter_session", "intra")}  # fmt: skip
+    judge = _Judge(truth, radius_m)
+    possible: dict[str, set] = {k: set() for k in KINDS}
     relocalisation, identities = {}, 0
     for n, drive in enumerate(drives):
         me, priors = ids[n], ids[:n]
         first_session = next(i for i in ids if i[0] == me[0])
         reloc = in_map = None
-        for k, record in enumerate(_records(fleet, drive), start=1):
+        for k, record in enumerate(replay_records(fleet, drive), start=1):
             at = _position(truth[me], record["query_stamp"])
             for kind in ("inter_robot", "inter_session"):
                 near = [p for p in priors if _kind(me, p) == kind and np.min(np.linalg.norm(
                     truth[p].poses[:, :2] - at, axis=1)) <= radius_m]  # fmt: skip
-                kinds[kind]["possible"] += bool(near)
+                if near:
+                    possible[kind].add((*me, round(float(record["query_stamp"]), 6)))
             if not record.get("accepted"):
                 continue
-            other = (record.get("match_robot") or me[0], record.get("match_session") or me[1])
             identities += bool(record.get("match_robot"))
-            if other not in truth:
+            judged = judge(me, record)
+            if judged is None:
                 continue
-            kind = _kind(me, other)
-            true = np.linalg.norm(_position(truth[other], record["match_stamp"]) - at) <= radius_m
-            kinds[kind]["true" if true else "false"] += 1
-            kinds[kind]["found"] += bool(true)
-            if reloc is None and true and kind == "inter_session":
+            if reloc is None and judged == ("inter_session", True):
                 reloc = k
-            if in_map is None and true and kind != "intra":
+            if in_map is None and judged[1] and judged[0] != "intra":
                 in_map = k
         if me != first_session:
             relocalisation[f"{me[0]}/{me[1]}"] = {
                 "keyframes_until_relocalised": reloc, "keyframes_until_in_the_map": in_map
             }  # fmt: skip
-    for figures in kinds.values():
-        accepted = figures["true"] + figures["false"]
-        figures["precision"] = figures["true"] / accepted if accepted else None
-        possible = figures["possible"]
-        figures["recall"] = figures.pop("found") / possible if possible else None
+    exchange = _exchange_counts(fleet, truth, radius_m, judge)
+    kinds = {}
+    for kind, counts in judge.kinds.items():
+        accepted, found = counts["true"] + counts["false"], judge.found[kind] & possible[kind]
+        kinds[kind] = {
+            **counts, "possible": len(possible[kind]),
+            "precision": counts["true"] / accepted if accepted else None,
+            "recall": len(found) / len(possible[kind]) if possible[kind] else None,
+        }  # fmt: skip
     return {**kinds, "relocalisation": relocalisation, "loops_naming_robots": identities,
-            "radius_m": radius_m}  # fmt: skip
+            "exchange": exchange, "radius_m": radius_m}  # fmt: skip
+
+
+def _exchange_counts(fleet: Path, truth: dict, radius_m: float, judge: _Judge) -> dict | None:
+    """The exchange's accepted loops judged on their own; the added ones also by `judge`."""
+    loops = exchange_loops(fleet)
+    if loops is None:
+        return None
+    accepted, added = loops
+    alone = _Judge(truth, radius_m)
+    for record in accepted:
+        alone(_query(record), record)
+    for record in added:
+        judge(_query(record), record)
+    true = sum(c["true"] for c in alone.kinds.values())
+    false = sum(c["false"] for c in alone.kinds.values())
+    return {"accepted": len(accepted), "true": true, "false": false,
+            "precision": true / (true + false) if true + false else None,
+            "added_to_graph": len(added), "found_by_a_replay_too": len(accepted) - len(added),
+            **_exchange_bytes(fleet)}  # fmt: skip
+
+
+def _exchange_bytes(fleet: Path) -> dict[str, Any]:
+    path = fleet / EXCHANGE / "fleet_summary.json"
+    if not path.is_file():
+        raise PoseGraphError(f"fleet exchange without its summary: {path} missing")
+    t = json.loads(path.read_text())["totals"]
+    loops = t["inter_robot_loops"]
+    return {
+        "keyframes": t["keyframes"], "bytes_sent": t["bytes_sent"],
+        "descriptor_bytes_per_keyframe": t["descriptor_bytes_per_keyframe"],
+        "bytes_per_keyframe": t["bytes_per_keyframe"],
+        "scoring_bytes_per_accepted_loop": t["scoring_bytes_per_accepted_loop"],
+        "bytes_per_accepted_loop": sum(t["bytes_sent"].values()) / loops if loops else None,
+    }  # fmt: skip
 
 
 def trajectory_figures(posegraph_json: Path) -> dict[str, Any]:
@@ -129,7 +196,7 @@ def trajectory_figures(posegraph_json: Path) -> dict[str, Any]:
 
 
 def _targets(loops: dict, trajs: dict) -> dict[str, Any]:
-    robot, reloc = loops["inter_robot"], loops["relocalisation"]
+    robot, reloc, ex = loops["inter_robot"], loops["relocalisation"], loops["exchange"]
     worst = [t["ate_in_reference_frame_m"] for t in trajs.values()]
     ratios = [t["ratio"] for t in trajs.values()]
     after = [t["ate_optimised_m"] for t in trajs.values()]
@@ -145,6 +212,9 @@ def _targets(loops: dict, trajs: dict) -> dict[str, Any]:
         "ate_ratio<=0.2": met(ratios, lambda v: v <= 0.2),
         "ate<=0.5m": met(after, lambda v: v <= 0.5),
         "all_in_one_frame_within_1m": met(worst, lambda v: v <= 1.0),
+        "descriptor_bytes_per_keyframe<=1536": met(
+            [ex and ex["descriptor_bytes_per_keyframe"]], lambda v: v <= 1536
+        ),
     }
 
 
@@ -154,7 +224,9 @@ def fleet_summary(fleet: str | Path, radius_m: float = 10.0) -> dict[str, Any]:
     loops = loop_figures(fleet, radius_m)
     trajs = trajectory_figures(fleet / "posegraph" / "posegraph.json")
     in_frame = [t["ate_in_reference_frame_m"] for t in trajs.values()]
-    notes = []
+    notes, ex = [], loops["exchange"]
+    if ex is None:
+        notes.append("no fleet exchange (exchange/inter_robot_loops.json): bytes not measured")
     if not loops["loops_naming_robots"]:
         notes.append(
             "no accepted loop names another robot or session: the replay does not "
@@ -165,7 +237,11 @@ def fleet_summary(fleet: str | Path, radius_m: float = 10.0) -> dict[str, Any]:
         "intra": loops["intra"], "relocalisation": loops["relocalisation"],
         "radius_m": radius_m, "trajectories": trajs,
         "all_in_one_frame": bool(in_frame) and all(v is not None and v <= 1.0 for v in in_frame),
-        "bytes_per_keyframe": None,  # the fleet exchange over ROS 2 is not part of this replay
+        "exchange": ex,
+        "bytes_per_keyframe": ex and {"descriptors": ex["descriptor_bytes_per_keyframe"],
+                                      "all": ex["bytes_per_keyframe"]},
+        "bytes_per_accepted_loop": ex and {"scoring": ex["scoring_bytes_per_accepted_loop"],
+                                           "all": ex["bytes_per_accepted_loop"]},
         "targets": _targets(loops, trajs), "notes": notes,
         "png": str(fleet / "posegraph" / "posegraph.png"),
     }  # fmt: skip
@@ -194,6 +270,9 @@ def _run(args: argparse.Namespace) -> None:
         print(f"{kind}: {f['true']} true, {f['false']} false, precision {f['precision']}, "
               f"recall {f['recall']} of {f['possible']} possible")  # fmt: skip
     print(f"relocalisation: {summary['relocalisation']}")
+    if summary["exchange"]:
+        print(f"exchange: bytes per keyframe {summary['bytes_per_keyframe']}, per accepted "
+              f"loop {summary['bytes_per_accepted_loop']}")  # fmt: skip
     for name, t in summary["trajectories"].items():
         print(f"{name}: {t}")
     print(f"targets: {summary['targets']}")
