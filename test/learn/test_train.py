@@ -20,6 +20,8 @@ from pair_vpr_ros.learn.datasets import load_place_folders
 from pair_vpr_ros.learn.train import driver, stage1, stage2
 from pair_vpr_ros.learn.train.common import (
     DistContext,
+    apply_weight_decay,
+    cosine,
     linear_decay,
     param_groups,
     read_training_state,
@@ -46,7 +48,7 @@ from pair_vpr_ros.learn.train.losses import (
     random_positive_indices,
 )
 from pair_vpr_ros.learn.train.options import config_from_args
-from pair_vpr_ros.learn.train.stage1 import Stage1Config, Stage1Objective, train_stage1
+from pair_vpr_ros.learn.train.stage1 import Stage1, Stage1Config, Stage1Objective, train_stage1
 from pair_vpr_ros.learn.train.stage2 import Stage2Config, Stage2Objective, train_stage2
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, load_pairvpr
 
@@ -151,13 +153,13 @@ def test_set_trainable_and_layer_decay_groups() -> None:
     names = set(set_trainable(model, 1, train_blocks=1))
     assert "encoder.model.blocks.1.attn.qkv.weight" in names
     assert {
-        "encoder.model.mask_token",
         "encoder.model.norm.weight",
         "prediction_head.weight",
         "dec_blocks.0.cross_attn.projq.weight",
         "decoder_embed.weight",
     } <= names
     frozen = {
+        "encoder.model.mask_token",  # fixed, as the authors train stage one
         "encoder.model.blocks.0.attn.qkv.weight",
         "globalizer.0.weight",
         "mask_token",
@@ -186,6 +188,31 @@ def test_set_trainable_and_layer_decay_groups() -> None:
     assert scales["encoder.model.blocks.0.attn.qkv.weight"] == (0.25, 0.05)
     assert scales["encoder.model.blocks.1.attn.qkv.bias"] == (0.5, 0.0)
     assert scales["dec_blocks.0.mlp.fc1.weight"] == (1.0, 0.05)
+    # stage one: encoder (2 blocks) and decoder (2 blocks) count together, L = 4
+    set_trainable(model, 1, train_blocks=2)
+    groups = param_groups(model, 0.04, layer_decay=0.5, with_decoder=True)
+    scales = {}
+    for group in groups:
+        for p in group["params"]:
+            scales[next(n for n, q in model.named_parameters() if q is p)] = (
+                group["lr_scale"],
+                group["weight_decay"],
+                group["wd_scale"],
+            )
+    assert scales["encoder.model.pos_embed"] == (0.5**5, 0.0, 0.0)
+    assert scales["encoder.model.blocks.0.attn.qkv.weight"] == (0.5**4, 0.04, 1.0)
+    assert scales["encoder.model.blocks.1.attn.qkv.weight"] == (0.5**3, 0.04, 1.0)
+    assert scales["decoder_embed.weight"] == (0.5**2, 0.04, 1.0)
+    assert scales["dec_blocks.0.mlp.fc1.weight"] == (0.5**2, 0.04, 1.0)
+    assert scales["dec_blocks.1.mlp.fc1.weight"] == (0.5, 0.04, 1.0)
+    assert scales["prediction_head.weight"] == (1.0, 0.04, 1.0)
+    assert scales["dec_norm.weight"] == (1.0, 0.0, 0.0)
+    opt = torch.optim.AdamW(groups, lr=1.0)
+    apply_weight_decay(opt, 0.4)
+    assert sorted({g["weight_decay"] for g in opt.param_groups}) == [0.0, 0.4]
+    assert [cosine(s, 10, 0.04, 0.4) for s in (0, 5, 10, 20)] == pytest.approx(
+        [0.04, 0.22, 0.4, 0.4]
+    )
     global_only = set(set_trainable(model, 2, train_blocks=2, decoder=False))
     assert global_only == {n for n in names2 if n.startswith(("encoder.", "globalizer."))}
     with pytest.raises(ConfigError, match=r"train_blocks=3 must be in 1..2"):
@@ -211,8 +238,10 @@ def test_place_images_dataset(tmp_path: Path) -> None:
     (tmp_path / "place_01" / "img_2.png").unlink()
     data = PlaceImagesDataset(load_place_folders(tmp_path), 3, size=28, seed=0)
     assert len(data) == 2 and data.dropped_places == 1 and data.labels == [0, 2]
-    images, labels = data[1]
+    images, labels, conds = data[1]
     assert images.shape == (3, 3, 28, 28) and labels.tolist() == [2, 2, 2]
+    assert conds.tolist() == [-1, -1, -1]  # img_<k>.png names carry no condition
+    assert torch.equal(data[(0, 1)][0], images)  # (epoch, place) indices: persistent workers
     assert torch.equal(data[1][0], images)  # same epoch, same draw
     data.set_epoch(1)
     assert not torch.equal(data[1][0], images)  # new epoch, new order of the 3 images
@@ -583,12 +612,14 @@ def test_cli_flags_defaults_and_values(tmp_path: Path, capsys: pytest.CaptureFix
         "--warmup-steps": ("6", "warmup_steps", 6),
         "--grey": ("0.5", "grey", 0.5),
         "--exposure": ("0.3", "exposure", 0.3),
+        "--conditions": ("3", "conditions", 3),
     }
     own = {
         stage1: {
             "--mask-ratio": ("0.5", "mask_ratio", 0.5),
-            "--min-lr-factor": ("0.1", "min_lr_factor", 0.1),
-            "--layer-decay": ("0.9", "layer_decay", 0.9),
+            "--min-lr": ("0.1", "min_lr", 0.1),
+            "--layer-decay": ("0.75", "layer_decay", 0.75),
+            "--weight-decay-end": ("0.3", "weight_decay_end", 0.3),
         },
         stage2: {
             "--init": ("i.pt", "init", Path("i.pt")),
@@ -599,6 +630,9 @@ def test_cli_flags_defaults_and_values(tmp_path: Path, capsys: pytest.CaptureFix
             "--patch-weight": ("1.5", "patch_weight", 1.5),
             "--pair-positives": ("random", "pair_positives", "random"),
             "--val-rerank-k": ("5", "val_rerank_k", 5),
+            "--twin-share": ("0.25", "twin_share", 0.25),
+            "--heldout": ("h", "heldout", Path("h")),
+            "--eval-every": ("50", "eval_every", 50),
         },
     }
     required = ["--data", "a", "--data", "gsv:b", "--out", "o"]
@@ -622,7 +656,13 @@ def test_cli_flags_defaults_and_values(tmp_path: Path, capsys: pytest.CaptureFix
         assert not cfg.amp and not cfg.augment
     assert cfg.val == (Path("v"), Path("w"))
     d1, d2 = defaults[stage1], defaults[stage2]
-    assert (d1.image_size, d1.places_per_batch, d1.lr, d1.warmup_steps) == (224, 64, 2e-4, 1000)
+    assert (d1.image_size, d1.places_per_batch, d1.lr, d1.warmup_steps) == (224, 64, None, 1000)
+    # the authors' stage-one recipe
+    assert (d1.layer_decay, d1.weight_decay, d1.weight_decay_end) == (0.9, 0.04, 0.4)
+    assert (d1.min_lr, d1.grad_clip, d2.grad_clip) == (1e-6, 0.0, 1.0)
+    assert Stage1(d1).base_lr(DistContext(world_size=2)) == pytest.approx(
+        3e-4 * (128 / 1024) ** 0.5
+    )
     assert (d2.image_size, d2.places_per_batch, d2.lr, d2.warmup_steps) == (322, 30, 8e-5, 0)
     assert (d1.arch, d1.epochs, d1.workers, d1.device, d1.amp, d2.val) == (
         "B",

@@ -26,6 +26,7 @@ from pair_vpr_ros.errors import CheckpointError, ConfigError, TrainingError
 from pair_vpr_ros.model import save_pairvpr
 
 _BLOCK = re.compile(r"encoder\.model\.blocks\.(\d+)\.")
+_DEC_BLOCK = re.compile(r"dec_blocks\.(\d+)\.")
 _EMBED = ("patch_embed.", "cls_token", "register_tokens", "pos_embed", "mask_token")
 
 
@@ -121,8 +122,10 @@ def set_trainable(
     """Freeze all but what ``stage`` trains; returns the trainable parameter names.
 
     Both stages: the last ``train_blocks`` encoder blocks (all of them also free the embeddings)
-    and the encoder's final norm. Stage one adds the encoder mask token, the decoder without its
-    class token, and `prediction_head`; stage two the decoder with its class token, `globalizer`
+    and the encoder's final norm. Stage one adds the decoder without its class token and
+    `prediction_head` (the encoder's mask token stays fixed, as the authors train: with it frozen
+    nothing before the first trained block needs gradients, so autograd keeps no state there);
+    stage two the decoder with its class token, `globalizer`
     and `classvprmodule`; stage two with ``decoder=False`` (global descriptor only) adds just
     `globalizer`. Parameters a stage never uses stay frozen so DDP sees no unused ones."""
     depth = model.config.depth
@@ -131,7 +134,7 @@ def set_trainable(
     first = depth - train_blocks
     dec = ("decoder_embed.", "dec_blocks.", "dec_norm.")
     if stage == 1:
-        heads = (*dec, "encoder.model.mask_token", "prediction_head.")
+        heads = (*dec, "prediction_head.")
     elif decoder:
         heads = (*dec, "decoder_clstoken", "globalizer.", "classvprmodule.")
     else:
@@ -144,7 +147,6 @@ def set_trainable(
         elif name.startswith("encoder.model."):
             rest = name[len("encoder.model.") :]
             train = rest.startswith("norm.") or (first == 0 and rest.startswith(_EMBED[:4]))
-            train = train or (stage == 1 and rest == "mask_token")
         else:
             train = name.startswith(heads)
         param.requires_grad_(train)
@@ -153,38 +155,64 @@ def set_trainable(
     return names
 
 
-def layer_id(name: str, depth: int) -> int:
-    """0 for the encoder embeddings, i+1 for encoder block i, depth+1 for everything after."""
+def layer_id(name: str, depth: int, dec_depth: int = 0) -> int:
+    """0 for the encoder embeddings, i+1 for encoder block i, then (``dec_depth`` > 0: the
+    decoder counts as layers too) depth+1+j for decoder block j (`decoder_embed` with block 0),
+    and ``depth + dec_depth + 1`` for everything after (heads, final norms)."""
     block = _BLOCK.match(name)
     if block:
         return int(block.group(1)) + 1
     if name.startswith("encoder.model.") and name[len("encoder.model.") :].startswith(_EMBED):
         return 0
-    return depth + 1
+    if dec_depth:
+        dec = _DEC_BLOCK.match(name)
+        if dec:
+            return depth + 1 + int(dec.group(1))
+        if name.startswith("decoder_embed."):
+            return depth + 1
+    return depth + dec_depth + 1
 
 
 def param_groups(
-    model: nn.Module, weight_decay: float, layer_decay: float = 1.0
+    model: nn.Module, weight_decay: float, layer_decay: float = 1.0, with_decoder: bool = False
 ) -> list[dict[str, object]]:
-    """AdamW groups of the trainable parameters; lr_scale = layer_decay ** (depth + 1 - layer id).
+    """AdamW groups of the trainable parameters; lr_scale = layer_decay ** (L + 1 - layer id)
+    with L the encoder depth, or encoder + decoder depth with ``with_decoder`` (the authors'
+    stage one: 0.9 over 24 layers for ViT-B).
 
-    Biases, norms, tokens and position tables get no weight decay."""
+    Biases, norms, tokens and position tables get no weight decay (``wd_scale`` 0, so a weight
+    decay schedule (`apply_weight_decay`) leaves them at 0)."""
     depth = model.config.depth
+    dec_depth = model.config.dec_depth if with_decoder else 0
+    top = depth + dec_depth + 1
     groups: dict[tuple[int, bool], dict[str, object]] = {}
     for name, param in model.named_parameters():
         if not param.requires_grad:
             continue
-        lid = layer_id(name, depth)
+        lid = layer_id(name, depth, dec_depth)
         no_decay = param.ndim <= 1 or name.endswith(("token", "tokens", "pos_embed"))
         key = (lid, no_decay)
         if key not in groups:
             groups[key] = {
                 "params": [],
                 "weight_decay": 0.0 if no_decay else weight_decay,
-                "lr_scale": layer_decay ** (depth + 1 - lid),
+                "wd_scale": 0.0 if no_decay else 1.0,
+                "lr_scale": layer_decay ** (top - lid),
             }
         groups[key]["params"].append(param)
     return [groups[k] for k in sorted(groups)]
+
+
+def apply_weight_decay(optimizer: torch.optim.Optimizer, value: float) -> None:
+    """Set every decayed group's weight decay to ``value`` (groups of `param_groups`)."""
+    for group in optimizer.param_groups:
+        group["weight_decay"] = value * group.get("wd_scale", 1.0)
+
+
+def cosine(step: int, total: int, start: float, end: float) -> float:
+    """``start`` at step 0 following half a cosine to ``end`` at ``total``."""
+    progress = min(1.0, step / max(1, total))
+    return end + (start - end) * 0.5 * (1.0 + math.cos(math.pi * progress))
 
 
 def warmup_cosine(step: int, total: int, warmup: int, min_factor: float = 0.0) -> float:

@@ -62,6 +62,13 @@ class TrainConfig:
         "with augmentation: scale the pixel values by a gain drawn log-uniformly from "
         "[1/(1+E), 1+E] (default %(default)s: none)",
     )
+    conditions: int = option(
+        0,
+        "the views of each place cycle through N capture conditions: view <k>.png is in "
+        "condition k mod N (the demo place datasets: 3 lightings); stage two then pairs views "
+        "by condition and mines positives and negatives with the same condition relation to the "
+        "anchor (default %(default)s: unknown)",
+    )
     seed: int = option(0, "random seed (default %(default)s)")
     save_every: int = option(
         1000, "also rewrite last.pt every N steps, 0 = only at epoch ends (default %(default)s)"

@@ -4,15 +4,24 @@ A batch holds P places x k images of each place (stage one: k = 2, a pair; stage
 `PlaceBatchSampler` shuffles places once per epoch with the same seed on every rank, cuts the
 order into global batches of P x world_size places and hands each rank its own P: no place
 appears twice in a global batch, and every rank runs the same number of equal-sized batches.
+Its indices carry the epoch, ``(epoch, place)``, so the loader's workers can stay alive between
+epochs and still draw each epoch's own views.
+
+Views have a capture condition when the places' views cycle through ``conditions`` of them (the
+demo place datasets: view ``k.png`` is lit by lighting ``k mod 3``); -1 = unknown. With
+``pair_conditions`` a place's k views are k/2 pairs that share a condition, so each anchor has a
+positive in its own condition and positives in others (stage two mines both in equal shares).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
+import torch.nn.functional as F
+from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from pair_vpr_ros.errors import DatasetError
@@ -61,6 +70,9 @@ def augment_rgb(rgb: np.ndarray, rng: np.random.Generator, aug: AugmentConfig) -
     return np.clip(out, 0, 255).astype(np.uint8)
 
 
+GREY_ONLY = AugmentConfig(crop_scale=(1.0, 1.0), brightness=0.0, contrast=0.0)
+
+
 def image_tensor(
     path: object, size: int, rng: np.random.Generator | None, aug: AugmentConfig | None
 ) -> torch.Tensor:
@@ -71,8 +83,45 @@ def image_tensor(
     return preprocess(np.ascontiguousarray(rgb), size=size)
 
 
+def near_identical(images: Tensor, shift: int = 2, grey_levels: float = 2.0) -> Tensor:
+    """[T,3,S,S] normalised images -> copies moved by up to ``shift`` pixels (edges repeated)
+    with Gaussian noise of ``grey_levels`` / 255 (in normalised units): what a camera sees of
+    a place it has not moved from."""
+    t, _, h, w = images.shape
+    padded = F.pad(images, (shift, shift, shift, shift), mode="replicate")
+    offsets = torch.randint(0, 2 * shift + 1, (t, 2)).tolist()
+    moved = torch.stack(
+        [padded[i, :, dy : dy + h, dx : dx + w] for i, (dy, dx) in enumerate(offsets)]
+    )
+    return moved + torch.randn_like(moved) * (grey_levels / 255.0 / 0.226)
+
+
+def view_condition(path: object, conditions: int) -> int:
+    """Condition of a view named ``<k>.<ext>``: k mod ``conditions``; -1 if unknown."""
+    stem = getattr(path, "stem", str(path).rsplit("/", 1)[-1].split(".")[0])
+    return int(stem) % conditions if conditions > 0 and stem.isdigit() else -1
+
+
+def choose_views(
+    conds: list[int], k: int, rng: np.random.Generator, pair_conditions: bool
+) -> np.ndarray:
+    """k view indices of one place: random, or (``pair_conditions``, k even) k/2 pairs of views
+    that share a condition, from k/2 different conditions when the place has them."""
+    if pair_conditions and k % 2 == 0:
+        by_cond: dict[int, list[int]] = {}
+        for i, c in enumerate(conds):
+            if c >= 0:
+                by_cond.setdefault(c, []).append(i)
+        usable = sorted(c for c, views in by_cond.items() if len(views) >= 2)
+        if len(usable) >= k // 2:
+            picked = rng.choice(usable, size=k // 2, replace=False)
+            return np.concatenate([rng.choice(by_cond[c], 2, replace=False) for c in picked])
+    return rng.choice(len(conds), size=k, replace=False)
+
+
 class PlaceImagesDataset(Dataset):
-    """Item = one place: (images [k,3,S,S], labels [k] int64). Places with < k images dropped."""
+    """Item = one place: (images [k,3,S,S], labels [k] int64, conditions [k] int64). Places with
+    < k images dropped. The index is a place or (epoch, place) (see the module docstring)."""
 
     def __init__(
         self,
@@ -81,6 +130,8 @@ class PlaceImagesDataset(Dataset):
         size: int,
         augment: AugmentConfig | None = None,
         seed: int = 0,
+        conditions: int = 0,
+        pair_conditions: bool = False,
     ) -> None:
         keep = [i for i, p in enumerate(places.places) if len(p) >= images_per_place]
         if not keep:
@@ -92,6 +143,8 @@ class PlaceImagesDataset(Dataset):
         self.labels = keep  # labels stay those of the collection
         self.dropped_places = len(places) - len(keep)
         self.k, self.size, self.augment, self.seed = images_per_place, size, augment, seed
+        self.conds = [[view_condition(v, conditions) for v in p] for p in self.places]
+        self.pair_conditions = pair_conditions
         self.epoch = 0
 
     def set_epoch(self, epoch: int) -> None:
@@ -100,15 +153,17 @@ class PlaceImagesDataset(Dataset):
     def __len__(self) -> int:
         return len(self.places)
 
-    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def __getitem__(self, index: int | tuple[int, int]) -> tuple[torch.Tensor, ...]:
+        epoch, index = index if isinstance(index, tuple) else (self.epoch, index)
         # Seeded by (seed, epoch, place): identical across worker counts and on resume.
-        rng = np.random.default_rng([self.seed, self.epoch, index])
-        paths = self.places[index]
-        chosen = rng.choice(len(paths), size=self.k, replace=False)
+        rng = np.random.default_rng([self.seed, epoch, index])
+        paths, conds = self.places[index], self.conds[index]
+        chosen = choose_views(conds, self.k, rng, self.pair_conditions)
         images = torch.stack(
             [image_tensor(paths[i], self.size, rng, self.augment) for i in chosen]
         )
-        return images, torch.full((self.k,), self.labels[index], dtype=torch.int64)
+        labels = torch.full((self.k,), self.labels[index], dtype=torch.int64)
+        return images, labels, torch.tensor([conds[i] for i in chosen], dtype=torch.int64)
 
 
 class PlaceBatchSampler(Sampler[list[int]]):
@@ -138,7 +193,7 @@ class PlaceBatchSampler(Sampler[list[int]]):
     def __len__(self) -> int:
         return self.n // (self.p * self.world)
 
-    def __iter__(self) -> Iterator[list[int]]:
+    def __iter__(self) -> Iterator[list[tuple[int, int]]]:
         if self.shuffle:
             order = torch.randperm(
                 self.n, generator=torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
@@ -148,12 +203,13 @@ class PlaceBatchSampler(Sampler[list[int]]):
         span = self.p * self.world
         for b in range(self.start_batch, len(self)):
             start = b * span + self.rank * self.p
-            yield order[start : start + self.p]
+            yield [(self.epoch, i) for i in order[start : start + self.p]]
 
 
-def collate_places(batch: list[tuple[torch.Tensor, torch.Tensor]]) -> tuple[torch.Tensor, ...]:
-    """P items of [k,3,S,S] -> (images [P,k,3,S,S], labels [P,k])."""
-    return torch.stack([b[0] for b in batch]), torch.stack([b[1] for b in batch])
+def collate_places(batch: list[tuple[torch.Tensor, ...]]) -> tuple[torch.Tensor, ...]:
+    """P items of ([k,3,S,S], [k], [k]) -> (images [P,k,3,S,S], labels [P,k], conditions
+    [P,k])."""
+    return tuple(torch.stack(parts) for parts in zip(*batch, strict=True))
 
 
 @dataclass
@@ -166,11 +222,27 @@ class PlaceData:
 
 
 def place_data(
-    places: PlaceCollection, images_per_place: int, size: int, cfg: TrainConfig, ctx: DistContext
+    places: PlaceCollection,
+    images_per_place: int,
+    size: int,
+    cfg: TrainConfig,
+    ctx: DistContext,
+    pair_conditions: bool = False,
 ) -> PlaceData:
     """Batches of ``cfg.places_per_batch`` places x ``images_per_place`` images of ``size``."""
-    augment = AugmentConfig(grey=cfg.grey, exposure=cfg.exposure) if cfg.augment else None
-    dataset = PlaceImagesDataset(places, images_per_place, size, augment, seed=cfg.seed)
+    if cfg.augment:
+        augment = AugmentConfig(grey=cfg.grey, exposure=cfg.exposure)
+    else:  # grey views alone are no jitter: mono8 cameras need them either way
+        augment = replace(GREY_ONLY, grey=cfg.grey) if cfg.grey > 0 else None
+    dataset = PlaceImagesDataset(
+        places,
+        images_per_place,
+        size,
+        augment,
+        seed=cfg.seed,
+        conditions=cfg.conditions,
+        pair_conditions=pair_conditions,
+    )
     sampler = PlaceBatchSampler(
         len(dataset), cfg.places_per_batch, ctx.rank, ctx.world_size, cfg.seed
     )
@@ -187,5 +259,5 @@ def make_loader(
         num_workers=workers,
         collate_fn=collate_places,
         pin_memory=pin,
-        persistent_workers=False,  # the dataset's epoch must reach fresh workers each epoch
+        persistent_workers=workers > 0,  # the epoch travels in the indices
     )

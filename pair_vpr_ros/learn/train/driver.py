@@ -83,10 +83,17 @@ class Stage(ABC):
     def trains_decoder(self) -> bool:
         return True
 
+    @property
+    def pair_conditions(self) -> bool:
+        """Batches of view pairs that share a capture condition (see `data`)."""
+        return False
+
     def check(self) -> None:
         """Config errors found before any process group, dataset or model exists."""
         if not 0.0 <= self.cfg.grey <= 1.0:
             raise ConfigError(f"grey={self.cfg.grey}: a probability, use a value in 0..1")
+        if self.cfg.conditions < 0:
+            raise ConfigError(f"conditions={self.cfg.conditions}: must be >= 0 (0 = unknown)")
         if not self.cfg.exposure >= 0:
             raise ConfigError(f"exposure={self.cfg.exposure}: must be >= 0 (0 = no gain jitter)")
         if self.cfg.resume is None:  # a bad size or preset fails now, before datasets are scanned
@@ -142,6 +149,18 @@ class Stage(ABC):
         """epoch -> metrics to log (main rank only), or None."""
         return None
 
+    def every_steps(self, model: PairVPR) -> tuple[int, Callable[[int], dict]] | None:
+        """(N, step -> metrics) to log every N steps (main rank only), or None."""
+        return None
+
+    def base_lr(self, ctx: DistContext) -> float:
+        """The peak learning rate (``cfg.lr``; stage one may derive it from the batch)."""
+        return self.cfg.lr
+
+    def weight_decay_at(self, step: int, total: int) -> float | None:
+        """AdamW weight decay at ``step``, or None to keep ``cfg.weight_decay`` throughout."""
+        return None
+
 
 def train(stage: Stage) -> Path:
     """Train ``stage``; returns its final weights ``<out>/stage<N>_final.pt``."""
@@ -168,17 +187,20 @@ def _train(stage: Stage, ctx: DistContext) -> Path:
     if state is not None:
         load_optimizer(optimizer, state, cfg.resume)
         progress = Progress(int(state["epoch"]), int(state["batch"]), int(state["step"]))
-    data = place_data(places, stage.images_per_place, model.config.image_size, cfg, ctx)
+    data = place_data(
+        places, stage.images_per_place, model.config.image_size, cfg, ctx, stage.pair_conditions
+    )
     objective = stage.objective(model, ctx)
     if ctx.distributed:
         ids = [ctx.device.index] if ctx.device.type == "cuda" else None
         objective = DistributedDataParallel(objective, device_ids=ids)
     total = cfg.max_steps or cfg.epochs * len(data.sampler)
+    every = stage.every_steps(model)  # every rank: they meet at a barrier after it
     settings = LoopSettings(
         out_dir=cfg.out_dir,
         stage=stage.number,
         epochs=cfg.epochs,
-        base_lr=cfg.lr,
+        base_lr=stage.base_lr(ctx),
         lr_factor=lambda step: stage.lr_factor(step, total),
         max_steps=cfg.max_steps,
         grad_clip=cfg.grad_clip,
@@ -187,9 +209,24 @@ def _train(stage: Stage, ctx: DistContext) -> Path:
         checkpoint_every=cfg.checkpoint_every,
         log_every=cfg.log_every,
         config=plain_config(cfg),
+        weight_decay=(
+            (lambda step: stage.weight_decay_at(step, total))
+            if stage.weight_decay_at(0, total) is not None
+            else None
+        ),
+        eval_every=every[0] if every else 0,
     )
     step = stage.make_step(objective, model, ctx)
-    job = LoopJob(ctx, model, optimizer, step, data, settings, stage.after_epoch(model))
+    job = LoopJob(
+        ctx,
+        model,
+        optimizer,
+        step,
+        data,
+        settings,
+        stage.after_epoch(model),
+        every[1] if every else None,
+    )
     run_loop(job, progress)
     final = cfg.out_dir / f"stage{stage.number}_final.pt"
     if ctx.is_main:

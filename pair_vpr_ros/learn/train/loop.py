@@ -15,6 +15,7 @@ from pair_vpr_ros.learn.train.common import (
     DistContext,
     JsonlLog,
     apply_lr,
+    apply_weight_decay,
     autocast,
     barrier,
     mean_over_ranks,
@@ -49,6 +50,8 @@ class LoopSettings:
     checkpoint_every: int = 1
     log_every: int = 10
     config: dict = field(default_factory=dict)  # stored in checkpoints (plain types only)
+    weight_decay: Callable[[int], float] | None = None  # step -> weight decay (a schedule)
+    eval_every: int = 0  # call LoopJob.every_steps every N steps (main rank), 0 = never
 
 
 @dataclass
@@ -63,6 +66,7 @@ class LoopJob:
     data: PlaceData
     settings: LoopSettings
     after_epoch: Callable[[int], dict] | None = None
+    every_steps: Callable[[int], dict] | None = None  # step -> metrics (held-out evaluation)
 
 
 def _save(
@@ -114,6 +118,8 @@ def run_loop(job: LoopJob, progress: Progress) -> Progress:
         )
         for batch in bar:
             lr = apply_lr(optimizer, s.base_lr, s.lr_factor(progress.step))
+            if s.weight_decay is not None:
+                apply_weight_decay(optimizer, s.weight_decay(progress.step))
             with autocast(ctx.device, s.amp):
                 terms = job.step(batch)
             loss = terms["loss"]
@@ -135,6 +141,11 @@ def run_loop(job: LoopJob, progress: Progress) -> Progress:
                 bar.set_postfix(loss=f"{values['loss']:.4f}", lr=f"{lr:.2e}")
             if s.save_every and progress.step % s.save_every == 0:
                 _save(ctx, model, optimizer, s, progress, "last.pt")
+            if job.every_steps is not None and s.eval_every and progress.step % s.eval_every == 0:
+                if ctx.is_main:
+                    log.write(step=progress.step, heldout=job.every_steps(progress.step))
+                    model.train()
+                barrier(ctx)
             if s.max_steps and progress.step >= s.max_steps:
                 break
         bar.close()

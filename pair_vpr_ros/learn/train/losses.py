@@ -98,6 +98,40 @@ def batch_hard_indices(
     return positive, negative, same.any(dim=1) & other.any(dim=1)
 
 
+def relation_hard_indices(
+    sim: Tensor,
+    anchor_labels: Tensor,
+    labels: Tensor,
+    anchor_index: Tensor,
+    anchor_conds: Tensor,
+    conds: Tensor,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Batch-hard mining without the condition shortcut: every anchor's positive and negative
+    have the same condition relation to it, both in its condition (even anchors) or both in
+    another one (odd anchors), so "other lighting" cannot tell them apart. An anchor that lacks
+    one of the two under its relation takes the other relation; unknown conditions (-1) count as
+    the same condition as any other unknown.
+
+    sim [A,M], anchor_labels [A], labels [M], anchor_index [A], anchor_conds [A], conds [M]
+    -> (positive [A], negative [A], valid [A] bool), as `batch_hard_indices`."""
+    rows = torch.arange(sim.shape[0], device=sim.device)
+    same_place = anchor_labels[:, None] == labels[None, :]
+    same_place[rows, anchor_index] = False
+    other_place = anchor_labels[:, None] != labels[None, :]
+    same_cond = anchor_conds[:, None] == conds[None, :]
+    want_same = (rows % 2 == 0)[:, None]
+    inf = torch.finfo(sim.dtype).max
+    out = []
+    for relation in (same_cond == want_same, same_cond != want_same):
+        pos_ok, neg_ok = same_place & relation, other_place & relation
+        pos = sim.masked_fill(~pos_ok, inf).argmin(dim=1)
+        neg = sim.masked_fill(~neg_ok, -inf).argmax(dim=1)
+        out.append((pos, neg, pos_ok.any(dim=1) & neg_ok.any(dim=1)))
+    (pos, neg, ok), (pos2, neg2, ok2) = out
+    pos, neg = torch.where(ok, pos, pos2), torch.where(ok, neg, neg2)
+    return pos, neg, ok | ok2
+
+
 def random_positive_indices(
     anchor_labels: Tensor,
     labels: Tensor,

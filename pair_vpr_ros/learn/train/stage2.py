@@ -17,9 +17,11 @@ decoder (an encoder pre-training that can stand in for DINOv2 when no DINOv2 of 
 ``patch_weight``, a multi-similarity loss on the mean of each image's dense tokens, so that the
 tokens the pair classifier reads carry the place and not only the class token (DINOv2's patch
 features do so from its own pre-training); and ``pair_positives="random"``, a random instead of
-the hardest positive for the pair loss: the hardest positive of a place seen in several lightings
-is nearly always one in another lighting, and the hardest negative one in the same lighting, so
-"other lighting" alone would separate them.
+the hardest positive for the pair loss. Against the lighting shortcut (the hardest positive of
+a place is nearly always in another lighting, the hardest negative in the same one, so "other
+lighting" alone separates them; issue 24) ``conditions`` mines positive and negative with the
+same lighting relation to the anchor, in equal shares (`relation_hard_indices`); ``twin_share``
+adds identical and near-identical pairs as positives, so that a repeat outscores a revisit.
 """
 
 from __future__ import annotations
@@ -36,8 +38,11 @@ from torch import Tensor, nn
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.learn.eval_sets import load_eval_set
 from pair_vpr_ros.learn.recall import EvalConfig, evaluate_set
+from pair_vpr_ros.learn.heldout import HeldoutViews
 from pair_vpr_ros.learn.train.common import DistContext, gather_batch, linear_decay, param_groups
 from pair_vpr_ros.learn.train.config import TrainConfig
+from pair_vpr_ros.learn.train.curves import heldout_hook
+from pair_vpr_ros.learn.train.data import near_identical
 from pair_vpr_ros.learn.train.driver import Stage, stage_main, stage_parser, train
 from pair_vpr_ros.learn.train.loop import StepFn
 from pair_vpr_ros.learn.train.losses import (
@@ -45,6 +50,7 @@ from pair_vpr_ros.learn.train.losses import (
     batch_hard_indices,
     pair_bce,
     random_positive_indices,
+    relation_hard_indices,
 )
 from pair_vpr_ros.learn.train.options import option, redefault
 from pair_vpr_ros.model import PairVPR, load_pairvpr
@@ -91,6 +97,18 @@ class Stage2Config(TrainConfig):
         "train the pair logits in both image orders (default) or anchor-first only",
         choices=("both", "first"),
     )
+    twin_share: float = option(
+        0.0,
+        "for this share of each batch also train the image against itself and against a "
+        "near-identical copy (2 px shift, +-2 grey levels) as the same place, so that a repeat "
+        "scores at least as high as a revisit (default %(default)s)",
+    )
+    heldout: Path | None = option(
+        None, "held-out place folders (ROOT/<place>/<k>.png) to measure re-ranked vs global AP on"
+    )
+    eval_every: int = option(
+        0, "measure on --heldout every N steps and redraw curves.png (default %(default)s: never)"
+    )
     val: tuple[Path, ...] = option(
         (), "validation set root (database/ + queries/), repeatable; Recall@N each epoch"
     )
@@ -104,20 +122,29 @@ class Stage2Config(TrainConfig):
 
 
 class Stage2Objective(nn.Module):
-    """(images [B,3,S,S], labels [B]) -> {"loss", "global", "pair", "mined"} over the global
-    batch. Lives inside DDP so every collective and parameter use happens in one forward."""
+    """(images [B,3,S,S], labels [B], conditions [B] or None) -> {"loss", "global", "patch",
+    "pair", "pair_rank", "mined"} over the global batch. Lives inside DDP so every collective
+    and parameter use happens in one forward."""
 
     def __init__(self, model: PairVPR, cfg: Stage2Config, ctx: DistContext) -> None:
         super().__init__()
         self.model, self.ctx = model, ctx
         self.pair_weight, self.both = cfg.pair_weight, cfg.pair_directions == "both"
         self.patch_weight, self.random_positive = cfg.patch_weight, cfg.pair_positives == "random"
+        self.twin_share, self.by_condition = cfg.twin_share, cfg.conditions > 0
         self.metric = MultiSimilarityObjective(
             cfg.ms_alpha, cfg.ms_beta, cfg.ms_base, cfg.miner_epsilon
         )
 
-    def forward(self, images: Tensor, labels: Tensor) -> dict[str, Tensor]:
+    def forward(
+        self, images: Tensor, labels: Tensor, conds: Tensor | None = None
+    ) -> dict[str, Tensor]:
+        b = images.shape[0]
+        twins = self.twin_count(b)
+        if twins:  # near-identical copies of the first anchors, encoded in the same pass
+            images = torch.cat([images, near_identical(images[:twins])])
         dense, desc = self.model.encode(images)
+        dense, twin_dense, desc = dense[:b], dense[b:], desc[:b]
         desc_all = gather_batch(desc.float(), self.ctx)
         labels_all = gather_batch(labels, self.ctx)
         with torch.autocast(desc.device.type, enabled=False):  # beta=50 needs float32
@@ -130,29 +157,64 @@ class Stage2Objective(nn.Module):
             "global": global_loss.detach(),
             "patch": patch_loss.detach(),
             "pair": global_loss.new_zeros(()),
+            "pair_rank": global_loss.new_zeros(()),
             "mined": torch.tensor(float(mined)),
         }
         loss = global_loss + self.patch_weight * patch_loss
         if self.pair_weight == 0:  # global descriptor only: the decoder is frozen and not run
             return {"loss": loss, **terms}
+        pair_loss, rank = self.pair_loss(dense, twin_dense, desc, desc_all, labels, conds)
+        terms.update(pair=pair_loss.detach(), pair_rank=rank)
+        return {"loss": loss + self.pair_weight * pair_loss, **terms}
+
+    def twin_count(self, batch: int) -> int:
+        if self.pair_weight == 0 or self.twin_share <= 0:
+            return 0
+        return max(1, round(self.twin_share * batch))
+
+    def pair_loss(
+        self,
+        dense: Tensor,
+        twin_dense: Tensor,
+        desc: Tensor,
+        desc_all: Tensor,
+        labels: Tensor,
+        conds: Tensor | None,
+    ) -> tuple[Tensor, Tensor]:
+        """BCE of the pair logits on mined (anchor, positive) -> 1, (anchor, negative) -> 0, and
+        identical / near-identical pairs -> 1; also the share of anchors whose positive
+        outscores their negative."""
+        labels_all = gather_batch(labels, self.ctx)
         own = self.ctx.rank * labels.shape[0] + torch.arange(labels.shape[0], device=labels.device)
         with torch.no_grad():
             sim = desc.detach().float() @ desc_all.detach().T
-            pos, neg, valid = batch_hard_indices(sim, labels, labels_all, own)
+            if self.by_condition and conds is not None:
+                conds_all = gather_batch(conds, self.ctx)
+                pos, neg, valid = relation_hard_indices(
+                    sim, labels, labels_all, own, conds, conds_all
+                )
+            else:
+                pos, neg, valid = batch_hard_indices(sim, labels, labels_all, own)
             if self.random_positive:
                 pos = random_positive_indices(labels, labels_all, own)
         dense_all = gather_batch(dense, self.ctx)
         anchor, positive, negative = dense[valid], dense_all[pos[valid]], dense_all[neg[valid]]
+        a = anchor.shape[0]
+        first, second = [anchor, anchor], [positive, negative]
         if self.both:
-            first = torch.cat([anchor, anchor, positive, negative])
-            second = torch.cat([positive, negative, anchor, anchor])
-        else:
-            first, second = torch.cat([anchor, anchor]), torch.cat([positive, negative])
+            first, second = first + [positive, negative], second + [anchor, anchor]
+        t = twin_dense.shape[0]
+        if t:  # identical (the anchor against itself) and near-identical, both orders
+            first += [dense[:t], twin_dense, dense[:t]]
+            second += [dense[:t], dense[:t], twin_dense]
+        logits = self.model.pair_logits(torch.cat(first), torch.cat(second))
+        mined = (4 if self.both else 2) * a
         # Rows: (anchor, positive), (anchor, negative)[, (positive, anchor), (negative, anchor)].
-        logits = self.model.pair_logits(first, second).view(-1, anchor.shape[0])
-        pos_logits, neg_logits = logits[0::2].flatten(), logits[1::2].flatten()
-        pair_loss = pair_bce(pos_logits, neg_logits)
-        return {"loss": loss + self.pair_weight * pair_loss, **terms, "pair": pair_loss.detach()}
+        pair = logits[:mined].view(-1, a)
+        pos_logits, neg_logits = pair[0::2].flatten(), pair[1::2].flatten()
+        same = torch.cat([pos_logits, logits[mined:]])
+        rank = (pair[0] > pair[1]).float().mean().detach() if a else logits.new_zeros(())
+        return pair_bce(same, neg_logits), rank
 
 
 def validate(model: PairVPR, cfg: Stage2Config) -> dict[str, dict[str, float]]:
@@ -186,6 +248,10 @@ class Stage2(Stage):
         return self.cfg.images_per_place
 
     @property
+    def pair_conditions(self) -> bool:
+        return self.cfg.conditions > 0
+
+    @property
     def trains_decoder(self) -> bool:
         # pair_weight 0: the decoder never runs, so it stays frozen (DDP must not wait for it)
         return self.cfg.pair_weight > 0
@@ -200,6 +266,10 @@ class Stage2(Stage):
             raise ConfigError(
                 f"pair_positives must be 'hardest' or 'random', got {cfg.pair_positives!r}"
             )
+        if not 0.0 <= cfg.twin_share <= 1.0:
+            raise ConfigError(f"twin_share={cfg.twin_share}: a share of the batch, use 0..1")
+        if cfg.eval_every < 0:
+            raise ConfigError(f"eval_every={cfg.eval_every}: must be >= 0 (0 = never)")
         for name in ("pair_weight", "patch_weight"):
             if not getattr(cfg, name) >= 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(cfg, name)}")
@@ -216,6 +286,8 @@ class Stage2(Stage):
             )
         for root in self.cfg.val:  # fail before training, not after the first epoch
             load_eval_set(root)
+        if self.cfg.heldout is not None and self.cfg.eval_every > 0:
+            HeldoutViews.load(self.cfg.heldout)
 
     def start_model(self, ctx: DistContext) -> PairVPR:
         """Init checkpoint > random (+ DINOv2) init. A stage-one init gets fresh stage-two
@@ -229,8 +301,12 @@ class Stage2(Stage):
         if not source.config.with_stage1_head:  # a stage-two or released model: fine-tune it
             return source.to(ctx.device)
         torch.manual_seed(cfg.seed)  # same fresh heads on every rank
-        model = PairVPR(replace(source.config, with_stage1_head=False))
+        grid = source.config.grid
+        model = PairVPR(replace(source.config, with_stage1_head=False, dec_pos_grid=grid))
         kept = {k: v for k, v in source.state_dict().items() if not k.startswith(STAGE2_NEW)}
+        # Stage one's table is the sine-cosine table of its own grid (16x16 at 224 px): stretch
+        # it to this grid, as the released checkpoints hold it (23x23 at 322 px).
+        kept["dec_pos_embed_cls"], kept["dec_pos_embed"] = source.dec_positions(grid * grid)
         model.load_state_dict(kept, strict=False)
         model.weights_id = source.weights_id
         return model.to(ctx.device)
@@ -246,13 +322,16 @@ class Stage2(Stage):
 
     def make_step(self, objective: nn.Module, model: PairVPR, ctx: DistContext) -> StepFn:
         def step(batch: tuple[Tensor, ...]) -> dict[str, Tensor]:
-            images, labels = (t.to(ctx.device, non_blocking=True) for t in batch)
-            return objective(images.flatten(0, 1), labels.flatten())
+            images, labels, conds = (t.to(ctx.device, non_blocking=True) for t in batch)
+            return objective(images.flatten(0, 1), labels.flatten(), conds.flatten())
 
         return step
 
     def after_epoch(self, model: PairVPR) -> Callable[[int], dict] | None:
         return (lambda epoch: validate(model, self.cfg)) if self.cfg.val else None
+
+    def every_steps(self, model: PairVPR) -> tuple[int, Callable[[int], dict]] | None:
+        return heldout_hook(model, self.cfg.heldout, self.cfg.eval_every, self.cfg.out_dir)
 
 
 def train_stage2(cfg: Stage2Config) -> Path:

@@ -1,0 +1,90 @@
+"""Training curves as one PNG: each stage's losses, and re-ranked vs global AP on the held-out
+place set (the ``heldout`` records stage two writes every ``--eval-every`` steps)."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+from pair_vpr_ros.learn.heldout import HeldoutViews, measure
+from pair_vpr_ros.model import PairVPR
+
+LOSSES = ("loss", "global", "patch", "pair")
+HELDOUT = ("global_ap", "rerank_ap", "lighting_auc", "identical_ge_revisit")
+CHANCE = 0.6931  # binary cross-entropy of a pair classifier at chance
+
+
+def read_records(path: Path) -> tuple[list[dict], list[dict]]:
+    """(step records, held-out records) of a train_log.jsonl; a missing file has neither."""
+    if not path.is_file():
+        return [], []
+    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    return [r for r in rows if "loss" in r], [r for r in rows if "heldout" in r]
+
+
+def _mean(values: list[float], n: int) -> list[float]:
+    return [sum(values[max(0, i - n + 1) : i + 1]) / len(values[max(0, i - n + 1) : i + 1])
+            for i in range(len(values))]  # fmt: skip
+
+
+def draw_curves(logs: list[tuple[str, Path]], dest: Path, smooth: int = 10) -> Path:
+    """One loss panel per (title, train_log.jsonl) with steps, then one held-out panel for the
+    logs that have held-out records; written to ``dest``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = [(t, *read_records(p)) for t, p in logs]
+    runs = [r for r in runs if r[1]]
+    evals = [(t, h) for t, _, h in runs if h]
+    panels = len(runs) + len(evals)
+    if not panels:
+        raise ValueError(f"no training steps logged in {[str(p) for _, p in logs]}")
+    fig, axes = plt.subplots(1, panels, figsize=(4.4 * panels, 3.4), squeeze=False)
+    axes = list(axes[0])
+    for ax, (title, steps, _) in zip(axes, runs, strict=False):
+        x = [r["step"] for r in steps]
+        for term in LOSSES:
+            values = [float(r.get(term, 0.0)) for r in steps]
+            if any(values):
+                ax.plot(x, _mean(values, smooth), label=term, lw=1.2)
+        if any(r.get("pair") for r in steps):
+            ax.axhline(CHANCE, color="grey", ls=":", lw=1, label="pair at chance")
+        ax.set(title=f"{title}: losses", xlabel="step")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    for ax, (title, records) in zip(axes[len(runs) :], evals, strict=True):
+        x = [r["step"] for r in records]
+        for term in HELDOUT:
+            ax.plot(x, [r["heldout"].get(term, float("nan")) for r in records], "o-", label=term)
+        ax.axhline(0.5, color="grey", ls=":", lw=1)
+        ax.set(title=f"{title}: held-out world", xlabel="step", ylim=(0, 1.02))
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(dest, dpi=80)
+    plt.close(fig)
+    return dest
+
+
+def heldout_hook(
+    model: PairVPR, root: Path | None, every: int, out_dir: Path, k: int = 10
+) -> tuple[int, Callable[[int], dict]] | None:
+    """(every, step -> held-out metrics) that also redraws ``out_dir/curves.png``; None if off."""
+    if root is None or every <= 0:
+        return None
+    views = HeldoutViews.load(root)
+
+    def run(step: int) -> dict:
+        metrics = measure(model, views, k)
+        log = out_dir / "train_log.jsonl"
+        try:  # the record of this step is written after this returns: draw the others now
+            draw_curves([("stage two", log)], out_dir / "curves.png")
+        except (OSError, ValueError) as err:
+            print(f"note: curves not drawn: {err}")
+        return metrics
+
+    return every, run
