@@ -1,5 +1,6 @@
-"""Training curves as one PNG: each stage's losses, and re-ranked vs global AP on the held-out
-place set (the ``heldout`` records stage two writes every ``--eval-every`` steps)."""
+"""What training measures on the way: Recall@N on validation sets after each epoch, re-ranked vs
+global AP on a held-out place set every ``--eval-every`` steps, and the curves of both as one
+PNG (each stage's losses, and the ``heldout`` records of stage two)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ import json
 from collections.abc import Callable
 from pathlib import Path
 
+from pair_vpr_ros.learn.datasets import load_eval_set
+from pair_vpr_ros.learn.evaluate import EvalConfig, evaluate_set
 from pair_vpr_ros.learn.heldout import HeldoutViews, measure
 from pair_vpr_ros.model import PairVPR
 
@@ -88,3 +91,24 @@ def heldout_hook(
         return metrics
 
     return every, run
+
+
+def validate(
+    model: PairVPR, roots: tuple[Path, ...], rerank_k: int, workers: int
+) -> dict[str, dict[str, float]]:
+    """Recall@1/5/10 on each validation set (global, and re-ranked if rerank_k > 0)."""
+    ecfg = EvalConfig(
+        datasets=list(roots),
+        rerank_k=rerank_k,
+        recall_ns=(1, 5, 10),
+        batch_size=32,
+        workers=workers,
+        progress=False,
+    )
+    out = {}
+    for root in roots:
+        r = evaluate_set(model, load_eval_set(root), ecfg)
+        out[r.dataset] = {f"R@{n}": v for n, v in r.recall_global.items()}
+        out[r.dataset].update({f"rerank R@{n}": v for n, v in r.recall_rerank.items()})
+    model.train()
+    return out

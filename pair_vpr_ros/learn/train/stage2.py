@@ -37,11 +37,10 @@ from torch import Tensor, nn
 
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.learn.eval_sets import load_eval_set
-from pair_vpr_ros.learn.recall import EvalConfig, evaluate_set
 from pair_vpr_ros.learn.heldout import HeldoutViews
 from pair_vpr_ros.learn.train.common import DistContext, gather_batch, linear_decay, param_groups
 from pair_vpr_ros.learn.train.config import TrainConfig
-from pair_vpr_ros.learn.train.curves import heldout_hook
+from pair_vpr_ros.learn.train.curves import heldout_hook, validate
 from pair_vpr_ros.learn.train.data import near_identical
 from pair_vpr_ros.learn.train.driver import Stage, stage_main, stage_parser, train
 from pair_vpr_ros.learn.train.loop import StepFn
@@ -217,25 +216,6 @@ class Stage2Objective(nn.Module):
         return pair_bce(same, neg_logits), rank
 
 
-def validate(model: PairVPR, cfg: Stage2Config) -> dict[str, dict[str, float]]:
-    """Recall@1/5/10 on each validation set (global, and re-ranked if val_rerank_k > 0)."""
-    ecfg = EvalConfig(
-        datasets=list(cfg.val),
-        rerank_k=cfg.val_rerank_k,
-        recall_ns=(1, 5, 10),
-        batch_size=32,
-        workers=cfg.workers,
-        progress=False,
-    )
-    out = {}
-    for root in cfg.val:
-        r = evaluate_set(model, load_eval_set(root), ecfg)
-        out[r.dataset] = {f"R@{n}": v for n, v in r.recall_global.items()}
-        out[r.dataset].update({f"rerank R@{n}": v for n, v in r.recall_rerank.items()})
-    model.train()
-    return out
-
-
 class Stage2(Stage):
     """Global descriptor + pair classifier (see the module docstring)."""
 
@@ -328,7 +308,9 @@ class Stage2(Stage):
         return step
 
     def after_epoch(self, model: PairVPR) -> Callable[[int], dict] | None:
-        return (lambda epoch: validate(model, self.cfg)) if self.cfg.val else None
+        if not self.cfg.val:
+            return None
+        return lambda epoch: validate(model, self.cfg.val, self.cfg.val_rerank_k, self.cfg.workers)
 
     def every_steps(self, model: PairVPR) -> tuple[int, Callable[[int], dict]] | None:
         return heldout_hook(model, self.cfg.heldout, self.cfg.eval_every, self.cfg.out_dir)
