@@ -21,6 +21,7 @@ def log_summary(path: Path) -> dict:
     if not path.is_file():
         return {}
     rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    rows = [r for r in rows if "loss" in r]  # held-out records carry no loss
     if not rows:
         return {}
     head, tail = rows[: max(1, len(rows) // 10)], rows[-max(1, len(rows) // 10) :]
@@ -30,6 +31,15 @@ def log_summary(path: Path) -> dict:
         "loss_first_10pct": mean(head),
         "loss_last_10pct": mean(tail),
     }
+
+
+def stage2_config(path: Path) -> dict:
+    """The stage-two settings that shape the pair classifier, from its last.pt (or {})."""
+    if not path.is_file():
+        return {}
+    config = torch.load(path, map_location="cpu", weights_only=True).get("config", {})
+    keys = ("max_steps", "places_per_batch", "lr", "conditions", "twin_share", "grey")
+    return {k: config[k] for k in keys if k in config}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -50,6 +60,7 @@ def main(argv: list[str] | None = None) -> int:
         "pretrain": log_summary(args.train_dir / "pretrain" / "train_log.jsonl"),
         "stage1": log_summary(args.train_dir / "stage1" / "train_log.jsonl"),
         "stage2": log_summary(args.train_dir / "stage2" / "train_log.jsonl"),
+        "stage2_config": stage2_config(args.train_dir / "stage2" / "last.pt"),
     }
     args.dest.with_suffix(".json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"wrote {args.dest} ({summary['size_bytes'] / 1e6:.2f} MB)")
