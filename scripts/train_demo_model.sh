@@ -52,18 +52,23 @@ run_stage() {
     "$PY" -m "$module" "${data[@]}" "${COMMON[@]}" --out "$OUT/$dir" "${resume[@]}" "$@"
 }
 
+# The encoder pre-training is needed only until stage one has finished (a run continued from
+# scripts/train_state.py's copy has stage one's weights but no pre-training output).
 # INIT_ENCODER=<Pair-VPR weights>: take the encoder of those weights instead of pre-training one
 # (a shortcut for a loaded machine; docs/training.md says which run used it).
-if [ -n "${INIT_ENCODER:-}" ] && [ ! -f "$OUT/pretrain/encoder_reg4.pth" ]; then
-    mkdir -p "$OUT/pretrain"
-    "$PY" scripts/export_encoder.py "$INIT_ENCODER" "$OUT/pretrain/encoder_reg4.pth"
+if [ ! -f "$OUT/stage1/stage1_final.pt" ]; then
+    if [ -n "${INIT_ENCODER:-}" ] && [ ! -f "$OUT/pretrain/encoder_reg4.pth" ]; then
+        mkdir -p "$OUT/pretrain"
+        "$PY" scripts/export_encoder.py "$INIT_ENCODER" "$OUT/pretrain/encoder_reg4.pth"
+    fi
+    [ -f "$OUT/pretrain/encoder_reg4.pth" ] ||
+    run_stage pretrain stage2_final.pt pair_vpr_ros.learn.train.stage2 \
+        --train-blocks 4 --max-steps "$PRETRAIN_STEPS" --places-per-batch 32 --lr 1e-3 \
+        --warmup-steps 50 --pair-weight 0 --patch-weight 1.0 --no-augment --grey 0.2
+    [ -f "$OUT/pretrain/encoder_reg4.pth" ] ||
+    "$PY" scripts/export_encoder.py "$OUT/pretrain/stage2_final.pt" \
+        "$OUT/pretrain/encoder_reg4.pth"
 fi
-[ -f "$OUT/pretrain/encoder_reg4.pth" ] ||
-run_stage pretrain stage2_final.pt pair_vpr_ros.learn.train.stage2 \
-    --train-blocks 4 --max-steps "$PRETRAIN_STEPS" --places-per-batch 32 --lr 1e-3 \
-    --warmup-steps 50 --pair-weight 0 --patch-weight 1.0 --no-augment --grey 0.2
-[ -f "$OUT/pretrain/encoder_reg4.pth" ] ||
-"$PY" scripts/export_encoder.py "$OUT/pretrain/stage2_final.pt" "$OUT/pretrain/encoder_reg4.pth"
 # Stage one: the authors' optimiser (AdamW 0.9/0.999, layer decay 0.9 over encoder + decoder,
 # weight decay 0.04 -> 0.4, cosine to 1e-6, no clipping) but a larger peak lr than their
 # 3e-4 x sqrt(32 / 1024) = 5.3e-5: this run is a few hundred steps, not the authors' hundreds of
