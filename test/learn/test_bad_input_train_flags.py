@@ -15,6 +15,7 @@ CASES = {
     "twin-share above 1": (["--twin-share", "1.5"], "twin_share=1.5: a share of the batch"),
     "twin-share nan": (["--twin-share", "nan"], "twin_share=nan: a share of the batch"),
     "eval-every negative": (["--eval-every=-5"], "eval_every=-5: must be >= 0 (0 = never)"),
+    "pair-negatives unknown": (["--pair-negatives", "easy"], "invalid choice: 'easy'"),
     "conditions text": (["--conditions", "three"], "argument --conditions: invalid int value"),
     "heldout missing": (["--heldout", "{tmp}/nowhere", "--eval-every", "5"], "nowhere"),
     "heldout one place": (["--heldout", "{tmp}/one", "--eval-every", "5"], "needs >= 2 places"),

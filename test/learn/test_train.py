@@ -631,6 +631,7 @@ def test_cli_flags_defaults_and_values(tmp_path: Path, capsys: pytest.CaptureFix
             "--pair-positives": ("random", "pair_positives", "random"),
             "--val-rerank-k": ("5", "val_rerank_k", 5),
             "--twin-share": ("0.25", "twin_share", 0.25),
+            "--pair-negatives": ("random", "pair_negatives", "random"),
             "--heldout": ("h", "heldout", Path("h")),
             "--eval-every": ("50", "eval_every", 50),
         },

@@ -123,6 +123,10 @@ def test_relation_mining_gives_positive_and_negative_the_same_lighting_relation(
     same_pos, same_neg = conds[pos] == conds, conds[neg] == conds
     assert torch.equal(same_pos, same_neg)  # no lighting shortcut
     assert same_pos.tolist() == [True, False] * 4  # both relations in equal shares
+    for _ in range(5):  # random negatives: another place, still the anchor's relation
+        pos, neg, valid = relation_hard_indices(sim, labels, labels, own, conds, conds, True)
+        assert valid.all() and (labels[neg] != labels).all()
+        assert torch.equal(conds[pos] == conds, conds[neg] == conds)
 
 
 def test_identical_and_near_identical_pairs_train_as_positives(tmp_path) -> None:

@@ -105,12 +105,15 @@ def relation_hard_indices(
     anchor_index: Tensor,
     anchor_conds: Tensor,
     conds: Tensor,
+    random_negatives: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Batch-hard mining without the condition shortcut: every anchor's positive and negative
     have the same condition relation to it, both in its condition (even anchors) or both in
     another one (odd anchors), so "other lighting" cannot tell them apart. An anchor that lacks
     one of the two under its relation takes the other relation; unknown conditions (-1) count as
-    the same condition as any other unknown.
+    the same condition as any other unknown. ``random_negatives``: a random other-place item
+    of that relation instead of the hardest (an easier task for a classifier that starts from
+    nothing).
 
     sim [A,M], anchor_labels [A], labels [M], anchor_index [A], anchor_conds [A], conds [M]
     -> (positive [A], negative [A], valid [A] bool), as `batch_hard_indices`."""
@@ -125,7 +128,8 @@ def relation_hard_indices(
     for relation in (same_cond == want_same, same_cond != want_same):
         pos_ok, neg_ok = same_place & relation, other_place & relation
         pos = sim.masked_fill(~pos_ok, inf).argmin(dim=1)
-        neg = sim.masked_fill(~neg_ok, -inf).argmax(dim=1)
+        neg_score = torch.rand_like(sim) if random_negatives else sim
+        neg = neg_score.masked_fill(~neg_ok, -inf).argmax(dim=1)
         out.append((pos, neg, pos_ok.any(dim=1) & neg_ok.any(dim=1)))
     (pos, neg, ok), (pos2, neg2, ok2) = out
     pos, neg = torch.where(ok, pos, pos2), torch.where(ok, neg, neg2)

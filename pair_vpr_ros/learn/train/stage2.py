@@ -96,6 +96,12 @@ class Stage2Config(TrainConfig):
         "train the pair logits in both image orders (default) or anchor-first only",
         choices=("both", "first"),
     )
+    pair_negatives: str = option(
+        "hardest",
+        "negative of each anchor in the pair loss with --conditions: the hardest by descriptor "
+        "(default, as the paper) or a random one of another place (an easier start)",
+        choices=("hardest", "random"),
+    )
     twin_share: float = option(
         0.0,
         "for this share of each batch also train the image against itself and against a "
@@ -131,6 +137,7 @@ class Stage2Objective(nn.Module):
         self.pair_weight, self.both = cfg.pair_weight, cfg.pair_directions == "both"
         self.patch_weight, self.random_positive = cfg.patch_weight, cfg.pair_positives == "random"
         self.twin_share, self.by_condition = cfg.twin_share, cfg.conditions > 0
+        self.random_negative = cfg.pair_negatives == "random"
         self.metric = MultiSimilarityObjective(
             cfg.ms_alpha, cfg.ms_beta, cfg.ms_base, cfg.miner_epsilon
         )
@@ -190,7 +197,7 @@ class Stage2Objective(nn.Module):
             if self.by_condition and conds is not None:
                 conds_all = gather_batch(conds, self.ctx)
                 pos, neg, valid = relation_hard_indices(
-                    sim, labels, labels_all, own, conds, conds_all
+                    sim, labels, labels_all, own, conds, conds_all, self.random_negative
                 )
             else:
                 pos, neg, valid = batch_hard_indices(sim, labels, labels_all, own)
@@ -241,6 +248,10 @@ class Stage2(Stage):
         if cfg.pair_directions not in ("both", "first"):
             raise ConfigError(
                 f"pair_directions must be 'both' or 'first', got {cfg.pair_directions!r}"
+            )
+        if cfg.pair_negatives not in ("hardest", "random"):
+            raise ConfigError(
+                f"pair_negatives must be 'hardest' or 'random', got {cfg.pair_negatives!r}"
             )
         if cfg.pair_positives not in ("hardest", "random"):
             raise ConfigError(
