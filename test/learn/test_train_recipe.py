@@ -20,7 +20,11 @@ from pair_vpr_ros.learn.train.data import (
     near_identical,
     view_condition,
 )
-from pair_vpr_ros.learn.train.losses import random_patch_mask, relation_hard_indices
+from pair_vpr_ros.learn.train.losses import (
+    random_patch_mask,
+    relation_hard_indices,
+    same_condition_negatives,
+)
 from pair_vpr_ros.learn.train.stage1 import Stage1, Stage1Config, Stage1Objective
 from pair_vpr_ros.learn.train.stage2 import Stage2, Stage2Config, Stage2Objective
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, save_pairvpr
@@ -127,6 +131,16 @@ def test_relation_mining_gives_positive_and_negative_the_same_lighting_relation(
         pos, neg, valid = relation_hard_indices(sim, labels, labels, own, conds, conds, True)
         assert valid.all() and (labels[neg] != labels).all()
         assert torch.equal(conds[pos] == conds, conds[neg] == conds)
+
+
+def test_identical_pairs_are_balanced_by_same_lighting_negatives() -> None:
+    labels = torch.tensor([0, 0, 1, 1, 2, 2])
+    conds = torch.tensor([0, 1, 0, 1, 1, 1])
+    for _ in range(5):
+        neg = same_condition_negatives(labels[:2], labels, conds[:2], conds)
+        assert neg[0].item() == 2 and neg[1].item() in (3, 4, 5)
+    assert same_condition_negatives(labels[:1], labels, torch.tensor([7]), conds)[0] >= 2
+    assert (labels[same_condition_negatives(labels, labels, None, None)] != labels).all()
 
 
 def test_identical_and_near_identical_pairs_train_as_positives(tmp_path) -> None:

@@ -136,6 +136,21 @@ def relation_hard_indices(
     return pos, neg, ok | ok2
 
 
+def same_condition_negatives(
+    anchor_labels: Tensor, labels: Tensor, anchor_conds: Tensor | None, conds: Tensor | None
+) -> Tensor:
+    """For each anchor a random item of another place in the anchor's condition (any other
+    place when conditions are unknown or none is left): the negatives that balance identical
+    pairs, which are all in one lighting, so that "same lighting" does not predict "same
+    place". anchor_labels [A], labels [M], conditions [A] / [M] -> indices [A]."""
+    other = anchor_labels[:, None] != labels[None, :]
+    ok = other
+    if anchor_conds is not None and conds is not None:
+        same = other & (anchor_conds[:, None] == conds[None, :])
+        ok = torch.where(same.any(dim=1, keepdim=True), same, other)
+    return torch.rand(ok.shape, device=labels.device).masked_fill(~ok, -1.0).argmax(dim=1)
+
+
 def random_positive_indices(
     anchor_labels: Tensor,
     labels: Tensor,

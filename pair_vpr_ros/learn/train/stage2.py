@@ -11,17 +11,13 @@ both are trained. The network spec does not say which of the two the paper used;
 the anchor-first direction only. Total = global + 2.0 * pair. AdamW lr 8e-5, weight decay 0.05,
 lr falling linearly to 0.2x; the last half of the encoder blocks train.
 
-Options beyond the paper, for training from a random init (the demo model): a linear lr
-warm-up; ``pair_weight=0``, which trains the global descriptor alone without running the
-decoder (an encoder pre-training that can stand in for DINOv2 when no DINOv2 of that size exists);
-``patch_weight``, a multi-similarity loss on the mean of each image's dense tokens, so that the
-tokens the pair classifier reads carry the place and not only the class token (DINOv2's patch
-features do so from its own pre-training); and ``pair_positives="random"``, a random instead of
-the hardest positive for the pair loss. Against the lighting shortcut (the hardest positive of
-a place is nearly always in another lighting, the hardest negative in the same one, so "other
-lighting" alone separates them; issue 24) ``conditions`` mines positive and negative with the
-same lighting relation to the anchor, in equal shares (`relation_hard_indices`); ``twin_share``
-adds identical and near-identical pairs as positives, so that a repeat outscores a revisit.
+Options beyond the paper, for the demo model: a linear lr warm-up; ``pair_weight=0`` (global
+descriptor alone: an encoder pre-training in place of DINOv2); ``patch_weight`` (multi-similarity
+on each image's mean dense token, so the tokens the pair classifier reads carry the place);
+``pair_positives`` / ``pair_negatives="random"``; ``conditions`` (issue 24: positive and negative
+share their lighting relation to the anchor, in equal shares, so "other lighting" cannot
+separate them, `relation_hard_indices`); ``twin_share`` (identical and near-identical pairs as
+positives, balanced by same-lighting negatives, so that a repeat outscores a revisit).
 """
 
 from __future__ import annotations
@@ -50,6 +46,7 @@ from pair_vpr_ros.learn.train.losses import (
     pair_bce,
     random_positive_indices,
     relation_hard_indices,
+    same_condition_negatives,
 )
 from pair_vpr_ros.learn.train.options import option, redefault
 from pair_vpr_ros.model import PairVPR, load_pairvpr
@@ -174,9 +171,8 @@ class Stage2Objective(nn.Module):
         return {"loss": loss + self.pair_weight * pair_loss, **terms}
 
     def twin_count(self, batch: int) -> int:
-        if self.pair_weight == 0 or self.twin_share <= 0:
-            return 0
-        return max(1, round(self.twin_share * batch))
+        on = self.pair_weight > 0 and self.twin_share > 0
+        return max(1, round(self.twin_share * batch)) if on else 0
 
     def pair_loss(
         self,
@@ -187,15 +183,15 @@ class Stage2Objective(nn.Module):
         labels: Tensor,
         conds: Tensor | None,
     ) -> tuple[Tensor, Tensor]:
-        """BCE of the pair logits on mined (anchor, positive) -> 1, (anchor, negative) -> 0, and
-        identical / near-identical pairs -> 1; also the share of anchors whose positive
-        outscores their negative."""
+        """BCE of the pair logits on mined (anchor, positive) -> 1, (anchor, negative) -> 0,
+        identical / near-identical pairs -> 1 and as many same-lighting other-place pairs -> 0;
+        also the share of anchors whose positive outscores their negative."""
         labels_all = gather_batch(labels, self.ctx)
         own = self.ctx.rank * labels.shape[0] + torch.arange(labels.shape[0], device=labels.device)
         with torch.no_grad():
             sim = desc.detach().float() @ desc_all.detach().T
+            conds_all = gather_batch(conds, self.ctx) if conds is not None else None
             if self.by_condition and conds is not None:
-                conds_all = gather_batch(conds, self.ctx)
                 pos, neg, valid = relation_hard_indices(
                     sim, labels, labels_all, own, conds, conds_all, self.random_negative
                 )
@@ -203,24 +199,29 @@ class Stage2Objective(nn.Module):
                 pos, neg, valid = batch_hard_indices(sim, labels, labels_all, own)
             if self.random_positive:
                 pos = random_positive_indices(labels, labels_all, own)
+            t = twin_dense.shape[0]
+            firsts = slice(0, t)
+            twin_neg = same_condition_negatives(
+                labels[firsts], labels_all, None if conds is None else conds[firsts], conds_all
+            )
         dense_all = gather_batch(dense, self.ctx)
         anchor, positive, negative = dense[valid], dense_all[pos[valid]], dense_all[neg[valid]]
         a = anchor.shape[0]
         first, second = [anchor, anchor], [positive, negative]
         if self.both:
             first, second = first + [positive, negative], second + [anchor, anchor]
-        t = twin_dense.shape[0]
-        if t:  # identical (the anchor against itself) and near-identical, both orders
-            first += [dense[:t], twin_dense, dense[:t]]
-            second += [dense[:t], dense[:t], twin_dense]
+        if t:  # identical and near-identical, both orders, and as many same-lighting negatives
+            other = dense_all[twin_neg]
+            first += [dense[:t], twin_dense, dense[:t], dense[:t], twin_dense, other]
+            second += [dense[:t], dense[:t], twin_dense, other, other, dense[:t]]
         logits = self.model.pair_logits(torch.cat(first), torch.cat(second))
         mined = (4 if self.both else 2) * a
         # Rows: (anchor, positive), (anchor, negative)[, (positive, anchor), (negative, anchor)].
-        pair = logits[:mined].view(-1, a)
-        pos_logits, neg_logits = pair[0::2].flatten(), pair[1::2].flatten()
-        same = torch.cat([pos_logits, logits[mined:]])
+        pair, twins = logits[:mined].view(-1, a), logits[mined:].view(2, -1)
+        pos_logits = torch.cat([pair[0::2].flatten(), twins[0]])
+        neg_logits = torch.cat([pair[1::2].flatten(), twins[1]])
         rank = (pair[0] > pair[1]).float().mean().detach() if a else logits.new_zeros(())
-        return pair_bce(same, neg_logits), rank
+        return pair_bce(pos_logits, neg_logits), rank
 
 
 class Stage2(Stage):
@@ -319,9 +320,8 @@ class Stage2(Stage):
         return step
 
     def after_epoch(self, model: PairVPR) -> Callable[[int], dict] | None:
-        if not self.cfg.val:
-            return None
-        return lambda epoch: validate(model, self.cfg.val, self.cfg.val_rerank_k, self.cfg.workers)
+        c = self.cfg
+        return (lambda epoch: validate(model, c.val, c.val_rerank_k, c.workers)) if c.val else None
 
     def every_steps(self, model: PairVPR) -> tuple[int, Callable[[int], dict]] | None:
         return heldout_hook(model, self.cfg.heldout, self.cfg.eval_every, self.cfg.out_dir)
