@@ -27,6 +27,7 @@ STAGE1_STEPS=${STAGE1_STEPS:-600}
 STAGE2_STEPS=${STAGE2_STEPS:-2000}
 STAGE2_PLACES=${STAGE2_PLACES:-32}  # places per stage-two batch (x 4 views)
 PAIR_NEGATIVES=${PAIR_NEGATIVES:-random}  # hardest (the paper) or random: docs/training.md
+STAGE2_LR=${STAGE2_LR:-5e-4}
 SAVE_EVERY=${SAVE_EVERY:-100}
 EVAL_EVERY=${EVAL_EVERY:-250}
 COMMON=(--arch small --image-size 112 --workers 1 --device cpu --seed 0 --log-every 10
@@ -79,7 +80,7 @@ run_stage stage1 stage1_final.pt pair_vpr_ros.learn.train.stage1 \
     --places-per-batch 32 --lr 5e-4 --warmup-steps 100 --no-augment --grey 0.2
 run_stage stage2 stage2_final.pt pair_vpr_ros.learn.train.stage2 \
     --init "$OUT/stage1/stage1_final.pt" --train-blocks 4 --max-steps "$STAGE2_STEPS" \
-    --places-per-batch "$STAGE2_PLACES" --lr 5e-4 --warmup-steps 100 --no-augment --grey 0.2 \
+    --places-per-batch "$STAGE2_PLACES" --lr "$STAGE2_LR" --warmup-steps 100 --no-augment --grey 0.2 \
     --patch-weight 0.5 --twin-share 0.25 --pair-directions first \
     --pair-negatives "$PAIR_NEGATIVES" \
     --heldout "$HELDOUT" --eval-every "$EVAL_EVERY"

@@ -13,7 +13,7 @@ from pair_vpr_ros.learn.evaluate import EvalConfig, evaluate_set
 from pair_vpr_ros.learn.heldout import HeldoutViews, measure
 from pair_vpr_ros.model import PairVPR
 
-LOSSES = ("loss", "global", "patch", "pair")
+LOSSES = ("loss", "global", "patch", "pair", "pair_rank")
 HELDOUT = ("global_ap", "rerank_ap", "lighting_auc", "identical_ge_revisit")
 CHANCE = 0.6931  # binary cross-entropy of a pair classifier at chance
 
