@@ -24,7 +24,8 @@ import numpy as np
 import torch
 
 from pair_vpr_ros.errors import DatasetError
-from pair_vpr_ros.learn.datasets import load_place_folders, read_rgb
+from pair_vpr_ros.learn.image_files import read_rgb
+from pair_vpr_ros.learn.places import load_place_folders
 from pair_vpr_ros.learn.train.data import view_condition
 from pair_vpr_ros.model import PairVPR, preprocess_batch
 

@@ -8,9 +8,9 @@ import json
 from collections.abc import Callable
 from pathlib import Path
 
-from pair_vpr_ros.learn.datasets import load_eval_set
-from pair_vpr_ros.learn.evaluate import EvalConfig, evaluate_set
+from pair_vpr_ros.learn.eval_sets import load_eval_set
 from pair_vpr_ros.learn.heldout import HeldoutViews, measure
+from pair_vpr_ros.learn.recall import EvalConfig, evaluate_set
 from pair_vpr_ros.model import PairVPR
 
 LOSSES = ("loss", "global", "patch", "pair", "pair_rank")
