@@ -22,19 +22,6 @@ from pair_vpr_ros.fleet.messages import (
 )
 from pair_vpr_ros.types import split_stamp
 
-# LoopRecord.pose_status -> the name of LoopClosure's constant
-POSE_CONSTANTS = {
-    "": "POSE_NONE",
-    "metric": "POSE_METRIC",
-    "metric-odometry": "POSE_METRIC_ODOMETRY",
-    "scale-free": "POSE_SCALE_FREE",
-}
-
-
-def pose_codes(loop_closure_class: Any) -> dict[str, int]:
-    """{pose status: LoopClosure.POSE_* value} of the typed LoopClosure class."""
-    return {s: int(getattr(loop_closure_class, name)) for s, name in POSE_CONSTANTS.items()}
-
 
 def to_typed(msg: Message, classes: Mapping[str, Any], codes: Mapping[str, int]) -> Any:
     """A fleet message -> its typed ROS message (`classes`: class name -> class)."""

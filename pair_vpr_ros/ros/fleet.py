@@ -28,8 +28,9 @@ from std_msgs.msg import UInt8MultiArray
 from pair_vpr_ros.errors import ConfigError, FleetMessageError
 from pair_vpr_ros.fleet import FleetExchange, InterRobotLoop, Outgoing
 from pair_vpr_ros.fleet.params import fleet_config
-from pair_vpr_ros.fleet.typed import from_typed, pose_codes, to_typed
+from pair_vpr_ros.fleet.typed import from_typed, to_typed
 from pair_vpr_ros.identity import Identity
+from pair_vpr_ros.loop_messages import POSE_STATUS_CODES
 from pair_vpr_ros.pipeline import FrameOutcome
 from pair_vpr_ros.ros.maps import MapControl
 from pair_vpr_ros.ros.outputs import publish_while_up
@@ -77,7 +78,7 @@ class FleetLink:
         self.typed = typed_wanted(values["fleet_messages"])
         if self.typed:
             self._classes = {name: getattr(typed_msgs, name) for name in TYPED.values()}
-            self._codes = pose_codes(typed_msgs.LoopClosure)
+            self._codes = POSE_STATUS_CODES  # = LoopClosure.POSE_* (test_typed_loop_closure)
         self._node, self._maps, self._on_loop = node, maps, on_loop
         self.exchange = maps.call(lambda: FleetExchange(maps.pipeline, config, self._send))
         self._qos = {k: QoSProfile(depth=d, reliability=ReliabilityPolicy.RELIABLE)

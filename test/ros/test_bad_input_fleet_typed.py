@@ -11,11 +11,12 @@ from rclpy.serialization import serialize_message
 
 from pair_vpr_ros.errors import FleetMessageError
 from pair_vpr_ros.fleet import KeyframeDescriptor, ScoreRequest, ScoreResponse, encode, model_tag
-from pair_vpr_ros.fleet.typed import from_typed, pose_codes, to_typed
+from pair_vpr_ros.fleet.typed import from_typed, to_typed
+from pair_vpr_ros.loop_messages import POSE_STATUS_CODES
 
 msgs = pytest.importorskip("pair_vpr_ros_interfaces.msg")
 CLASSES = {n: getattr(msgs, n) for n in ("KeyframeDescriptor", "ScoreRequest", "ScoreResponse")}
-CODES = pose_codes(msgs.LoopClosure)
+CODES = POSE_STATUS_CODES
 TAG, S = model_tag("m"), "20261125T160000Z"
 
 

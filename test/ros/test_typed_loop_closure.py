@@ -22,7 +22,12 @@ from node_harness import wait_for
 from std_msgs.msg import String
 from test_node_geometry import GEOMETRY, run
 
-from pair_vpr_ros.loop_messages import JSON_TOPIC, TYPED_TOPIC, factor_from_msg
+from pair_vpr_ros.loop_messages import (
+    JSON_TOPIC,
+    POSE_STATUS_CODES,
+    TYPED_TOPIC,
+    factor_from_msg,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -164,3 +169,15 @@ def test_message_sizes_on_the_wire(typed_messages):
     )  # fmt: skip
     assert len(serialize_message(response)) == 123
     assert len(serialize_message(m.LoopClosure())) == 516
+
+
+def test_pose_status_codes_are_the_message_constants(typed_messages):
+    """The node (loop_messages) and the fleet (ros/fleet.py) fill pose_status from
+    POSE_STATUS_CODES: its values must be LoopClosure's POSE_* constants."""
+    cls = typed_messages.LoopClosure
+    assert POSE_STATUS_CODES == {
+        "": cls.POSE_NONE,
+        "metric": cls.POSE_METRIC,
+        "scale-free": cls.POSE_SCALE_FREE,
+        "metric-odometry": cls.POSE_METRIC_ODOMETRY,
+    }
