@@ -24,6 +24,7 @@ from pathlib import Path
 
 from pair_vpr_ros.cli import run_cli
 from pair_vpr_ros.errors import PoseGraphError
+from pair_vpr_ros.offline.loop_io import json_records
 
 EXCHANGE = "exchange"
 LOOPS = "inter_robot_loops.json"
@@ -42,7 +43,7 @@ def replay_records(fleet: Path, drive: dict) -> list[dict]:
     path = fleet / "replay" / f"{drive['robot']}_{drive['session']}" / "loops.json"
     if not path.is_file():
         raise PoseGraphError(f"no replay of {drive['robot']}/{drive['session']}: {path} missing")
-    return sorted(_read_list(path), key=lambda r: r["query_stamp"])
+    return sorted(json_records(path), key=lambda r: r["query_stamp"])
 
 
 def pair_key(record: dict, robot: str = "", session: str = "") -> Pair:
@@ -65,7 +66,7 @@ def exchange_loops(fleet: str | Path) -> tuple[list[dict], list[dict]] | None:
     path = fleet / EXCHANGE / LOOPS
     if not path.is_file():
         return None
-    accepted = [r for r in _read_list(path) if r.get("accepted")]
+    accepted = [r for r in json_records(path) if r.get("accepted")]
     seen: set[Pair] = set()
     for drive in read_drives(fleet):
         seen |= {pair_key(r, drive["robot"], drive["session"])
@@ -77,16 +78,6 @@ def exchange_loops(fleet: str | Path) -> tuple[list[dict], list[dict]] | None:
             seen.add(key)
             added.append(record)
     return accepted, added
-
-
-def _read_list(path: Path) -> list[dict]:
-    try:
-        records = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as err:
-        raise PoseGraphError(f"cannot read loops {path}: {err}") from err
-    if not isinstance(records, list) or not all(isinstance(r, dict) for r in records):
-        raise PoseGraphError(f"loops {path} is not a JSON list of loop records (loops.json)")
-    return records
 
 
 def write_added_loops(fleet: str | Path) -> tuple[Path, int, int]:

@@ -55,13 +55,14 @@ def read_loops(path: str | Path) -> LoopSource:
             "or loops.csv, or a bag with the loop_closure/factor topic"
         )
     if path.suffix == ".json":
-        return _from_records(path, _json_records(path))
+        return _from_records(path, json_records(path))
     if path.suffix == ".csv":
         return _from_records(path, _csv_records(path))
     return _from_bag(path)
 
 
-def _json_records(path: Path) -> list[Any]:
+def json_records(path: Path) -> list[Any]:
+    """A loops.json file -> its list of record dicts (PoseGraphError when it is not one)."""
     try:
         records = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as err:
