@@ -8,13 +8,13 @@ import json
 import os
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import pytest
 from bag_fixtures import synthetic_images
 from node_harness import wait_for
 from rclpy.impl.rcutils_logger import RcutilsLogger
+from test_node_process import start_command
 
 from pair_vpr_ros.ros import outputs
 
@@ -61,29 +61,12 @@ def test_without_the_message_package_the_node_warns_once_and_runs(harness, monke
 
 @pytest.mark.slow
 def test_a_node_process_without_the_package_starts_with_the_warning():
-    env = {**os.environ, "RCUTILS_LOGGING_BUFFERED_STREAM": "0", "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen(
-        [sys.executable, "-c", BLOCKED, "--ros-args", "-p", "weights:=random-tiny"],
-        cwd=ROOT, env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-    )  # fmt: skip
-    lines: list[str] = []
-    ready = threading.Event()
-
-    def read() -> None:
-        for line in proc.stdout:
-            lines.append(line)
-            if "ready:" in line:
-                ready.set()
-        ready.set()
-
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
-    try:
-        assert ready.wait(120.0) and proc.poll() is None, "".join(lines)
-    finally:
-        proc.terminate()
-        proc.wait(30.0)
-        reader.join(10.0)
+    proc, reader, lines = start_command(
+        [sys.executable, "-c", BLOCKED, "--ros-args", "-p", "weights:=random-tiny"], timeout=120.0
+    )
+    proc.terminate()
+    proc.wait(30.0)
+    reader.join(10.0)
     typed = [line for line in lines if "typed" in line]
     assert len(typed) == 1 and typed[0].rstrip().endswith(f"[vpr_node]: {WARNING}"), lines
     assert typed[0].startswith("[WARN]")

@@ -25,12 +25,14 @@ ENV = {**os.environ, "RCUTILS_LOGGING_BUFFERED_STREAM": "0", "PYTHONUNBUFFERED":
 pytestmark = pytest.mark.slow  # node processes, signals, a colcon build
 
 
-def start(*args: str) -> tuple[subprocess.Popen, threading.Thread, list[str]]:
-    """Start the node once it is ready -> (process, output reader, its output lines so far)."""
+def start_command(
+    cmd: list[str], timeout: float = 60.0
+) -> tuple[subprocess.Popen, threading.Thread, list[str]]:
+    """Start `cmd` (a node) and wait until it logs "ready:" -> (process, output reader, its
+    output lines so far); a process that is not ready in `timeout` s is stopped and fails."""
     proc = subprocess.Popen(
-        [*NODE, *args], cwd=ROOT, env=ENV, text=True,
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-    )  # fmt: skip
+        cmd, cwd=ROOT, env=ENV, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+    )
     lines: list[str] = []
     ready = threading.Event()
 
@@ -43,8 +45,16 @@ def start(*args: str) -> tuple[subprocess.Popen, threading.Thread, list[str]]:
 
     reader = threading.Thread(target=read, daemon=True)
     reader.start()
-    assert ready.wait(60.0) and proc.poll() is None, "".join(lines)
+    if not (ready.wait(timeout) and proc.poll() is None):
+        proc.terminate()
+        proc.wait(30.0)
+        pytest.fail("".join(lines))
     return proc, reader, lines
+
+
+def start(*args: str) -> tuple[subprocess.Popen, threading.Thread, list[str]]:
+    """Start the node once it is ready -> (process, output reader, its output lines so far)."""
+    return start_command([*NODE, *args])
 
 
 # Ctrl-C under `ros2 launch` sends SIGINT twice (the terminal's and launch's copy), then SIGTERM:
