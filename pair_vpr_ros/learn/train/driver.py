@@ -102,14 +102,18 @@ class Stage(ABC):
     def prepare(self, ctx: DistContext) -> None:  # noqa: B027 (a hook stage two uses)
         """Checks that need the process group, before the training places are scanned."""
 
+    def model_config(self) -> ModelConfig:
+        """The network a run that does not resume starts from (a stage may adjust it)."""
+        cfg = self.cfg
+        return ModelConfig.preset(
+            cfg.arch, image_size=cfg.image_size, with_stage1_head=self.with_stage1_head
+        )
+
     def start_model(self, ctx: DistContext) -> PairVPR:
         """The model of a run that does not resume: random init, same on every rank, with the
         DINOv2 encoder weights when given."""
         cfg = self.cfg
-        mcfg = ModelConfig.preset(
-            cfg.arch, image_size=cfg.image_size, with_stage1_head=self.with_stage1_head
-        )
-        model = build_pairvpr(mcfg, seed=cfg.seed)
+        model = build_pairvpr(self.model_config(), seed=cfg.seed)
         if cfg.dinov2 is not None:
             missing = load_dinov2_encoder(model, cfg.dinov2)
             if missing and ctx.is_main:

@@ -30,7 +30,7 @@ from pair_vpr_ros.learn.train.driver import Stage, stage_main, stage_parser, tra
 from pair_vpr_ros.learn.train.loop import StepFn
 from pair_vpr_ros.learn.train.losses import masked_patch_mse, random_patch_mask
 from pair_vpr_ros.learn.train.options import option, redefault
-from pair_vpr_ros.model import ModelConfig, PairVPR, build_pairvpr, load_dinov2_encoder
+from pair_vpr_ros.model import ModelConfig, PairVPR
 
 
 @dataclass
@@ -89,17 +89,10 @@ class Stage1(Stage):
     def images_per_place(self) -> int:
         return 2
 
-    def start_model(self, ctx: DistContext) -> PairVPR:
+    def model_config(self) -> ModelConfig:
         """As the driver's, with the decoder's position table built at the training grid."""
-        cfg = self.cfg
-        mcfg = ModelConfig.preset(cfg.arch, image_size=cfg.image_size, with_stage1_head=True)
-        mcfg = replace(mcfg, dec_pos_grid=mcfg.grid)
-        model = build_pairvpr(mcfg, seed=cfg.seed)
-        if cfg.dinov2 is not None:
-            missing = load_dinov2_encoder(model, cfg.dinov2)
-            if missing and ctx.is_main:
-                print(f"note: {cfg.dinov2} lacks {missing}; they keep their random init")
-        return model.to(ctx.device)
+        mcfg = super().model_config()
+        return replace(mcfg, dec_pos_grid=mcfg.grid)
 
     def base_lr(self, ctx: DistContext) -> float:
         if self.cfg.lr is not None:
