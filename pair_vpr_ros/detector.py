@@ -26,7 +26,11 @@ class DetectorConfig:
     """Detector settings. Times in seconds; similarities are cosine of global descriptors."""
 
     top_k: int = 10  # candidates re-ranked per keyframe
-    score_threshold: float = 0.0  # accept when logit(q,c) + logit(c,q) >= this
+    score_threshold: float = 0.0  # accept when the re-rank score (below) >= this
+    # Re-rank score = logit(q,c) + logit(c,q) + global_weight x global similarity. 0 (default):
+    # the pair score alone, as the paper ranks; > 0 lets a weak pair classifier (the demo
+    # model's) add to the global descriptor instead of overruling it.
+    global_weight: float = 0.0
     global_floor: float = (
         -1.0
     )  # skip re-ranking when the best global similarity is lower (-1: off)
@@ -56,6 +60,11 @@ class DetectorConfig:
             ("min_inliers", self.min_inliers >= 0, ">= 0"),
             ("mode", self.mode in MODES, f"one of {MODES}"),
             ("score_threshold", math.isfinite(self.score_threshold), "a finite number"),
+            (
+                "global_weight",
+                math.isfinite(self.global_weight) and self.global_weight >= 0,
+                "a finite number >= 0 (0: the pair score alone)",
+            ),
             (
                 "rerank_budget_ms",
                 math.isfinite(self.rerank_budget_ms) and self.rerank_budget_ms >= 0,
@@ -146,19 +155,33 @@ class Candidate:
     session: str = ""
     prior: int = -1  # -1: the live map; i >= 0: the pipeline's i-th prior map (read-only)
 
+    def rerank_score(self, global_weight: float = 0.0) -> float:
+        """What re-ranking sorts by and the threshold compares (`DetectorConfig.global_weight`)."""
+        return rerank_score(self.pair_score, self.global_similarity, global_weight)
+
     @property
     def group(self) -> tuple[int, str, str]:
         """(map, robot, session): ids are comparable only within one group."""
         return self.prior, self.robot, self.session
 
 
-def rank_by_pair_score(candidates: list[Candidate], scores: np.ndarray) -> list[Candidate]:
+def rerank_score(pair_score: float, global_similarity: float, global_weight: float) -> float:
+    """Pair score + global_weight x global similarity (the pair score alone at weight 0)."""
+    if global_weight == 0:
+        return pair_score
+    return pair_score + global_weight * global_similarity
+
+
+def rank_by_pair_score(
+    candidates: list[Candidate], scores: np.ndarray, global_weight: float = 0.0
+) -> list[Candidate]:
     """Store each candidate's pair score (``scores`` [K], in the order of ``candidates``) and
-    return the candidates best first; equal scores keep their global order. The node's
-    decisions and ``pairvpr-eval``'s re-ranked recall both rank through this one function."""
+    return the candidates best re-rank score first (`rerank_score`); equal scores keep their
+    global order. The node's decisions, the fleet owner's and ``pairvpr-eval``'s re-ranked
+    recall all rank through this one function."""
     for cand, score in zip(candidates, scores, strict=True):
         cand.pair_score = float(score)
-    return sorted(candidates, key=lambda c: (-c.pair_score, c.rank_before))
+    return sorted(candidates, key=lambda c: (-c.rerank_score(global_weight), c.rank_before))
 
 
 Verifier = Callable[[Candidate], tuple[int, float]]  # match -> (inliers, inlier ratio)
@@ -214,7 +237,8 @@ class LoopDetector:
             return record
         scored = self.score(candidates, rerank, step, first)
         best = scored[0]
-        reason = "" if best.pair_score >= c.score_threshold else "score below threshold"
+        below = best.rerank_score(c.global_weight) < c.score_threshold
+        reason = "score below threshold" if below else ""
         record = self._record(*query, best, reason)
         record.candidates, record.scored = len(candidates), len(scored)
         if reason:
@@ -253,7 +277,7 @@ class LoopDetector:
         most max(budget, one call)."""
         budget_ms = self.config.rerank_budget_ms
         if budget_ms <= 0:
-            return rank_by_pair_score(candidates, rerank(candidates))
+            return rank_by_pair_score(candidates, rerank(candidates), self.config.global_weight)
         start, done, parts = self.clock(), 0, []
         while done < len(candidates):
             size = min(first if done == 0 else step, len(candidates) - done)
@@ -262,7 +286,8 @@ class LoopDetector:
                 break
             parts.append(np.asarray(rerank(candidates[done : done + size])))
             done += size
-        return rank_by_pair_score(candidates[:done], np.concatenate(parts))
+        weight = self.config.global_weight
+        return rank_by_pair_score(candidates[:done], np.concatenate(parts), weight)
 
     def _temporally_consistent(self, match: Candidate) -> bool:
         """Agreeing: matches of one map, robot and session whose ids lie within

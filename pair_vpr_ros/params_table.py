@@ -159,7 +159,11 @@ PARAMS: tuple[ParamSpec, ...] = (
     _p("rerank_budget_ms", 0.0, "latency budget of re-ranking per keyframe, ms: candidates are "
        "scored best-global first until the next step would overrun it (the global best always "
        "is); the record's 'scored' says how many. 0 = no budget: all top_k", 0.0, 600000.0),
-    _p("score_threshold", 0.0, "accept when logit(q,c) + logit(c,q) >= this", -1.0e6, 1.0e6),
+    _p("score_threshold", 0.0, "accept when the re-rank score (logit(q,c) + logit(c,q) + "
+       "global_weight x global similarity) >= this", -1.0e6, 1.0e6),
+    _p("global_weight", 0.0, "re-rank by pair score + this x global similarity (cosine); 0 = "
+       "the pair score alone, as the paper. For a weak pair classifier (config/demo.yaml)",
+       0.0, 1.0e4),
     _p("global_floor", -1.0, "skip re-ranking below this global similarity (-1 = off)",
        -1.0, 1.0),
     _p("min_frame_interval", -1.0, "skip frames closer than this (s) to the last encoded one "
@@ -186,6 +190,7 @@ DETECTOR_PARAMS = (
     "top_k",
     "rerank_budget_ms",
     "score_threshold",
+    "global_weight",
     "global_floor",
     "min_frame_interval",
     "keyframe_max_similarity",

@@ -56,7 +56,7 @@ def score_request(
     pipe: LoopClosurePipeline, req: ScoreRequest, robot: str, session: str
 ) -> tuple[InterRobotLoop, ScoreResponse]:
     """Pair-score the owner's candidates of `req` (checked first) -> the loop decision (accepted
-    when the best score reaches the detector's score_threshold and, with geometric
+    when the best re-rank score reaches the detector's score_threshold and, with geometric
     verification on, the pair verifies) and the response for the requester."""
     check_request(pipe, req, robot, session)
     pm = pipe.place_map
@@ -66,15 +66,16 @@ def score_request(
         meta = pm.meta(kf_id)
         cands.append(Candidate(kf_id, meta.stamp, meta.frame_id, float(sim), rank))
     scores = map_pair_scores(pipe.model, pm, req.dense, req.candidate_ids, pipe.rerank_chunk)
-    best = rank_by_pair_score(cands, scores)[0]
     c = pipe.config
+    best = rank_by_pair_score(cands, scores, c.global_weight)[0]
     record = LoopRecord(
         query_id=req.query_id, query_stamp=req.query_stamp, query_frame_id="",
         match_id=best.id, match_stamp=best.stamp, match_frame_id=best.frame_id,
         pair_score=best.pair_score, global_similarity=best.global_similarity,
         rank_before=best.rank_before, rank_after=1, candidates=len(cands), scored=len(cands),
     )  # fmt: skip
-    record.reason = "" if best.pair_score >= c.score_threshold else "score below threshold"
+    below = best.rerank_score(c.global_weight) < c.score_threshold
+    record.reason = "score below threshold" if below else ""
     query = pipe.geometry.unpack(req.features)
     if not record.reason and c.geometric_verification:
         record.inliers, record.inlier_ratio = pipe.geometry.verify(query, _features(pipe, best.id))

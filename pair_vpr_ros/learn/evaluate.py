@@ -16,13 +16,20 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
 
 import torch
 
-from pair_vpr_ros.cli import nonnegative_int, positive_float, positive_int, run_cli
+from pair_vpr_ros.cli import (
+    nonnegative_float,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+    run_cli,
+)
 from pair_vpr_ros.errors import ConfigError, DatasetError
 from pair_vpr_ros.learn.eval_sets import load_eval_set
 from pair_vpr_ros.learn.recall import (
@@ -81,6 +88,8 @@ def run_evaluation(cfg: EvalConfig) -> list[EvalResult]:
         raise ConfigError(
             f"need rerank_k >= 0 and recall N >= 1, got {cfg.rerank_k}, {cfg.recall_ns}"
         )
+    if not (math.isfinite(cfg.global_weight) and cfg.global_weight >= 0):
+        raise ConfigError(f"global_weight must be a finite number >= 0, got {cfg.global_weight}")
     sets = [load_eval_set(root, cfg.radius_m) for root in cfg.datasets]
     found = eval_weights(cfg)
     model = load_model(cfg, found)
@@ -174,6 +183,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="re-rank this many global candidates, 0 = global only (default 100)",
     )
     p.add_argument(
+        "--global-weight",
+        type=nonnegative_float,
+        default=0.0,
+        help="re-rank by pair score + this x global similarity, the node's global_weight "
+        "parameter (default 0: the pair score alone, as the paper)",
+    )
+    p.add_argument(
         "--radius",
         type=positive_float,
         default=25.0,
@@ -209,6 +225,7 @@ def _run(args: argparse.Namespace) -> None:
         image_size=args.image_size,
         recall_ns=tuple(args.recall),
         rerank_k=args.rerank_k,
+        global_weight=args.global_weight,
         batch_size=args.batch_size,
         workers=args.workers,
         device=args.device,

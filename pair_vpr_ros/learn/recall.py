@@ -36,6 +36,7 @@ class EvalConfig:
     image_size: int | None = None  # default: the checkpoint's (322 for released models)
     recall_ns: tuple[int, ...] = (1, 5, 10, 20)
     rerank_k: int = 100  # 0: global descriptors only
+    global_weight: float = 0.0  # re-rank by pair score + this x similarity (detector.py)
     batch_size: int = 16
     workers: int = 2
     device: str = "auto"
@@ -126,16 +127,21 @@ def rank_queries(
             reranked: list[Candidate] = []
             if cfg.rerank_k > 0:
                 t0 = time.perf_counter()
-                reranked = rerank(model, pmap, dense[j], hits, cfg.rerank_k)
+                reranked = rerank(model, pmap, dense[j], hits, cfg.rerank_k, cfg.global_weight)
                 spent.rerank += time.perf_counter() - t0
             yield [kf for kf, _ in hits], reranked
 
 
 def rerank(
-    model: PairVPR, pmap: PlaceMap, q_dense: np.ndarray, hits: list[tuple[int, float]], k: int
+    model: PairVPR,
+    pmap: PlaceMap,
+    q_dense: np.ndarray,
+    hits: list[tuple[int, float]],
+    k: int,
+    global_weight: float = 0.0,
 ) -> list[Candidate]:
     """Global hits [(id, similarity)] of one query (dense [N,D] float16) -> its first ``k`` hits
-    ordered by pair score exactly as the node orders them (`pipeline.map_pair_scores`, then
+    ordered by re-rank score exactly as the node orders them (`pipeline.map_pair_scores`, then
     `detector.rank_by_pair_score`), followed by the other hits in global order."""
     cands = [
         Candidate(kf, float("nan"), "", float(sim), rank)
@@ -145,7 +151,7 @@ def rerank(
     if not top:
         return cands
     scores = map_pair_scores(model, pmap, q_dense, [c.id for c in top])
-    return rank_by_pair_score(top, scores) + rest
+    return rank_by_pair_score(top, scores, global_weight) + rest
 
 
 @torch.inference_mode()

@@ -22,12 +22,13 @@ does the same for the top-1 global candidate scored by global similarity.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from pair_vpr_ros.detector import rerank_score
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.loop_messages import same_session
 from pair_vpr_ros.types import Pose
@@ -199,7 +200,11 @@ class LoopEvaluation:
 
 
 def _labelled_curve(
-    records: Sequence[Any], by_id: dict[int, KeyframeInfo], positives: int, score: str, **gt: float
+    records: Sequence[Any],
+    by_id: dict[int, KeyframeInfo],
+    positives: int,
+    score: Callable[[Any], float],
+    **gt: float,
 ) -> tuple[PRCurve, list[bool | None]]:
     labels = [
         is_true_loop(by_id.get(r.query_id), by_id.get(r.match_id), **gt)
@@ -208,9 +213,7 @@ def _labelled_curve(
         for r in records
     ]
     keep = [i for i, label in enumerate(labels) if label is not None]
-    curve = pr_curve(
-        [getattr(records[i], score) for i in keep], [labels[i] for i in keep], positives
-    )
+    curve = pr_curve([score(records[i]) for i in keep], [labels[i] for i in keep], positives)
     return curve, labels
 
 
@@ -220,11 +223,13 @@ def evaluate_loops(
     gt_radius: float = 10.0,
     exclusion_s: float = 0.0,
     global_records: Sequence[Any] | None = None,
+    global_weight: float = 0.0,
 ) -> LoopEvaluation:
     """Label ``records`` (one per query) against keyframe poses; PR of re-ranked and global-only.
 
     ``global_records`` are the top-1 global candidates (one per query), scored by
-    ``global_similarity``; the re-ranked curve scores ``records`` by ``pair_score``.
+    ``global_similarity``; the re-ranked curve scores ``records`` by the detector's re-rank
+    score, ``pair_score + global_weight x global_similarity`` (`detector.rerank_score`).
     """
     for name, value in (("gt_radius", gt_radius), ("exclusion_s", exclusion_s)):
         if not (math.isfinite(value) and value >= 0):
@@ -232,11 +237,15 @@ def evaluate_loops(
     gt = {"gt_radius": gt_radius, "exclusion_s": exclusion_s}
     by_id = {k.id: k for k in keyframes}
     positives = len(queries_with_true_match(keyframes, **gt))
-    reranked, labels = _labelled_curve(records, by_id, positives, "pair_score", **gt)
+
+    def reranked_score(r: Any) -> float:
+        return rerank_score(r.pair_score, r.global_similarity, global_weight)
+
+    reranked, labels = _labelled_curve(records, by_id, positives, reranked_score, **gt)
     global_only = None
     if global_records is not None:
         global_only, _ = _labelled_curve(
-            global_records, by_id, positives, "global_similarity", **gt
+            global_records, by_id, positives, lambda r: r.global_similarity, **gt
         )
     accepted = [label for r, label in zip(records, labels, strict=True) if r.accepted]
     return LoopEvaluation(

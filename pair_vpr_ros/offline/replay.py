@@ -183,6 +183,7 @@ def _finish(
         evaluation = write_report(
             out, run.records, keyframes, _path(run.stamps, truth, o.pose_tolerance), o.gt_radius,
             pipe.config.exclude_recent_s, global_top1, source=summary.gt_topic or "",
+            global_weight=pipe.config.global_weight,
         )  # fmt: skip
         if evaluation is not None:
             summary.evaluation = {**evaluation.to_dict(), "gt_topic": summary.gt_topic}

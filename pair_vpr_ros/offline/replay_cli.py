@@ -89,19 +89,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--threshold",
         type=finite_float,
-        help="pair-score acceptance threshold (default: detector's)",
+        help="acceptance threshold of the re-rank score (default: detector's)",
     )
     p.add_argument(
         "--params-file",
         type=Path,
         help="take the detector settings from a vpr_node parameter file "
-        "(e.g. config/vpr_node.yaml); --threshold, --top-k and --rerank-budget-ms still "
-        "override",
+        "(e.g. config/vpr_node.yaml); --threshold, --top-k, --global-weight and "
+        "--rerank-budget-ms still override",
     )
     p.add_argument(
         "--top-k",
         type=positive_int,
         help="candidates re-ranked per keyframe (default: detector's)",
+    )
+    p.add_argument(
+        "--global-weight",
+        type=flag_type("global_weight"),
+        metavar="W",
+        help=flag_help("global_weight") + " (default: --params-file's, else 0)",
     )
     p.add_argument(
         "--rerank-budget-ms",
@@ -241,6 +247,7 @@ def _run(args: argparse.Namespace) -> int:
     overrides = {
         "score_threshold": args.threshold,
         "top_k": args.top_k,
+        "global_weight": args.global_weight,
         "rerank_budget_ms": args.rerank_budget_ms,
     }
     overrides = {k: v for k, v in overrides.items() if v is not None}

@@ -71,10 +71,12 @@ def write_report(
     exclusion_s: float = 0.0,
     global_records: Sequence[Any] | None = None,
     source: str = "",
+    global_weight: float = 0.0,
 ) -> LoopEvaluation | None:
     """Write ``loops.csv`` and ``loops.json``; with keyframe poses also evaluate and write
     ``pr_curve.png`` and ``trajectory.png`` (``positions [F, 3]``: every posed frame, in order;
-    ``source``: where the poses come from, named in the plots' titles).
+    ``source``: where the poses come from, named in the plots' titles; ``global_weight``: the
+    detector's, for the re-ranked curve's score).
     Returns the evaluation, or None without poses."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -82,7 +84,9 @@ def write_report(
     write_loops_json(records, out / "loops.json")
     if not any(k.pose is not None for k in keyframes):
         return None
-    evaluation = evaluate_loops(records, keyframes, gt_radius, exclusion_s, global_records)
+    evaluation = evaluate_loops(
+        records, keyframes, gt_radius, exclusion_s, global_records, global_weight
+    )
     plot_pr_curves(evaluation, out / "pr_curve.png", source)
     if positions is None:
         positions = np.array([k.pose[:3] for k in keyframes if k.pose is not None])

@@ -26,7 +26,7 @@ def plot_pr_curves(evaluation: LoopEvaluation, path: str | Path, source: str = "
     ``source`` names the ground truth in the title."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(5.5, 4.5))
-    curves = [("re-ranked (pair score)", evaluation.reranked, "tab:blue")]
+    curves = [("re-ranked", evaluation.reranked, "tab:blue")]
     if evaluation.global_only is not None:
         curves.append(("global only (similarity)", evaluation.global_only, "tab:orange"))
     for label, curve, color in curves:

@@ -73,6 +73,18 @@ CASES = {
         section('rerank_budget_ms: "250 ms"').encode(),
         "rerank_budget_ms must be a number, got '250 ms'",
     ),
+    "negative global weight": (
+        section("global_weight: -0.5").encode(),
+        "global_weight=-0.5 is out of range [0.0, 10000.0]",
+    ),
+    "nan global weight": (
+        section("global_weight: .nan").encode(),
+        "global_weight must be a finite number",
+    ),
+    "string global weight": (
+        section('global_weight: "high"').encode(),
+        "global_weight must be a number, got 'high'",
+    ),
     "key twice": (
         section("top_k: 3\nscore_threshold: 1.0\ntop_k: 20").encode(),
         "'top_k' is given twice (lines 3 and 5): keep one (YAML would use the last one without "

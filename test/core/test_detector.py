@@ -78,6 +78,35 @@ def test_rank_by_pair_score_orders_best_first_and_keeps_global_order_on_ties():
         rank_by_pair_score(cands(0.9, 0.8), np.array([1.0]))  # one score per candidate
 
 
+def test_global_weight_adds_the_similarity_to_the_pair_score():
+    # pair scores 1.0 / 1.5 / 0.2 at similarities 0.9 / 0.5 / 0.8: the pair score alone picks
+    # the second; with weight 2 the re-rank scores are 2.8 / 2.5 / 1.8 and the first wins
+    ranked = rank_by_pair_score(cands(0.9, 0.5, 0.8), np.array([1.0, 1.5, 0.2]), 2.0)
+    assert [c.id for c in ranked] == [10, 11, 12]
+    assert [c.rerank_score(2.0) for c in ranked] == pytest.approx([2.8, 2.5, 1.8])
+    assert [c.id for c in rank_by_pair_score(cands(0.9, 0.5, 0.8), np.array([1.0, 1.5, 0.2]))] == [
+        11,
+        10,
+        12,
+    ]
+    config = DetectorConfig(global_weight=2.0, score_threshold=2.7)
+    rec = LoopDetector(config).decide(1.0, "c", cands(0.9, 0.5, 0.8), scorer(1.0, 1.5, 0.2))
+    # the record keeps the pair score itself; the threshold compared 2.8
+    assert (rec.accepted, rec.match_id, rec.pair_score, rec.rank_before) == (True, 10, 1.0, 1)
+    config = config.updated(score_threshold=2.9)
+    rec = LoopDetector(config).decide(1.0, "c", cands(0.9, 0.5, 0.8), scorer(1.0, 1.5, 0.2))
+    assert (rec.accepted, rec.reason, rec.match_id) == (False, "score below threshold", 10)
+
+
+def test_global_weight_ranks_the_scored_part_under_a_budget():
+    ticks = iter([0.0, 0.0, 0.010, 0.030])  # 10 ms a call: the third would end at 45 ms > 25
+    config = DetectorConfig(global_weight=10.0, rerank_budget_ms=25.0)
+    det = LoopDetector(config, clock=lambda: next(ticks))
+    rec = det.decide(1.0, "c", cands(0.9, 0.8, 0.1), scorer(0.0, 0.5, 9.0), step=1)
+    # re-rank scores of the scored two: 9.0 and 8.5 (the pair score alone would pick the 2nd)
+    assert (rec.scored, rec.match_id) == (2, 10)
+
+
 def test_below_threshold_is_rejected_with_reason():
     rec = LoopDetector(DetectorConfig(score_threshold=5.0)).decide(
         1.0, "cam", cands(0.9, 0.8), scorer(1.0, 4.0)
@@ -160,6 +189,8 @@ def test_keyframe_selection_by_similarity():
         (dict(mode="slam"), "detector mode='slam' must be one of ('mapping', 'localization')"),
         (dict(score_threshold=float("nan")), "detector score_threshold=nan must be a finite"),
         (dict(temporal_consistency=0), "temporal_consistency=0 must be >= 1"),
+        (dict(global_weight=-1.0), "detector global_weight=-1.0 must be a finite number >= 0"),
+        (dict(global_weight=float("inf")), "detector global_weight=inf must be a finite number"),
     ],
 )
 def test_bad_config_is_refused(changes, message):

@@ -12,6 +12,11 @@ CASES = {
     "radius nan": (["--radius", "nan"], "argument --radius: must be a finite number > 0"),
     "radius zero": (["--radius", "0"], "got '0'"),
     "rerank-k negative": (["--rerank-k=-1"], "argument --rerank-k: must be an integer >= 0"),
+    "global-weight negative": (
+        ["--global-weight=-2"],
+        "argument --global-weight: must be a finite number >= 0, got '-2'",
+    ),
+    "global-weight inf": (["--global-weight", "inf"], "must be a finite number >= 0, got 'inf'"),
     "recall zero": (["--recall", "1", "0"], "argument --recall: must be an integer >= 1, got 0"),
     "batch-size zero": (["--batch-size", "0"], "argument --batch-size: must be an integer >= 1"),
     "workers negative": (["--workers=-2"], "argument --workers: must be an integer >= 0"),

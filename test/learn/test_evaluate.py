@@ -53,6 +53,9 @@ def test_rerank_orders_the_first_k_hits_by_pair_score_and_keeps_the_tail(
     assert [c.pair_score for c in top3[:3]] == [0.9, 0.5, 0.1] and math.isnan(top3[3].pair_score)
     assert [c.id for c in rerank(None, None, np.zeros((1, 1)), hits, k=10)] == [1, 3, 9, 5]
     assert rerank(None, None, np.zeros((1, 1)), [], k=10) == []
+    # with the similarity weighted in (x2): 0.1+1.8, 0.9+1.6, 0.5+1.4 -> 3, 5, 9
+    weighted = rerank(None, None, np.zeros((1, 1)), hits, k=3, global_weight=2.0)
+    assert [c.id for c in weighted] == [3, 5, 9, 1]
 
 
 def _brute_force_rankings(model, data) -> tuple[list, list]:  # noqa: ANN001

@@ -68,6 +68,15 @@ FLAG_CASES = {
         ["--rerank-budget-ms", "fast"],
         "argument --rerank-budget-ms: rerank_budget_ms must be a number, got 'fast'",
     ),
+    "global-weight negative": (
+        ["--global-weight=-1"],
+        "argument --global-weight: global_weight=-1.0 is out of range [0.0, 10000.0]",
+    ),
+    "global-weight nan": (["--global-weight", "nan"], "global_weight must be a finite number"),
+    "global-weight text": (
+        ["--global-weight", "some"],
+        "argument --global-weight: global_weight must be a number, got 'some'",
+    ),
     "budget too large": (["--rerank-budget-ms", "1e9"], "is out of range [0.0, 600000.0]"),
     "batch-size zero": (["--batch-size", "0"], "argument --batch-size: must be an integer >= 1"),
     "max-frames zero": (["--max-frames", "0"], "argument --max-frames: must be an integer >= 1"),

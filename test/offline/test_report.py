@@ -154,6 +154,15 @@ def test_precision_recall_exact():
     json.dumps(summary, allow_nan=False)
 
 
+def test_reranked_curve_scores_by_the_detector_s_re_rank_score():
+    # weight 10: re-rank scores 14, 13.5, 8, 8, 10, 10.5 -> the true loop of query 7 (10.0)
+    # now ranks above the false one of query 5 (8.0), as the detector would accept them
+    ev = evaluate_loops(RECORDS, KEYFRAMES, global_weight=10.0, **GT)
+    assert ev.reranked.thresholds.tolist() == [14.0, 13.5, 10.0, 8.0]
+    np.testing.assert_allclose(ev.reranked.precision, [1, 1 / 2, 2 / 3, 2 / 5], rtol=1e-15)
+    assert ev.labels == evaluate_loops(RECORDS, KEYFRAMES, **GT).labels
+
+
 def test_pr_curve_ties_and_empty():
     curve = pr_curve([1.0, 0.5, 1.0], [True, True, False], positives=2)
     assert curve.thresholds.tolist() == [1.0, 0.5]
