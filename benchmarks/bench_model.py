@@ -4,10 +4,13 @@ OpenVINO back end), memory, and how closely each path agrees with torch fp32.
     python benchmarks/bench_model.py                      # ViT-B/322, random weights, CPU
     python benchmarks/bench_model.py --k 10 --json out.json
     python benchmarks/bench_model.py --weights pairvpr-vitB.pth --device cuda
+    python benchmarks/bench_model.py --agreement-only --calibration demo_seed9.mcap
 
 Paths: `fp32` (torch, fast path), `reference` (torch, plain path), `int8` (torch dynamic int8),
 `openvino` (backend openvino, static int8 calibrated on synthetic scenes, as the node runs it) and
-`openvino-fp32` (the exported graphs in f32: their agreement checks the export). Paths run in
+`openvino-fp32` (the exported graphs in f32: their agreement checks the export); with
+`--calibration BAG_OR_FOLDER` also `openvino-calibrated` (static int8 calibrated on that
+recording's images, as the node's `openvino_calibration` parameter does). Paths run in
 turn, so their ratios share the machine's load.
 
 Speed does not depend on the weights, so random ViT-B weights measure the released model's
@@ -34,6 +37,7 @@ import torch
 
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, load_pairvpr, quantize_int8
 from pair_vpr_ros.model.config import PATCH
+from pair_vpr_ros.offline.calibration_images import calibration_loader
 from pair_vpr_ros.offline.replay import ReplayOptions
 
 AGREEMENT_QUERIES = 100  # demo-world queries, each re-ranking its 10 nearest frames
@@ -75,8 +79,9 @@ def rerank_fns(models: dict, size: int, device: str, k: int, with_reference: boo
     return fns
 
 
-def variants(model, device: str) -> dict:
-    """Every path this machine runs: name -> model (the reference is `model` run plainly)."""
+def variants(model, device: str, calibration=None) -> dict:
+    """Every path this machine runs: name -> model (the reference is `model` run plainly).
+    `calibration`: `calibration_loader`'s function, for the `openvino-calibrated` path."""
     out = {"fp32": model, "reference": model}
     if device != "cpu":
         return out
@@ -85,6 +90,9 @@ def variants(model, device: str) -> dict:
         from pair_vpr_ros.model.openvino_backend import OpenVINOModel
 
         out["openvino"] = OpenVINOModel(model, "int8")
+        if calibration is not None:
+            images = calibration(model.config.image_size)
+            out["openvino-calibrated"] = OpenVINOModel(model, "int8", calibration=images)
         out["openvino-bf16"] = OpenVINOModel(model, "bf16")
         out["openvino-fp32"] = OpenVINOModel(model, "fp32")
     else:
@@ -205,13 +213,28 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--batches", default="1,8", help="encode batch sizes, comma-separated (1 comes first)"
     )
     p.add_argument("--json", type=Path, help="also write the figures to this JSON file")
+    p.add_argument(
+        "--calibration",
+        metavar="PATH",
+        default="",
+        help="also run OpenVINO int8 calibrated on images picked evenly from this rosbag or image "
+        "folder (path openvino-calibrated; the node's openvino_calibration parameter)",
+    )
+    p.add_argument(
+        "--calibration-topic",
+        metavar="TOPIC",
+        help="image topic of a --calibration bag (default: its only one)",
+    )
+    p.add_argument(
+        "--agreement-only",
+        action="store_true",
+        help="skip the timed paths; measure only the agreement with fp32",
+    )
     return p.parse_args(argv)
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+def timed(args: argparse.Namespace, calibration) -> dict:
+    """The timed paths (speed, memory, descriptor cosine) of --weights / --arch -> figures."""
     ks = [int(k) for k in args.k.split(",")]
     if args.weights:
         model = load_pairvpr(args.weights, device=args.device, image_size=args.image_size)
@@ -225,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{torch.get_num_threads()} threads, torch {torch.__version__})"
     )
     t0 = time.perf_counter()
-    models = variants(model, args.device)
+    models = variants(model, args.device, calibration)
     print(f"building the paths took {time.perf_counter() - t0:.0f} s")
     rows = []
     with torch.inference_mode():
@@ -247,21 +270,28 @@ def main(argv: list[str] | None = None) -> int:
     cos = descriptor_cosine(models, agreement_images(size, 8)[0])
     print(f"descriptor cosine with fp32, {model.config.arch}/{size}px, 8 demo-world images: "
           + ", ".join(f"{n} {c:.5f}" for n, c in cos.items()))  # fmt: skip
-    figures = {
+    return {
         "paths": {
             name: {"encode_ms": rows[0][1][name], "rerank_ms": rows[len(batches)][1].get(name)}
             for name in models
         },
-        "agreement": {},
         "timed_model_cosine": cos,
     }
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    calibration = calibration_loader(args.calibration, args.calibration_topic, warn=print)
+    figures = {"agreement": {}} if args.agreement_only else timed(args, calibration)
     weights = args.agreement_weights or default_demo_weights()
     if weights is None:
         print("agreement: skipped (no --agreement-weights and no shipped demo model)")
     else:
         amodel = load_pairvpr(weights)
         images, places = agreement_images(amodel.config.image_size, AGREEMENT_QUERIES)
-        figures["agreement"] = agreement(variants(amodel, "cpu"), images, 10, places)
+        figures["agreement"] = agreement(variants(amodel, "cpu", calibration), images, 10, places)
         print(f"agreement with fp32 ({Path(weights).name}, {len(images)} demo-world queries x "
               "10 candidates):")  # fmt: skip
         for name, a in figures["agreement"].items():

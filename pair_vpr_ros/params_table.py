@@ -55,6 +55,11 @@ PARAMS: tuple[ParamSpec, ...] = (
        "quantized) model, so later starts skip export and calibration; auto = "
        "$XDG_CACHE_HOME/pair_vpr_ros/openvino (default ~/.cache/pair_vpr_ros/openvino); '' = no "
        "cache", **RO),
+    _p("openvino_calibration", "", "backend openvino, precision int8: calibrate on images picked "
+       "evenly from this rosbag (folder, .mcap, .db3, .bag) or image folder (sorted by "
+       "name) of the robot's own camera; '' = synthetic scenes (docs/performance.md)", **RO),
+    _p("openvino_calibration_topic", "", "image topic of an openvino_calibration bag ('' = its "
+       "only one)", **RO),
     _p("image_size", 0, "network input side in pixels, a multiple of 14; 0: the checkpoint's",
        0, 1022, **RO),
     _p("index", "flat", "map index: flat (exact), ivf (exact below 25,000 keyframes, then k-means "

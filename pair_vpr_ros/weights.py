@@ -18,11 +18,14 @@ all, one error names every place looked in and where to get the released checkpo
 
 from __future__ import annotations
 
+import logging
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+from torch import Tensor
 
 from pair_vpr_ros.devices import check_device
 from pair_vpr_ros.errors import CheckpointError, ConfigError
@@ -44,6 +47,7 @@ RELEASED = (
 )
 PRECISIONS = ("fp32", "int8", "bf16", "fp16")
 BACKENDS = ("torch", "openvino")  # torch: the reference; openvino: faster on a CPU (optional)
+LOG = logging.getLogger("pair_vpr_ros.weights")
 
 
 @dataclass(frozen=True)
@@ -140,12 +144,15 @@ def load_model(
     params_rule: bool = True,
     backend: str = "torch",
     openvino_cache_dir: str | os.PathLike | None = "auto",
+    openvino_calibration: Callable[[int], Tensor] | None = None,
 ) -> PairVPRModel:
     """The network to run -> ``PairVPR`` in eval mode on ``device`` (int8: a quantized CPU copy),
     or with ``backend`` openvino the same weights compiled by OpenVINO for the CPU
-    (``OpenVINOModel``: fp32, bf16, or int8 calibrated on synthetic scenes), its converted graphs
-    kept in ``openvino_cache_dir`` for the next start (``auto``: the per-user cache folder;
-    '' or None: no cache; ``model/openvino_cache.py``).
+    (``OpenVINOModel``: fp32, bf16, or int8 calibrated on synthetic scenes, or on the images
+    ``openvino_calibration`` returns for the model's image size, [B,3,S,S]:
+    ``offline.calibration_images.calibration_loader``), its converted graphs kept in
+    ``openvino_cache_dir`` for the next start (``auto``: the per-user cache folder; '' or None:
+    no cache; ``model/openvino_cache.py``).
 
     ``weights`` (else the other places: ``resolve_weights`` and its options; or what it
     returned) is a checkpoint path or ``random-<preset>`` (e.g. ``random-tiny``: a tiny random
@@ -170,9 +177,20 @@ def load_model(
             model = load_pairvpr(found.value, device=dev, image_size=image_size or None)
         except CheckpointError as err:
             raise CheckpointError(f"{err} (weights from {found.origin})") from err
+    if openvino_calibration is not None and (backend, precision) != ("openvino", "int8"):
+        LOG.warning(
+            "openvino_calibration is ignored: only backend openvino with precision int8 is "
+            "calibrated (this is backend %s, precision %s)",
+            backend,
+            precision,
+        )
     if backend == "openvino":
         from pair_vpr_ros.model.openvino_backend import OpenVINOModel  # optional dependency
         from pair_vpr_ros.model.openvino_cache import resolve_cache_dir
 
-        return OpenVINOModel(model, precision, cache_dir=resolve_cache_dir(openvino_cache_dir))
+        calibration = None
+        if openvino_calibration is not None and precision == "int8":
+            calibration = openvino_calibration(model.config.image_size)
+        cache_dir = resolve_cache_dir(openvino_cache_dir)
+        return OpenVINOModel(model, precision, calibration=calibration, cache_dir=cache_dir)
     return quantize_int8(model) if precision == "int8" else model

@@ -4,7 +4,8 @@ Static int8 fixes each activation's range from a few sample inputs. Random noise
 unlike a camera's (perf-facts: descriptor cosine ~0.998), so these images have what street and
 indoor frames have: smooth shading, large flat regions, straight edges, repeated windows, a
 horizon. They are made here (the core may not use the demo world) and are the same on every
-run (fixed seeds).
+run (fixed seeds). Images of the robot's own camera can replace them:
+`offline/calibration_images.py` (parameter `openvino_calibration`).
 """
 
 from __future__ import annotations
@@ -14,6 +15,8 @@ import numpy as np
 import torch
 
 from pair_vpr_ros.model.preprocess import preprocess_batch
+
+CALIBRATION_IMAGES = 16  # encoder samples; the re-rank graph gets half as many pairs
 
 
 def synthetic_scene(seed: int, height: int = 240, width: int = 320) -> np.ndarray:

@@ -5,8 +5,9 @@ The graphs come from our own modules (`export.py`); `precision` picks what OpenV
 - fp32: f32 kernels throughout (agrees with torch to float rounding);
 - bf16: OpenVINO's default on a CPU with bf16 instructions (f32 elsewhere);
 - int8: static int8 from NNCF (symmetric, per-tensor activations whose ranges are the min/max
-  seen on synthetic scenes from `calibration.py` or on images the caller passes; per-channel
-  weights); the float layers run in f32.
+  seen on synthetic scenes from `calibration.py` or on images the caller passes, such as the
+  user's own bag or image folder, `offline/calibration_images.py`; per-channel weights); the
+  float layers run in f32.
 
 `OpenVINOModel` implements `PairVPRModel`, so the pipeline, map and replay run it unchanged.
 OpenVINO and NNCF are optional (`pip install 'pair_vpr_ros[openvino]'`).
@@ -25,7 +26,7 @@ import torch
 from torch import Tensor
 
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.model.calibration import synthetic_calibration
+from pair_vpr_ros.model.calibration import CALIBRATION_IMAGES, synthetic_calibration
 from pair_vpr_ros.model.config import ModelConfig
 from pair_vpr_ros.model.export import Graphs, example_inputs, export_graphs
 from pair_vpr_ros.model.network import PairVPR, fingerprint
@@ -33,7 +34,6 @@ from pair_vpr_ros.model.openvino_cache import CacheEntry, entry_parts, shared_co
 
 PRECISIONS = ("fp32", "bf16", "int8")
 PACKAGES = {"fp32": ("openvino",), "bf16": ("openvino",), "int8": ("openvino", "nncf")}
-CALIBRATION_IMAGES = 16  # encoder samples; the re-rank graph gets half as many pairs
 
 
 def _not_installed(module: str) -> ConfigError:

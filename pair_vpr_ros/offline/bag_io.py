@@ -15,7 +15,7 @@ are re-exported here so ``from pair_vpr_ros.offline.bag_io import ...`` keeps wo
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Container, Iterator
 from dataclasses import dataclass
 from functools import partial
 from typing import Any
@@ -90,8 +90,9 @@ def _describe(topics: dict[str, str]) -> str:
     return ", ".join(f"{name} ({msgtype})" for name, msgtype in topics.items()) or "none"
 
 
-def choose_image_topic(reader: AnyReader, topic: str | None = None) -> str:
-    """The image topic to replay: ``topic`` when given, else the bag's only image topic."""
+def choose_image_topic(reader: AnyReader, topic: str | None = None, flag: str = "--topic") -> str:
+    """The image topic to replay: ``topic`` when given, else the bag's only image topic (several:
+    a BagError saying to choose one with ``flag``)."""
     images = topics_of_types(reader, IMAGE_TYPES)
     if not images:
         every = {name: info.msgtype or "?" for name, info in sorted(reader.topics.items())}
@@ -107,7 +108,7 @@ def choose_image_topic(reader: AnyReader, topic: str | None = None) -> str:
         if len(images) > 1:
             raise BagError(
                 f"bag {_bag_name(reader)} has {len(images)} image topics: {_describe(images)}; "
-                "choose one with --topic"
+                f"choose one with {flag}"
             )
         topic = next(iter(images))
     elif topic not in images:
@@ -174,12 +175,15 @@ def iter_frames(
     keep_cdr: bool = False,
     convert: Callable[[Any], np.ndarray] | None = None,
     max_pixels: int = MAX_PIXELS,
+    indices: Container[int] | None = None,
 ) -> Iterator[BagFrame]:
     """Yield the image messages of ``topic`` in bag order as ``BagFrame`` s.
 
     Messages that do not deserialise or convert come back with ``rgb=None`` and ``error`` set.
     A failure of the reader itself raises ``BagError`` saying where it stopped; frames yielded
     before it are valid. ``convert`` defaults to ``imaging.msg_to_rgb`` with ``max_pixels``.
+    ``indices``: only the messages of these indices are decoded and yielded (the others are read
+    past undecoded; ``max_frames`` still counts every message).
     """
     if convert is None:
         convert = partial(msg_to_rgb, max_pixels=max_pixels)
@@ -216,6 +220,9 @@ def iter_frames(
                 f"reading {topic} of bag {_bag_name(reader)} stopped at image message {index} "
                 f"(after {where}): {err}"
             ) from err
+        if indices is not None and index not in indices:
+            last_stamp, index = log_time / 1e9, index + 1
+            continue
         frame = decode(connection, log_time, raw, index)
         yield frame
         last_stamp, index = frame.stamp, index + 1

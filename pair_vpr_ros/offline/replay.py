@@ -31,6 +31,7 @@ from pair_vpr_ros.offline import bag_io, replay_notes
 from pair_vpr_ros.offline.bag_geometry import attach, open_geometry
 from pair_vpr_ros.offline.bag_io import LoopBagWriter
 from pair_vpr_ros.offline.bag_stereo import with_right
+from pair_vpr_ros.offline.calibration_images import calibration_loader
 from pair_vpr_ros.offline.outputs import check_map_dir, check_writable, prepare_out
 from pair_vpr_ros.offline.pose_topics import choose_pose_topics
 from pair_vpr_ros.offline.replay_loop import ReplayRun, drive
@@ -98,8 +99,13 @@ def replay_bag(
         check_writable(o.map_path(out), "map folder")
         check_map_dir(o.map_path(out), o.overwrite)
     identity = resolve_identity(o.robot_id, o.session_id)
+    calibration_notes: list[str] = []
     if model is None:
         check_runtime(o.device, o.precision, o.backend)
+        calibration = calibration_loader(
+            o.openvino_calibration, o.openvino_calibration_topic, o.max_image_pixels,
+            calibration_notes.append,
+        )  # fmt: skip
     with bag_io.open_bag(bag) as reader:
         topic = bag_io.choose_image_topic(reader, o.topic)
         found = bag_io.topics_of_types(reader, bag_io.POSE_TYPES)
@@ -120,8 +126,9 @@ def replay_bag(
         if model is None:
             model = load_model(
                 weights, device=o.device, precision=o.precision, backend=o.backend,
-                openvino_cache_dir=o.openvino_cache_dir,
+                openvino_cache_dir=o.openvino_cache_dir, openvino_calibration=calibration,
             )  # fmt: skip
+            summary.warnings += calibration_notes
         save_to = o.map_path(out) if o.save_map else None
         priors = open_prior_maps(o.prior_maps, model.fingerprint, identity, "--prior-map", save_to)
         pipe = LoopClosurePipeline(

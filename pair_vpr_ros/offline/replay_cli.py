@@ -40,7 +40,14 @@ from pair_vpr_ros.params import (
 from pair_vpr_ros.weights import resolve_weights
 
 NONE = "none"  # --pose-topic none / --map-dir none / --openvino-cache-dir none
-RUNTIME = ("precision", "backend", "openvino_cache_dir")  # flags that mirror node parameters
+# Flags that mirror node parameters (default: the --params-file's value, else the parameter's).
+RUNTIME = (
+    "precision",
+    "backend",
+    "openvino_cache_dir",
+    "openvino_calibration",
+    "openvino_calibration_topic",
+)
 INDEX = ("index", "milvus_uri", "milvus_collection", "milvus_index")  # ... the map's index
 DEPTH_TOLERANCE = float_flag("a number of seconds in [0, 1]", lambda v: 0 <= v <= 1)
 
@@ -132,6 +139,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="DIR",
         help=flag_help("openvino_cache_dir") + " or none (default: --params-file's, else auto)",
     )
+    for name, var in (("openvino_calibration", "PATH"), ("openvino_calibration_topic", "TOPIC")):
+        p.add_argument(
+            f"--{name.replace('_', '-')}",
+            metavar=var,
+            help=flag_help(name) + " (default: --params-file's, else '')",
+        )
     for name in INDEX:
         spec = SPECS[name]
         p.add_argument(

@@ -44,6 +44,8 @@ class ReplayOptions:
     precision: str = "fp32"  # and backend: as the node's parameters
     backend: str = "torch"
     openvino_cache_dir: str = "auto"  # '' = no cache
+    openvino_calibration: str = ""  # int8 calibration bag / image folder; '' = synthetic scenes
+    openvino_calibration_topic: str = ""  # '' = the calibration bag's only image topic
     write_bag: bool = False
     map_dir: str | Path | None = None
     save_map: bool = True

@@ -164,22 +164,24 @@ def source_frames(
     return _bag_source(path, image_topic or None, counts, max_pixels, pose_topic)
 
 
-def check_source(source: str | Path) -> Path:
-    """The path of a build source that exists and may hold frames (ConfigError otherwise: a
-    missing path, or a folder with neither images nor a bag in it)."""
+def check_source(source: str | Path, name: str = "build_source", otherwise: str = "") -> Path:
+    """The path of a source (parameter ``name``) that exists and may hold frames (ConfigError
+    otherwise: a missing path, or a folder with neither images nor a bag in it; ``otherwise``
+    ends the advice, e.g. "or '' for ...")."""
     path = Path(source).expanduser()
     kinds = (
         f"a rosbag (folder, .mcap, .db3 or .bag) or an image folder ({', '.join(IMAGE_SUFFIXES)})"
+        + otherwise
     )
     if not str(source) or not path.exists():
-        raise ConfigError(f"build_source {str(source)!r} does not exist: set it to {kinds}")
+        raise ConfigError(f"{name} {str(source)!r} does not exist: set it to {kinds}")
     if path.is_dir() and not folder_images(path):
         bag_files = [
             p for p in path.iterdir() if p.name == "metadata.yaml" or p.suffix in (".mcap", ".db3")
         ]
         if not bag_files:
             raise ConfigError(
-                f"build_source {path} is a folder with neither images nor a rosbag2 "
+                f"{name} {path} is a folder with neither images nor a rosbag2 "
                 f"(metadata.yaml or a .mcap/.db3 file) in it: set it to {kinds}"
             )
     return path

@@ -67,6 +67,7 @@ from pair_vpr_ros.devices import check_device
 from pair_vpr_ros.errors import ConfigError, PairVPRError
 from pair_vpr_ros.fleet import InterRobotLoop
 from pair_vpr_ros.identity import resolve_identity
+from pair_vpr_ros.offline.calibration_images import calibration_loader
 from pair_vpr_ros.pipeline import LoopClosurePipeline
 from pair_vpr_ros.prior_maps import open_prior_maps
 from pair_vpr_ros.ros.fleet import FleetLink
@@ -92,10 +93,15 @@ class VprNode(ParameterHandling, FrameIntake, NodeServices, Node):
         v = declare_all(self)
         self.values = v
         device = check_device(v["device"])
+        calibration = calibration_loader(
+            v["openvino_calibration"], v["openvino_calibration_topic"], v["max_image_pixels"],
+            self.get_logger().warning,
+        )  # fmt: skip
         model = load_model(
             v["weights"], device=device, precision=v["precision"], image_size=v["image_size"],
             explicit_name="parameter weights (-p weights:=PATH)", params_rule=False,
             backend=v["backend"], openvino_cache_dir=v["openvino_cache_dir"],
+            openvino_calibration=calibration,
         )  # fmt: skip
         # OpenVINO runs its own precision; torch autocast would only wrap the glue around it.
         autocast = v["precision"] if v["backend"] == "torch" else "fp32"
