@@ -6,6 +6,7 @@ what to do."""
 
 from __future__ import annotations
 
+import importlib.util
 import struct
 import zlib
 
@@ -202,3 +203,47 @@ def test_bad_messages_are_skipped_and_counted(tmp_path):
     assert torch.equal(got, preprocess_batch([images[0], images[2]], SIZE))
     assert (counts.frames, counts.skipped) == (3, 1)
     assert counts.first_error.startswith("message 1: ")
+
+
+# ---- pairvpr-bag-replay: the error line, before the replay starts
+
+
+def replay(tmp_path, *extra: str) -> int:
+    from pair_vpr_ros.offline.replay_cli import main
+
+    bag = tmp_path / "bag"
+    if not bag.exists():
+        write_rosbag2(bag, [(float(i), rgb) for i, rgb in enumerate(synthetic_images(2))])
+    out = ["--out", str(tmp_path / "out"), "--quiet"]
+    return main([str(bag), "--weights", "random-tiny", *out, *extra])
+
+
+@pytest.mark.parametrize("how", ["flag", "params file"])
+def test_replay_missing_calibration_source(tmp_path, capsys, how):
+    missing = tmp_path / "no_such_bag"
+    extra = ["--openvino-calibration", str(missing)]
+    if how == "params file":
+        params = tmp_path / "p.yaml"
+        params.write_text(f"/**:\n  ros__parameters:\n    openvino_calibration: {missing}\n")
+        extra = ["--params-file", str(params)]
+    assert replay(tmp_path, *extra) == 1
+    assert (
+        capsys.readouterr().err == f"error: openvino_calibration '{missing}' does not exist: "
+        f"set it to {KINDS}\n"
+    )
+    assert not (tmp_path / "out" / "summary.json").exists()  # refused before the replay
+
+
+@pytest.mark.skipif(
+    not all(importlib.util.find_spec(m) for m in ("openvino", "nncf")),
+    reason="needs the [openvino] extra",
+)
+def test_replay_calibration_bag_without_the_topic(tmp_path, capsys):
+    calib = write_rosbag2(tmp_path / "calib", [(1.0, synthetic_images(1)[0])])
+    extra = ["--openvino-calibration", str(calib), "--openvino-calibration-topic", "/nope"]
+    extra += ["--backend", "openvino", "--precision", "int8", "--openvino-cache-dir", "none"]
+    assert replay(tmp_path, *extra) == 1
+    assert capsys.readouterr().err == (
+        f"error: topic /nope is not an image topic of bag {calib}; image topics: /cam/image "
+        "(sensor_msgs/msg/Image)\n"
+    )

@@ -151,36 +151,6 @@ def test_backend_without_its_package_is_an_error_line(setup, tmp_path, capsys, h
     assert not (tmp_path / "out").exists()  # refused before anything was written
 
 
-@pytest.mark.parametrize("how", ["flag", "params file"])
-def test_missing_calibration_source_is_an_error_line(setup, tmp_path, capsys, how):
-    missing = tmp_path / "no_such_bag"
-    extra = ["--openvino-calibration", str(missing)]
-    if how == "params file":
-        params = tmp_path / "p.yaml"
-        params.write_text(f"/**:\n  ros__parameters:\n    openvino_calibration: {missing}\n")
-        extra = ["--params-file", str(params)]
-    assert run(setup, tmp_path, *extra) == 1
-    assert capsys.readouterr().err == (
-        f"error: openvino_calibration '{missing}' does not exist: set it to a rosbag (folder, "
-        ".mcap, .db3 or .bag) or an image folder (.png, .jpg, .jpeg, .bmp, .tif, .tiff, .webp) "
-        "(or '' for synthetic scenes)\n"
-    )
-    assert not (tmp_path / "out" / "summary.json").exists()  # refused before the replay
-
-
-def test_calibration_bag_without_the_topic_is_an_error_line(setup, tmp_path, capsys):
-    bag = setup[0]
-    extra = ["--openvino-calibration", str(bag), "--openvino-calibration-topic", "/nope"]
-    extra += ["--backend", "openvino", "--precision", "int8", "--openvino-cache-dir", "none"]
-    if not all(importlib.util.find_spec(m) for m in ("openvino", "nncf")):
-        pytest.skip("needs the [openvino] extra")
-    assert run(setup, tmp_path, *extra) == 1
-    assert capsys.readouterr().err == (
-        f"error: topic /nope is not an image topic of bag {bag}; image topics: /cam/image "
-        "(sensor_msgs/msg/Image)\n"
-    )
-
-
 # ---- output folders
 
 

@@ -194,3 +194,41 @@ def test_int8_model_calibrated_from_a_folder_runs(tmp_path):
     assert desc.shape == (2, model.config.desc_dim) and torch.isfinite(desc).all()
     assert model.cache_path is not None and model.cache_path.exists()
     assert np.isfinite(dense.numpy()).all()
+
+
+@pytest.mark.skipif(not HAS_OPENVINO, reason="needs the [openvino] extra")
+@pytest.mark.parametrize("how", ["flags", "params file"])
+def test_replay_calibrates_from_the_given_source(tmp_path, monkeypatch, capsys, tiny_model, how):
+    """--openvino-calibration[-topic] (else the parameter file's) reach the model loader as
+    the images of that source; skipped images become replay warnings."""
+    from pair_vpr_ros.offline import replay
+    from pair_vpr_ros.offline.replay_cli import main
+
+    seen = {}
+
+    def loader(weights, **kwargs):
+        seen["images"] = kwargs["openvino_calibration"](SIZE)
+        return tiny_model
+
+    monkeypatch.setattr(replay, "load_model", loader)
+    cam, other = synthetic_images(3, size=16, seed=14), synthetic_images(3, size=16, seed=15)
+    extra = [("/other", COMPRESSED, image_msg(TS2, i + 0.5, rgb, True), i + 0.5)
+             for i, rgb in enumerate(other)]  # fmt: skip
+    calib = write_rosbag2(tmp_path / "calib", list(enumerate(cam)), extra=extra)
+    bag = write_rosbag2(tmp_path / "bag", [(0.0, cam[0]), (1.0, cam[1])])
+    folder = write_folder(tmp_path / "imgs", synthetic_images(3, size=16, seed=16))
+    (folder / "001.png").write_bytes(b"broken")
+    argv = [str(bag), "--weights", "random-tiny", "--out", str(tmp_path / "o"), "--quiet"]
+    argv += ["--backend", "openvino", "--precision", "int8"]
+    if how == "flags":
+        argv += ["--openvino-calibration", str(calib), "--openvino-calibration-topic", "/other"]
+        want = preprocess_batch(other, SIZE)
+    else:
+        params = tmp_path / "p.yaml"
+        params.write_text(f"/**:\n  ros__parameters:\n    openvino_calibration: '{folder}'\n")
+        argv += ["--params-file", str(params)]
+        want = calibration_images(folder, SIZE)
+    assert main(argv) == 0
+    assert torch.equal(seen["images"], want)
+    err = capsys.readouterr().err
+    assert ("1 of 3 picked images skipped" in err) == (how == "params file")
