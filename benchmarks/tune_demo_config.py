@@ -82,6 +82,11 @@ def main() -> None:
         help="global_weight values",
     )
     p.add_argument(
+        "--global-floor",
+        type=float,
+        help="global_floor for every run (default: --params-file's; -1 = off)",
+    )
+    p.add_argument(
         "--precision",
         type=float,
         default=0.97,
@@ -89,6 +94,8 @@ def main() -> None:
     )
     args = p.parse_args()
     base = detector_config(read_params_file(args.params_file))
+    if args.global_floor is not None:
+        base = base.updated(global_floor=args.global_floor)
     model = load_model(args.weights)
     with tempfile.TemporaryDirectory() as tmp:
         bag = args.bag
@@ -101,7 +108,10 @@ def main() -> None:
             save_map=False,
             progress=False,
         )
-        print(f"{bag}: {args.weights.name}; other settings from {args.params_file.name}")
+        print(
+            f"{bag}: {args.weights.name}; global_floor {base.global_floor:g}; other settings "
+            f"from {args.params_file.name}"
+        )
         print(
             "| top_k | global_weight | re-ranked AP | global AP | re-ranked R@P90 | "
             f"global R@P90 | threshold @P{args.precision:g} | precision | recall |"
