@@ -13,7 +13,11 @@
 # 4. stage two from stage one: global descriptor + pair classifier, mined without the lighting
 #    shortcut (--conditions 3), identical / near-identical pairs as positives (--twin-share),
 #    grey views in the mix, re-ranked vs global AP on the held-out world every EVAL_EVERY steps;
-# 5. export as float16 with its config and a training summary beside it.
+# 5. stage two on drives (docs/training.md): drive bags of the training worlds 101-104 and of
+#    the held-out world 201, replayed with the stage-two model; only the pair classifier is
+#    fine-tuned, on each keyframe's global top-K (what re-ranking in the node faces), with AP on
+#    the held-out drive every EVAL_EVERY steps;
+# 6. export as float16 with its config and a training summary beside it.
 # Every stage is resumable: re-running the script skips finished stages and continues an
 # interrupted one from OUT/<stage>/last.pt (written every SAVE_EVERY steps).
 set -euo pipefail
@@ -28,6 +32,8 @@ STAGE2_STEPS=${STAGE2_STEPS:-2000}
 STAGE2_PLACES=${STAGE2_PLACES:-16}  # places per stage-two batch (x 4 views)
 PAIR_NEGATIVES=${PAIR_NEGATIVES:-random}  # hardest (the paper) or random: docs/training.md
 STAGE2_LR=${STAGE2_LR:-2.5e-4}
+PAIR_TUNE_STEPS=${PAIR_TUNE_STEPS:-1000}
+DRIVE_FRAMES=${DRIVE_FRAMES:-600}  # frames of each drive bag (10 Hz)
 SAVE_EVERY=${SAVE_EVERY:-100}
 EVAL_EVERY=${EVAL_EVERY:-250}
 COMMON=(--arch small --image-size 112 --workers 1 --device cpu --seed 0 --log-every 10
@@ -84,7 +90,36 @@ run_stage stage2 stage2_final.pt pair_vpr_ros.learn.train.stage2 \
     --patch-weight 0.5 --twin-share 0.25 --pair-directions first \
     --pair-negatives "$PAIR_NEGATIVES" \
     --heldout "$HELDOUT" --eval-every "$EVAL_EVERY"
+
+# Stage two on drives: render each drive bag and replay it with the stage-two model (its map
+# lands in DIR/map; an interrupted replay saves a partial map too, so DIR/drive.done marks a
+# finished one and a drive without it is redone), then tune.
+# Seeds 7 (demo) and 8 (validation of config/demo.yaml) are never used here.
+replay() {
+    "$PY" -c 'import sys; from pair_vpr_ros.offline.replay_cli import main; sys.exit(main())' "$@"
+}
+if [ ! -f "$OUT/pair_tune/pair_tune_final.pt" ]; then
+    for seed in 101 102 103 104 201; do
+        run="$OUT/drives/replay$seed"
+        [ -f "$run/drive.done" ] && continue
+        "$PY" -m pair_vpr_ros.demo.make_bag "$OUT/drives/world$seed.mcap" --seed "$seed" \
+            --frames "$DRIVE_FRAMES" --force
+        replay "$OUT/drives/world$seed.mcap" --topic /camera/image_raw \
+            --weights "$OUT/stage2/stage2_final.pt" --params-file config/demo.yaml \
+            --pose-topic /ground_truth --gt-topic /ground_truth --top-k 1 --out "$run" \
+            --overwrite --quiet
+        touch "$run/drive.done"
+    done
+    resume=()
+    [ -f "$OUT/pair_tune/last.pt" ] && resume=(--resume "$OUT/pair_tune/last.pt")
+    drives=()
+    for seed in 101 102 103 104; do drives+=(--drive "$OUT/drives/replay$seed/map"); done
+    "$PY" -m pair_vpr_ros.learn.train.pair_tune --init "$OUT/stage2/stage2_final.pt" \
+        "${drives[@]}" --val "$OUT/drives/replay201/map" --out "$OUT/pair_tune" \
+        --steps "$PAIR_TUNE_STEPS" --save-every "$SAVE_EVERY" --eval-every "$EVAL_EVERY" \
+        --seed 0 "${resume[@]}"
+fi
 "$PY" -c "from pathlib import Path; from pair_vpr_ros.learn.train.curves import draw_curves; \
-draw_curves([(s, Path('$OUT') / s / 'train_log.jsonl') for s in ('pretrain', 'stage1', 'stage2')], \
-Path('$OUT') / 'curves.png')"
+draw_curves([(s, Path('$OUT') / s / 'train_log.jsonl') \
+for s in ('pretrain', 'stage1', 'stage2', 'pair_tune')], Path('$OUT') / 'curves.png')"
 "$PY" scripts/export_demo_model.py "$OUT" "$DEST"

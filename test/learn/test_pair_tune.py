@@ -3,8 +3,10 @@ the pair classifier trains, a resumed run ends where an uninterrupted one does."
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -119,3 +121,30 @@ def test_resume_ends_where_an_uninterrupted_run_does(drives: Path) -> None:
     assert all(torch.equal(whole[k], resumed[k]) for k in whole)
     half = load_pairvpr(drives / "part" / pair_tune.FINAL).state_dict()
     assert not all(torch.equal(whole[k], half[k]) for k in whole)  # steps 3-4 did train
+
+
+def _export_main():  # noqa: ANN202
+    script = Path(__file__).resolve().parents[2] / "scripts" / "export_demo_model.py"
+    spec = importlib.util.spec_from_file_location("export_demo_model", script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.main
+
+
+def test_export_takes_the_pair_tune_output_when_present(drives: Path) -> None:
+    train = drives / "train"
+    (train / "stage2").mkdir(parents=True)
+    shutil.copy(drives / "init.pt", train / "stage2" / "stage2_final.pt")
+    export = _export_main()
+    assert export([str(train), str(drives / "a.pth")]) == 0
+    summary = json.loads((drives / "a.json").read_text())
+    assert summary["weights_from"] == "stage2/stage2_final.pt" and "pair_tune" not in summary
+    _run(drives, "train/pair_tune", 2, "--val", str(drives / "d2"), "--eval-every", "1")
+    assert export([str(train), str(drives / "b.pth")]) == 0
+    summary = json.loads((drives / "b.json").read_text())
+    assert summary["weights_from"] == "pair_tune/pair_tune_final.pt"
+    assert summary["pair_tune_config"]["steps"] == 2 and summary["pair_tune_config"]["twins"] == 1
+    assert [summary["pair_tune_val"][k]["step"] for k in ("first", "last")] == [0, 2]
+    tuned = load_pairvpr(drives / "train" / "pair_tune" / pair_tune.FINAL).state_dict()
+    shipped = load_pairvpr(drives / "b.pth").state_dict()
+    assert all(torch.equal(tuned[k].half().float(), shipped[k]) for k in tuned)
