@@ -30,10 +30,11 @@ def write_drive(
     poses: bool = True,
     seed: int = 0,
     fingerprint: str | None = None,
+    shape: tuple[int, int] | None = None,
 ) -> Path:
     """Save a place map of len(xs) keyframes (dense tokens random, float16) to `directory`."""
     rng = np.random.default_rng(seed)
-    shape = (model.num_patches, model.config.embed_dim)
+    shape = shape or (model.num_patches, model.config.embed_dim)
     dim = model.config.desc_dim
     print_ = model.fingerprint if fingerprint is None else fingerprint
     with PlaceMap(dim, shape, print_) as pmap:

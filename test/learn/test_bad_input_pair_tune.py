@@ -32,6 +32,7 @@ def good(tmp_path: Path) -> list[str]:
     write_drive(tmp_path / "drive", model, xs, angles)
     write_drive(tmp_path / "no-poses", model, xs, angles, poses=False)
     write_drive(tmp_path / "other", model, xs, angles, fingerprint="sha256:0123|tiny")
+    write_drive(tmp_path / "tokens", model, xs, angles, shape=(3, 4))
     write_drive(tmp_path / "straight", model, [30.0 * i for i in range(36)], angles)
     return ["--init", str(init), "--drive", str(tmp_path / "drive"), "--no-progress"]
 
@@ -59,6 +60,10 @@ INPUTS = {
         ["--drive", "{tmp}/other"],
         "error: drive map {tmp}/other was built with other weights (fingerprint "
         "'sha256:0123|tiny', --init is",
+    ),
+    "drive of other token shape": (
+        ["--drive", "{tmp}/tokens"],
+        "error: drive map {tmp}/tokens holds dense tokens (3, 4), the model makes",
     ),
     "nothing to mine": (
         ["--drive", "{tmp}/straight"],
