@@ -55,13 +55,15 @@ FINAL = "pair_tune_final.pt"
 class PairTuneConfig:
     """Settings of the stage; each is also the flag named like it."""
 
-    init: Path = option(help="Pair-VPR checkpoint to tune (stage two's stage2_final.pt)")
+    init: Path = option(
+        help="Pair-VPR checkpoint to tune (stage two's stage2_final.pt)", metavar="CKPT"
+    )
     drive: tuple[Path, ...] = option(
         help="place map of a training drive, repeatable (pairvpr-bag-replay --pose-topic "
         "<true poses> --weights <--init> --out DIR writes it to DIR/map)",
         metavar="MAPDIR",
     )
-    out: Path = option(help="output folder: last.pt, train_log.jsonl, " + FINAL)
+    out: Path = option(help="output folder: last.pt, train_log.jsonl, " + FINAL, metavar="DIR")
     val: Path | None = option(
         None, "place map of a validation drive: AP every --eval-every steps", metavar="MAPDIR"
     )
@@ -87,7 +89,9 @@ class PairTuneConfig:
     save_every: int = option(100, "rewrite OUT/last.pt every N steps (default %(default)s)")
     log_every: int = option(10, "log step and loss every N steps (default %(default)s)")
     eval_every: int = option(250, "with --val: measure every N steps (default %(default)s)")
-    resume: Path | None = option(None, "continue from a last.pt this stage wrote")
+    resume: Path | None = option(
+        None, "continue from a last.pt this stage wrote", metavar="LAST_PT"
+    )
     progress: bool = option(True, "no progress bar", flag="--no-progress")
 
     def __post_init__(self) -> None:
