@@ -32,7 +32,10 @@ STAGE2_STEPS=${STAGE2_STEPS:-2000}
 STAGE2_PLACES=${STAGE2_PLACES:-16}  # places per stage-two batch (x 4 views)
 PAIR_NEGATIVES=${PAIR_NEGATIVES:-random}  # hardest (the paper) or random: docs/training.md
 STAGE2_LR=${STAGE2_LR:-2.5e-4}
-PAIR_TUNE_STEPS=${PAIR_TUNE_STEPS:-1000}
+PAIR_TUNE_STEPS=${PAIR_TUNE_STEPS:-600}
+PAIR_TUNE_EVAL_EVERY=${PAIR_TUNE_EVAL_EVERY:-200}
+# drives of these training worlds for the pair classifier (12: with 4 it over-fits in ~300 steps)
+DRIVE_SEEDS=${DRIVE_SEEDS:-101 102 103 104 105 106 107 108 109 110 111 112}
 DRIVE_FRAMES=${DRIVE_FRAMES:-600}  # frames of each drive bag (10 Hz)
 SAVE_EVERY=${SAVE_EVERY:-100}
 EVAL_EVERY=${EVAL_EVERY:-250}
@@ -99,7 +102,7 @@ replay() {
     "$PY" -c 'import sys; from pair_vpr_ros.offline.replay_cli import main; sys.exit(main())' "$@"
 }
 if [ ! -f "$OUT/pair_tune/pair_tune_final.pt" ]; then
-    for seed in 101 102 103 104 201; do
+    for seed in $DRIVE_SEEDS 201; do
         run="$OUT/drives/replay$seed"
         [ -f "$run/drive.done" ] && continue
         "$PY" -m pair_vpr_ros.demo.make_bag "$OUT/drives/world$seed.mcap" --seed "$seed" \
@@ -113,10 +116,10 @@ if [ ! -f "$OUT/pair_tune/pair_tune_final.pt" ]; then
     resume=()
     [ -f "$OUT/pair_tune/last.pt" ] && resume=(--resume "$OUT/pair_tune/last.pt")
     drives=()
-    for seed in 101 102 103 104; do drives+=(--drive "$OUT/drives/replay$seed/map"); done
+    for seed in $DRIVE_SEEDS; do drives+=(--drive "$OUT/drives/replay$seed/map"); done
     "$PY" -m pair_vpr_ros.learn.train.pair_tune --init "$OUT/stage2/stage2_final.pt" \
         "${drives[@]}" --val "$OUT/drives/replay201/map" --out "$OUT/pair_tune" \
-        --steps "$PAIR_TUNE_STEPS" --save-every "$SAVE_EVERY" --eval-every "$EVAL_EVERY" \
+        --steps "$PAIR_TUNE_STEPS" --save-every "$SAVE_EVERY" --eval-every "$PAIR_TUNE_EVAL_EVERY" \
         --seed 0 "${resume[@]}"
 fi
 "$PY" -c "from pathlib import Path; from pair_vpr_ros.learn.train.curves import draw_curves; \
