@@ -27,6 +27,7 @@ COPIED = (
     "stage1/train_log.jsonl",
     "stage2/train_log.jsonl",
     "stage2/curves.png",
+    "pair_tune/train_log.jsonl",
     "curves.png",
 )
 
