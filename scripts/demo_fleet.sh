@@ -11,7 +11,7 @@ cd "$(dirname "$0")/.."
 VENV=${1:-.venv}
 OUT=${OUT:-demo_out}/fleet
 FRAMES=${FRAMES:-300}
-TOP_K=${TOP_K:-}  # e.g. TOP_K=3: re-rank 3 candidates (config/demo.yaml: 1), slower, finds more
+TOP_K=${TOP_K:-}  # e.g. TOP_K=10: re-rank 10 candidates (config/demo.yaml: 5)
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST MPLBACKEND=Agg
 PY="$VENV/bin/python"
 
