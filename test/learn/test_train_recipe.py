@@ -13,7 +13,7 @@ from synthetic_data import place_image, write_rgb
 
 from pair_vpr_ros.learn.heldout import HeldoutViews, auc, average_precision, measure
 from pair_vpr_ros.learn.train.common import DistContext, set_trainable
-from pair_vpr_ros.learn.train.curves import draw_curves, heldout_hook
+from pair_vpr_ros.learn.train.curves import draw_curves, heldout_hook, read_records
 from pair_vpr_ros.learn.train.data import (
     PlaceBatchSampler,
     choose_views,
@@ -186,5 +186,12 @@ def test_heldout_measure_and_curves(tmp_path) -> None:
         '{"step": 1, "loss": 2.0, "pair": 0.7}\n{"step": 5, "heldout": {"global_ap": 0.5}}\n'
     )
     png = draw_curves([("s2", out / "train_log.jsonl")], out / "curves.png")
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    (out / "tune.jsonl").write_text(  # the drive stage's validation records
+        '{"step": 1, "loss": 0.6}\n{"step": 0, "val": {"global": 0.8, "rerank_10": 0.85}}\n'
+    )
+    steps, evals = read_records(out / "tune.jsonl")
+    assert ([r["step"] for r in steps], [r["step"] for r in evals]) == ([1], [0])
+    draw_curves([("s2", out / "train_log.jsonl"), ("tune", out / "tune.jsonl")], png)
     assert png.read_bytes()[:4] == b"\x89PNG"
     assert heldout_hook(model, None, 5, out) is None and heldout_hook(model, root, 0, out) is None

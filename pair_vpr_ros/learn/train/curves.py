@@ -1,6 +1,7 @@
 """What training measures on the way: Recall@N on validation sets after each epoch, re-ranked vs
 global AP on a held-out place set every ``--eval-every`` steps, and the curves of both as one
-PNG (each stage's losses, and the ``heldout`` records of stage two)."""
+PNG (each stage's losses, the ``heldout`` records of stage two and the ``val`` records of the
+drive stage, `pair_tune`)."""
 
 from __future__ import annotations
 
@@ -15,15 +16,21 @@ from pair_vpr_ros.model import PairVPR
 
 LOSSES = ("loss", "global", "patch", "pair", "pair_rank")
 HELDOUT = ("global_ap", "rerank_ap", "lighting_auc", "identical_ge_revisit")
+# record key -> (metrics drawn, panel title)
+EVALS = {
+    "heldout": (HELDOUT, "held-out world"),
+    "val": (("global", "pair", "rerank_10", "rerank_20", "rerank_40"), "validation drive, AP"),
+}
 CHANCE = 0.6931  # binary cross-entropy of a pair classifier at chance
 
 
 def read_records(path: Path) -> tuple[list[dict], list[dict]]:
-    """(step records, held-out records) of a train_log.jsonl; a missing file has neither."""
+    """(step records, evaluation records: ``heldout`` or ``val``) of a train_log.jsonl; a
+    missing file has neither."""
     if not path.is_file():
         return [], []
     rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    return [r for r in rows if "loss" in r], [r for r in rows if "heldout" in r]
+    return [r for r in rows if "loss" in r], [r for r in rows if set(r) & set(EVALS)]
 
 
 def _mean(values: list[float], n: int) -> list[float]:
@@ -59,11 +66,14 @@ def draw_curves(logs: list[tuple[str, Path]], dest: Path, smooth: int = 10) -> P
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     for ax, (title, records) in zip(axes[len(runs) :], evals, strict=True):
-        x = [r["step"] for r in records]
-        for term in HELDOUT:
-            ax.plot(x, [r["heldout"].get(term, float("nan")) for r in records], "o-", label=term)
+        key = next(k for k in EVALS if k in records[0])
+        terms, what = EVALS[key]
+        x = [r["step"] for r in records if key in r]
+        for term in terms:
+            y = [r[key].get(term, float("nan")) for r in records if key in r]
+            ax.plot(x, y, "o-", label=term)
         ax.axhline(0.5, color="grey", ls=":", lw=1)
-        ax.set(title=f"{title}: held-out world", xlabel="step", ylim=(0, 1.02))
+        ax.set(title=f"{title}: {what}", xlabel="step", ylim=(0, 1.02))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()
