@@ -32,6 +32,7 @@ STAGE2_STEPS=${STAGE2_STEPS:-3000}
 STAGE2_PLACES=${STAGE2_PLACES:-16}  # places per stage-two batch (x 4 views)
 PAIR_NEGATIVES=${PAIR_NEGATIVES:-random}  # hardest (the paper) or random: docs/training.md
 STAGE2_LR=${STAGE2_LR:-2.5e-4}
+STAGE2_GREY=${STAGE2_GREY:-0.2}  # share of grey views in stage two
 PAIR_TUNE_STEPS=${PAIR_TUNE_STEPS:-600}
 PAIR_TUNE_EVAL_EVERY=${PAIR_TUNE_EVAL_EVERY:-200}
 # drives of these training worlds for the pair classifier (12: with 4 it over-fits in ~300 steps)
@@ -89,7 +90,7 @@ run_stage stage1 stage1_final.pt pair_vpr_ros.learn.train.stage1 \
     --places-per-batch 32 --lr 5e-4 --warmup-steps 100 --no-augment --grey 0.2
 run_stage stage2 stage2_final.pt pair_vpr_ros.learn.train.stage2 \
     --init "$OUT/stage1/stage1_final.pt" --train-blocks 4 --max-steps "$STAGE2_STEPS" \
-    --places-per-batch "$STAGE2_PLACES" --lr "$STAGE2_LR" --warmup-steps 100 --no-augment --grey 0.2 \
+    --places-per-batch "$STAGE2_PLACES" --lr "$STAGE2_LR" --warmup-steps 100 --no-augment --grey "$STAGE2_GREY" \
     --patch-weight 0.5 --twin-share 0.25 --pair-directions first \
     --pair-negatives "$PAIR_NEGATIVES" \
     --heldout "$HELDOUT" --eval-every "$EVAL_EVERY"
