@@ -55,14 +55,19 @@ class HeldoutViews:
         return cls(paths, labels, conds, np.array(queries))
 
 
-def average_precision(scores: np.ndarray, correct: np.ndarray) -> tuple[float, float]:
-    """Detections (score [Q], correct [Q] bool), every query having a true match -> (AP,
-    recall at precision >= 0.9)."""
+def average_precision(
+    scores: np.ndarray, correct: np.ndarray, positives: int | None = None
+) -> tuple[float, float]:
+    """Detections (score [Q], correct [Q] bool) -> (AP, recall at precision >= 0.9) over
+    ``positives`` queries with a true match (None: every query has one; 0: (0, 0))."""
+    positives = len(scores) if positives is None else positives
+    if positives == 0:
+        return 0.0, 0.0
     order = np.argsort(-scores, kind="stable")
     hits = correct[order].astype(float)
     precision = np.cumsum(hits) / np.arange(1, len(hits) + 1)
-    recall = np.cumsum(hits) / len(hits)
-    ap = float((precision * hits).sum() / len(hits))
+    recall = np.cumsum(hits) / positives
+    ap = float((precision * hits).sum() / positives)
     ok = precision >= 0.9
     return ap, float(recall[ok].max()) if ok.any() else 0.0
 

@@ -20,7 +20,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from pair_vpr_ros.detector import rerank_score
 from pair_vpr_ros.errors import DatasetError
+from pair_vpr_ros.learn.heldout import average_precision, pair_scores
 from pair_vpr_ros.place_map import PlaceMap
 from pair_vpr_ros.recency import eligible_keyframes
 
@@ -135,19 +137,10 @@ def load_drive(
     return Drive(Path(path), dense, mine_drive(stamps, positions, desc, rule))
 
 
-def both_directions(model: torch.nn.Module, a: Tensor, b: Tensor) -> Tensor:
-    """Pair score as the node computes it: logit(a, b) + logit(b, a); a, b [B,N,D] -> [B]."""
-    return model.pair_logits(a, b) + model.pair_logits(b, a)
-
-
 def detection_ap(scores: np.ndarray, correct: np.ndarray, with_match: int) -> float:
     """One detection per query (its kept candidate's score [Q], correct [Q]) -> average
     precision over the `with_match` queries that have a true match (0 when none has)."""
-    if with_match == 0:
-        return 0.0
-    hits = correct[np.argsort(-scores, kind="stable")].astype(float)
-    precision = np.cumsum(hits) / np.arange(1, len(hits) + 1)
-    return float((precision * hits).sum() / with_match)
+    return average_precision(scores, correct, with_match)[0]
 
 
 @torch.no_grad()
@@ -162,12 +155,13 @@ def rerank_ap(
     kept.update({f"rerank_{w}": ([], []) for w in RERANK_WEIGHTS})
     for drive in drives:
         for q in drive.queries:
-            cands = drive.dense[torch.from_numpy(q.candidates)]
-            pair = both_directions(model, drive.dense[[q.query] * len(cands)], cands).numpy()
+            cands = torch.from_numpy(q.candidates)
+            first = torch.full_like(cands, q.query)
+            pair = pair_scores(model, drive.dense, first, cands).numpy()
             kept["global"][0].append(float(q.similarity[0]))
             kept["global"][1].append(bool(q.distance[0] <= gt_radius))
             for w in RERANK_WEIGHTS:
-                fused = pair + w * q.similarity
+                fused = rerank_score(pair, q.similarity, w)
                 best = int(np.argmax(fused))
                 kept[f"rerank_{w}"][0].append(float(fused[best]))
                 kept[f"rerank_{w}"][1].append(bool(q.distance[best] <= gt_radius))
