@@ -17,8 +17,6 @@ import argparse
 import tempfile
 from pathlib import Path
 
-import numpy as np
-
 from pair_vpr_ros.demo.bag import write_world_bag
 from pair_vpr_ros.demo.world import generate_world
 from pair_vpr_ros.offline import replay
@@ -30,16 +28,6 @@ from pair_vpr_ros.weights import load_model
 
 ROOT = Path(__file__).parents[1]
 DEMO = ROOT / "pair_vpr_ros" / "demo" / "assets" / "demo-small.pth"
-
-
-def operating_point(ev: LoopEvaluation, want: float) -> tuple:
-    """(threshold, precision, recall) of the most recall at precision >= want (None: none)."""
-    curve = ev.reranked
-    ok = np.flatnonzero(curve.precision >= want)
-    if not len(ok):
-        return None, None, None
-    best = ok[np.argmax(curve.recall[ok])]
-    return float(curve.thresholds[best]), float(curve.precision[best]), float(curve.recall[best])
 
 
 def replay_evaluation(bag: Path, out: Path, opts: ReplayOptions, **kwargs) -> LoopEvaluation:
@@ -124,7 +112,7 @@ def main() -> None:
                     bag, Path(tmp) / f"k{k}w{w}", opts, model=model, config=config
                 )
                 rr, gl = ev.reranked.to_dict(), ev.global_only.to_dict()
-                t, prec, rec = operating_point(ev, args.precision)
+                t, prec, rec = ev.reranked.operating_point(args.precision) or (None,) * 3
                 fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
                 print(
                     f"| {k} | {w:g} | {rr['average_precision']:.3f} | "

@@ -62,8 +62,17 @@ class PRCurve:
 
     def recall_at_precision(self, precision: float) -> float:
         """The highest recall reached at a threshold whose precision is >= ``precision``."""
-        ok = self.precision >= precision
-        return float(self.recall[ok].max()) if ok.any() else 0.0
+        point = self.operating_point(precision)
+        return point[2] if point is not None else 0.0
+
+    def operating_point(self, precision: float) -> tuple[float, float, float] | None:
+        """(threshold, precision, recall) of the highest recall at precision >= ``precision``
+        (the first such threshold on a tie); None when no threshold reaches it."""
+        ok = np.flatnonzero(self.precision >= precision)
+        if not len(ok):
+            return None
+        best = ok[np.argmax(self.recall[ok])]
+        return float(self.thresholds[best]), float(self.precision[best]), float(self.recall[best])
 
     def best_f1(self) -> tuple[float, float | None]:
         """``(F1, threshold)`` of the best F1 point; ``(0.0, None)`` for an empty curve."""

@@ -145,6 +145,8 @@ def test_precision_recall_exact():
     assert glob.recall_at_full_precision() == 0.0
     assert glob.recall_at_precision(0.6) == pytest.approx(2 / 3, abs=1e-15)
     assert glob.recall_at_precision(0.9) == 0.0
+    assert glob.operating_point(0.6) == (0.8, pytest.approx(2 / 3), pytest.approx(2 / 3))
+    assert glob.operating_point(0.9) is None
     assert glob.best_f1() == (pytest.approx(2 / 3, abs=1e-15), 0.8)
 
     summary = ev.to_dict()
