@@ -100,7 +100,7 @@ run_stage stage2 stage2_final.pt pair_vpr_ros.learn.train.stage2 \
 # finished one and a drive without it is redone), then tune.
 # Seeds 7 (demo) and 8 (validation of config/demo.yaml) are never used here.
 replay() {
-    "$PY" -c 'import sys; from pair_vpr_ros.offline.replay_cli import main; sys.exit(main())' "$@"
+    "$PY" -m pair_vpr_ros.offline.replay_cli "$@"
 }
 if [ ! -f "$OUT/pair_tune/pair_tune_final.pt" ]; then
     for seed in $DRIVE_SEEDS 201; do

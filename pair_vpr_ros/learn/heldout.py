@@ -20,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -86,13 +87,19 @@ def auc(scores: np.ndarray, positive: np.ndarray) -> float:
 
 
 @torch.inference_mode()
-def encode_views(model: PairVPR, paths: list[Path], batch: int = 64) -> tuple[torch.Tensor, ...]:
-    """Paths -> (dense [M,N,D], descriptors [M,C]) at the model's image size."""
+def encode_views(
+    model: PairVPR, paths: list[Path], batch: int = 64, grey: bool = False
+) -> tuple[torch.Tensor, ...]:
+    """Paths -> (dense [M,N,D], descriptors [M,C]) at the model's image size; ``grey``: of
+    their grey versions, as the demo's mono8 bags and `imaging` make them."""
     dense, desc = [], []
     for i in range(0, len(paths), batch):
-        images = preprocess_batch(
-            [read_rgb(p) for p in paths[i : i + batch]], model.config.image_size
-        )
+        rgb = [read_rgb(p) for p in paths[i : i + batch]]
+        if grey:
+            rgb = [
+                cv2.cvtColor(cv2.cvtColor(x, cv2.COLOR_RGB2GRAY), cv2.COLOR_GRAY2RGB) for x in rgb
+            ]
+        images = preprocess_batch(rgb, model.config.image_size)
         d, g = model.encode(images)
         dense.append(d.float())
         desc.append(g.float())
@@ -117,11 +124,14 @@ def pair_scores(
 
 
 @torch.inference_mode()
-def measure(model: PairVPR, views: HeldoutViews, k: int = 10) -> dict[str, float]:
-    """Global vs re-ranked AP / R@1 and both probes on ``views`` (see the module docstring)."""
+def measure(
+    model: PairVPR, views: HeldoutViews, k: int = 10, grey: bool = False
+) -> dict[str, float]:
+    """Global vs re-ranked AP / R@1 and both probes on ``views`` (see the module docstring);
+    ``grey``: every view in grey, queries and candidates alike (a mono8 camera)."""
     was_training = model.training
     model.eval()
-    dense, desc = encode_views(model, views.paths)
+    dense, desc = encode_views(model, views.paths, grey=grey)
     queries = torch.from_numpy(views.queries)
     sim = desc[queries] @ desc.T
     sim[torch.arange(len(queries)), queries] = -float("inf")

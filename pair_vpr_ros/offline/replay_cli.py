@@ -321,3 +321,7 @@ def _run(args: argparse.Namespace) -> int:
         print(f"error: {summary.error} (what was processed before is written)", file=sys.stderr)
         return EXIT_INTERRUPTED if summary.interrupted else EXIT_ERROR
     return EXIT_OK
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -5,15 +5,23 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
 from synthetic_data import place_image, write_rgb
 
-from pair_vpr_ros.learn.heldout import HeldoutViews, auc, average_precision, measure
+from pair_vpr_ros.learn.heldout import (
+    HeldoutViews,
+    auc,
+    average_precision,
+    encode_views,
+    measure,
+)
+from pair_vpr_ros.learn.image_files import read_rgb
 from pair_vpr_ros.learn.train.common import DistContext, set_trainable
-from pair_vpr_ros.learn.train.curves import draw_curves, heldout_hook, read_records
+from pair_vpr_ros.learn.train.curves import GREY_KEYS, draw_curves, heldout_hook, read_records
 from pair_vpr_ros.learn.train.data import (
     PlaceBatchSampler,
     choose_views,
@@ -37,6 +45,28 @@ def _place_views(root: Path, places: int = 4, views: int = 6, size: int = 64) ->
         for k in range(views):
             write_rgb(root / f"place_{p:02d}" / f"{k}.png", place_image(p, k, size))
     return root
+
+
+def test_heldout_grey_is_what_a_mono8_camera_gives(tmp_path) -> None:
+    """measure(grey=True) on colour files equals measure on the files made grey beforehand
+    (BT.601 luma in all three channels, as `imaging` turns a mono8 frame into RGB)."""
+    root = _place_views(tmp_path / "colour", places=4)
+    for path in sorted(root.rglob("*.png")):
+        luma = cv2.cvtColor(read_rgb(path), cv2.COLOR_RGB2GRAY)
+        write_rgb(tmp_path / "grey" / path.relative_to(root), cv2.merge([luma] * 3))
+    model = build_pairvpr(ModelConfig.tiny(), seed=0)
+    in_grey = measure(model, HeldoutViews.load(root), k=5, grey=True)
+    made_grey = measure(model, HeldoutViews.load(tmp_path / "grey"), k=5)
+    assert in_grey == pytest.approx(made_grey, rel=0, abs=0, nan_ok=True)
+    paths = HeldoutViews.load(root).paths
+    grey_desc, colour_desc = (
+        encode_views(model, paths, grey=True)[1],
+        encode_views(model, paths)[1],
+    )
+    assert torch.equal(
+        grey_desc, encode_views(model, HeldoutViews.load(tmp_path / "grey").paths)[1]
+    )
+    assert not torch.allclose(grey_desc, colour_desc, atol=1e-3)
 
 
 def test_stage_one_decoder_table_is_the_sincos_table_of_the_training_grid(tmp_path) -> None:
@@ -181,7 +211,10 @@ def test_heldout_measure_and_curves(tmp_path) -> None:
     out = tmp_path / "run"
     out.mkdir()
     every, run = heldout_hook(model, root, 5, out, k=5)
-    assert every == 5 and run(5)["global_ap"] == pytest.approx(got["global_ap"])
+    hooked = run(5)
+    assert every == 5 and hooked["global_ap"] == pytest.approx(got["global_ap"])
+    grey = measure(model, views, k=5, grey=True)
+    assert {k: hooked[f"grey_{k}"] for k in GREY_KEYS} == {k: grey[k] for k in GREY_KEYS}
     (out / "train_log.jsonl").write_text(
         '{"step": 1, "loss": 2.0, "pair": 0.7}\n{"step": 5, "heldout": {"global_ap": 0.5}}\n'
     )

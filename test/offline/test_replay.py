@@ -8,6 +8,8 @@ to its original frame; two new places at the end give two false loops.
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -338,3 +340,16 @@ def test_cli_openvino_cache_dir(tmp_path, monkeypatch, tiny_model, flags, in_par
         argv += ["--params-file", str(params)]
     assert main([*argv, "--backend", "openvino", *flags]) == 0
     assert seen["openvino_cache_dir"] == want and seen["backend"] == "openvino"
+
+
+def test_replay_cli_runs_as_a_module(tmp_path) -> None:
+    """`python -m pair_vpr_ros.offline.replay_cli` is the console script (the recipe uses it)."""
+    bag = tmp_path / "none.mcap"
+    run = subprocess.run(
+        [sys.executable, "-m", "pair_vpr_ros.offline.replay_cli", str(bag)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert run.returncode == 1
+    assert run.stderr.startswith(f"error: bag {bag} does not exist")

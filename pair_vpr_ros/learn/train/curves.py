@@ -15,7 +15,14 @@ from pair_vpr_ros.learn.recall import EvalConfig, evaluate_set
 from pair_vpr_ros.model import PairVPR
 
 LOSSES = ("loss", "global", "patch", "pair", "pair_rank")
-HELDOUT = ("global_ap", "rerank_ap", "lighting_auc", "identical_ge_revisit")
+HELDOUT = (
+    "global_ap",
+    "rerank_ap",
+    "grey_global_ap",
+    "grey_rerank_ap",
+    "lighting_auc",
+    "identical_ge_revisit",
+)
 # record key -> (metrics drawn, panel title)
 EVALS = {
     "heldout": (HELDOUT, "held-out world"),
@@ -83,6 +90,9 @@ def draw_curves(logs: list[tuple[str, Path]], dest: Path, smooth: int = 10) -> P
     return dest
 
 
+GREY_KEYS = ("global_ap", "rerank_ap")
+
+
 def heldout_hook(
     model: PairVPR, root: Path | None, every: int, out_dir: Path, k: int = 10
 ) -> tuple[int, Callable[[int], dict]] | None:
@@ -93,6 +103,8 @@ def heldout_hook(
 
     def run(step: int) -> dict:
         metrics = measure(model, views, k)
+        grey = measure(model, views, k, grey=True)  # a mono8 camera: queries and map in grey
+        metrics.update({f"grey_{key}": grey[key] for key in GREY_KEYS})
         log = out_dir / "train_log.jsonl"
         try:  # the record of this step is written after this returns: draw the others now
             draw_curves([("stage two", log)], out_dir / "curves.png")
