@@ -90,7 +90,8 @@ def auc(scores: np.ndarray, positive: np.ndarray) -> float:
 def encode_views(
     model: PairVPR, paths: list[Path], batch: int = 64, grey: bool = False
 ) -> tuple[torch.Tensor, ...]:
-    """Paths -> (dense [M,N,D], descriptors [M,C]) at the model's image size; ``grey``: of
+    """Paths -> (dense [M,N,D], descriptors [M,C]) on the CPU, encoded at the model's image size
+    on its device; ``grey``: of
     their grey versions, as the demo's mono8 bags and `imaging` make them."""
     dense, desc = [], []
     for i in range(0, len(paths), batch):
@@ -99,10 +100,10 @@ def encode_views(
             rgb = [
                 cv2.cvtColor(cv2.cvtColor(x, cv2.COLOR_RGB2GRAY), cv2.COLOR_GRAY2RGB) for x in rgb
             ]
-        images = preprocess_batch(rgb, model.config.image_size)
+        images = preprocess_batch(rgb, model.config.image_size).to(model.device)
         d, g = model.encode(images)
-        dense.append(d.float())
-        desc.append(g.float())
+        dense.append(d.float().cpu())
+        desc.append(g.float().cpu())
     return torch.cat(dense), torch.cat(desc)
 
 
@@ -115,11 +116,13 @@ def pair_scores(
     chunk: int = 256,
 ) -> torch.Tensor:
     """Bidirectional pair scores logit(a,b) + logit(b,a) of the views first [P] and second [P]
-    (indices into dense [M,N,D]) -> [P], in chunks of ``chunk`` pairs."""
+    (indices into dense [M,N,D], on any device) -> [P] on the CPU, in chunks of ``chunk`` pairs
+    run on the model's device."""
     out = []
     for i in range(0, len(first), chunk):
-        a, b = dense[first[i : i + chunk]], dense[second[i : i + chunk]]
-        out.append(model.pair_logits(a, b).float() + model.pair_logits(b, a).float())
+        a = dense[first[i : i + chunk]].to(model.device)
+        b = dense[second[i : i + chunk]].to(model.device)
+        out.append((model.pair_logits(a, b).float() + model.pair_logits(b, a).float()).cpu())
     return torch.cat(out)
 
 

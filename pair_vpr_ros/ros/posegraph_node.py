@@ -38,7 +38,7 @@ from rclpy.qos import QoSProfile, qos_profile_sensor_data
 
 from pair_vpr_ros.errors import ConfigError, PairVPRError
 from pair_vpr_ros.loop_factor import LoopFactor, factor_from_msg
-from pair_vpr_ros.params import check_value
+from pair_vpr_ros.params import check_value, params_file_problem
 from pair_vpr_ros.posegraph import params
 from pair_vpr_ros.posegraph.graph import PoseGraph
 from pair_vpr_ros.posegraph.loops import own
@@ -199,6 +199,10 @@ class _Outputs:
 
 def main(argv: list[str] | None = None) -> int:
     """`posegraph_node` entry point: 0 on a clean stop (Ctrl-C, SIGTERM), 1 if it cannot start."""
+    problem = params_file_problem(sys.argv if argv is None else argv)
+    if problem:  # a missing file or a key given twice (rcl would keep the last without a word)
+        rclpy.logging.get_logger(params.NODE_NAME).error(f"cannot start: {problem}")
+        return 1
     try:
         rclpy.init(args=argv)
     except Exception as err:  # noqa: BLE001 - rcl's argument parser raises its own RCLError

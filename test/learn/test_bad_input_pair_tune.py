@@ -22,6 +22,7 @@ FLAGS = {
     "save-every zero": (["--save-every", "0"], 1, "error: save_every=0: must be >= 1"),
     "eval-every negative": (["--eval-every=-1"], 1, "eval_every=-1: must be >= 0 (0 = never)"),
     "top-k text": (["--top-k", "ten"], 2, "argument --top-k: invalid int value: 'ten'"),
+    "device unknown": (["--device", "tpu"], 1, "error: device 'tpu' is not a torch device"),
 }
 
 

@@ -26,6 +26,7 @@ from ros_cli import wait_for
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.loop_factor import FACTOR_MSG_TYPES, factor_msg
 from pair_vpr_ros.posegraph.simulate import ground_truth_loops
+from pair_vpr_ros.ros import posegraph_node
 from pair_vpr_ros.ros.posegraph_node import PoseGraphNode
 
 CLASSES = {
@@ -139,6 +140,21 @@ def test_bad_parameters_refuse_to_start(ros):
         PoseGraphNode(parameter_overrides=[Parameter("camera_to_base", value=[0.0] * 6)])
     with pytest.raises(ConfigError, match="loop_kernel='l2' must be one of cauchy, huber, none"):
         PoseGraphNode(parameter_overrides=[Parameter("loop_kernel", value="l2")])
+
+
+def test_a_parameter_file_with_a_key_twice_refuses_to_start(tmp_path, capfd):
+    path = tmp_path / "posegraph.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    loop_kernel: cauchy\n    loop_kernel: huber\n")
+    assert posegraph_node.main(["posegraph_node", "--ros-args", "--params-file", str(path)]) == 1
+    assert (
+        f"[posegraph_node]: cannot start: --params-file {path}: 'loop_kernel' is given twice "
+        "(lines 3 and 4): keep one (YAML would use the last one without a word)"
+    ) in capfd.readouterr().err
+    missing = tmp_path / "nowhere.yaml"
+    assert (
+        posegraph_node.main(["posegraph_node", "--ros-args", "--params-file", str(missing)]) == 1
+    )
+    assert f"cannot start: --params-file {missing} does not exist" in capfd.readouterr().err
 
 
 @pytest.mark.slow

@@ -27,6 +27,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from pair_vpr_ros.cli import run_cli
+from pair_vpr_ros.devices import check_device
 from pair_vpr_ros.errors import ConfigError, DatasetError, TrainingError, UsageError
 from pair_vpr_ros.learn.train.common import (
     JsonlLog,
@@ -84,6 +85,9 @@ class PairTuneConfig:
     lr: float = option(1e-4, "AdamW learning rate (default %(default)s)")
     weight_decay: float = option(0.05, "AdamW weight decay (default %(default)s)")
     seed: int = option(0, "seed of the batch sampler (default %(default)s)")
+    device: str = option(
+        "cpu", "torch device: cpu, cuda, cuda:1 or auto (CUDA if there is one; default cpu)"
+    )
     save_every: int = option(100, "rewrite OUT/last.pt every N steps (default %(default)s)")
     log_every: int = option(10, "log step and loss every N steps (default %(default)s)")
     eval_every: int = option(250, "with --val: measure every N steps (default %(default)s)")
@@ -155,7 +159,7 @@ def batch_loss(model: PairVPR, drives: list[Drive], picked: list, twins: int) ->
     go through the classifier together (one call per kind: a call per drive is ~10x slower
     with a dozen drives on a CPU)."""
     cols = [[drives[d].dense[list(col)] for col in zip(*rows, strict=True)] for d, rows in picked]
-    a, p, n = (torch.cat(part) for part in zip(*cols, strict=True))
+    a, p, n = (torch.cat(part).to(model.device) for part in zip(*cols, strict=True))
     pos = [model.pair_logits(a, p), model.pair_logits(p, a)]
     neg = [model.pair_logits(a, n), model.pair_logits(n, a)]
     if twins:
@@ -192,8 +196,9 @@ def pair_tune(cfg: PairTuneConfig) -> Path:
         raise UsageError(
             f"{cfg.out} holds a run already: pass --resume {cfg.out / 'last.pt'} or another --out"
         )
+    device = check_device(cfg.device)
     torch.manual_seed(cfg.seed)
-    model = load_pairvpr(cfg.init)
+    model = load_pairvpr(cfg.init, device=device)
     drives = _load_drives(cfg.drive, cfg, model, training=True)
     val = _load_drives((cfg.val,), cfg, model, training=False) if cfg.val else []
     pools = [d.trainable for d in drives]
