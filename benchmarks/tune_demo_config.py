@@ -31,23 +31,11 @@ DEMO = ROOT / "pair_vpr_ros" / "demo" / "assets" / "demo-small.pth"
 
 
 def replay_evaluation(bag: Path, out: Path, opts: ReplayOptions, **kwargs) -> LoopEvaluation:
-    """Replay ``bag`` and return the report's evaluation with its whole PR curves (the run's
-    summary keeps only their figures)."""
-    seen = []
-    write_report = replay.write_report
-
-    def keep(*args, **kw):  # noqa: ANN002, ANN003, ANN202
-        seen.append(write_report(*args, **kw))
-        return seen[-1]
-
-    replay.write_report = keep
-    try:
-        summary = replay.replay_bag(bag, out, opts, **kwargs)
-    finally:
-        replay.write_report = write_report
-    if summary.error or not seen or seen[0] is None:
+    """Replay ``bag`` and return its evaluation with the whole PR curves."""
+    summary = replay.replay_bag(bag, out, opts, **kwargs)
+    if summary.error or summary.loop_evaluation is None:
         raise SystemExit(f"error: the replay of {bag} gave no evaluation: {summary.error}")
-    return seen[0]
+    return summary.loop_evaluation
 
 
 def main() -> None:

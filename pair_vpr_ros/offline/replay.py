@@ -193,6 +193,7 @@ def _finish(
             global_weight=pipe.config.global_weight,
         )  # fmt: skip
         if evaluation is not None:
+            summary.loop_evaluation = evaluation
             summary.evaluation = {**evaluation.to_dict(), "gt_topic": summary.gt_topic}
             summary.warnings += replay_notes.exclusion_notes(keyframes, evaluation)
     except PairVPRError as err:

@@ -6,13 +6,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.imaging import MAX_PIXELS
 from pair_vpr_ros.place_map import IndexConfig
+
+if TYPE_CHECKING:
+    from pair_vpr_ros.offline.loop_truth import LoopEvaluation
 
 
 @dataclass(frozen=True)
@@ -107,6 +110,9 @@ class ReplaySummary:
     notes: list[str] = field(default_factory=list)  # how each topic was picked
     error: str | None = None
     interrupted: bool = False  # stopped by Ctrl-C (``error`` says after how many messages)
+    # the evaluation itself, whole PR curves included (library callers; not in summary.json,
+    # which keeps ``evaluation``'s figures)
+    loop_evaluation: LoopEvaluation | None = field(default=None, repr=False, compare=False)
 
     def line(self) -> str:
         return (
@@ -115,4 +121,6 @@ class ReplaySummary:
         )
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        out = asdict(replace(self, loop_evaluation=None))
+        del out["loop_evaluation"]
+        return out

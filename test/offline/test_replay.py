@@ -63,6 +63,12 @@ def test_replay_end_to_end(tmp_path, tiny_model):
     assert (ev["positives"], ev["true_accepted"], ev["false_accepted"]) == (5, 5, 2)
     assert ev["precision"] == 5 / 7 and ev["recall"] == 1.0 and ev["exclusion_s"] == 30.0
     assert ev["global_only"]["recall_at_100_precision"] == 1.0
+    whole = s.loop_evaluation  # the same evaluation with its curves, for library callers
+    assert {**whole.to_dict(), "gt_topic": "/odom"} == ev
+    top = whole.reranked.recall_at_precision(1.0)
+    assert (
+        top == ev["reranked"]["recall_at_100_precision"] and "loop_evaluation" not in s.to_dict()
+    )
 
     loops = json.loads((out / "loops.json").read_text())
     assert [(r["query_id"], r["match_id"]) for r in loops][:5] == [(i + 10, i) for i in range(5)]
