@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import os
+import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import TypesysError, get_types_from_msg
 
 from pair_vpr_ros import loop_messages
 from pair_vpr_ros.errors import BagError, OutputError
@@ -17,9 +20,11 @@ class LoopBagWriter:
     """Write loop closures (and optionally the replayed images) to a new rosbag2 folder (mcap).
 
     Loop messages are the node's (``loop_messages``) on ``/loop_closure``,
-    ``/loop_closure/detail``, ``/loop_closure/json`` and (loops with a relative pose)
-    ``/loop_closure/factor``, each written at the receive time of its query image so the output
-    plays in step with the source bag. Use as a context manager; ``path`` must not exist.
+    ``/loop_closure/detail``, ``/loop_closure/json``, ``/loop_closure/typed`` (when the message
+    definition is found: ``typed_definition``; else ``typed_note`` says why it is left out) and
+    (loops with a relative pose) ``/loop_closure/factor``, each written at the receive time of its
+    query image so the output plays in step with the source bag. Use as a context manager;
+    ``path`` must not exist.
     """
 
     def __init__(
@@ -32,6 +37,7 @@ class LoopBagWriter:
         self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
         self._image_topic, self._image_msgtype = image_topic, image_msgtype
         self._connections: dict[str, Any] = {}
+        self.typed_note = register_typed(self._ts)
 
     def __enter__(self) -> LoopBagWriter:
         try:
@@ -48,6 +54,10 @@ class LoopBagWriter:
         ):
             self._connections[topic] = self._writer.add_connection(
                 "/" + topic, msgtype, typestore=ts
+            )
+        if self.typed_note is None:
+            self._connections[loop_messages.TYPED_TOPIC] = self._writer.add_connection(
+                "/" + loop_messages.TYPED_TOPIC, loop_messages.TYPED_TYPE, typestore=ts
             )
         if self._image_topic is not None:
             self._connections["image"] = self._writer.add_connection(
@@ -106,6 +116,66 @@ class LoopBagWriter:
             msgs.append(
                 (loop_messages.FACTOR_TOPIC, loop_messages.factor_msg(content.factor, ts.types))
             )
+        if self.typed_note is None:
+            msgs.append((loop_messages.TYPED_TOPIC, typed_msg(record, ts.types)))
         for topic, msg in msgs:
             cdr = ts.serialize_cdr(msg, msg.__msgtype__)
             self._write(self._connections[topic], log_time_ns, cdr)
+
+
+MSG_PATH = Path("share", "pair_vpr_ros_interfaces", "msg", "LoopClosure.msg")
+# a source checkout: the interface package lives beside the Python package
+SOURCE_MSG = Path(__file__).resolve().parents[2] / "interfaces" / "pair_vpr_ros_interfaces" / "msg"
+
+
+def typed_definition() -> Path | None:
+    """``LoopClosure.msg`` as installed (each ``AMENT_PREFIX_PATH`` prefix, then this Python's
+    prefix: ``make setup`` builds it there) or in a source checkout; None if nowhere."""
+    prefixes = [p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
+    places = [Path(p) / MSG_PATH for p in [*prefixes, sys.prefix]]
+    places.append(SOURCE_MSG / "LoopClosure.msg")
+    return next((p for p in places if p.is_file()), None)
+
+
+def register_typed(ts: Any) -> str | None:
+    """Add ``loop_messages.TYPED_TYPE`` to the typestore ``ts``; None when done, else why not
+    (the bag is then written without ``/loop_closure/typed``)."""
+    if loop_messages.TYPED_TYPE in ts.types:
+        return None
+    path = typed_definition()
+    if path is None:
+        return (
+            f"/{loop_messages.TYPED_TOPIC} is not written: the definition of "
+            f"{loop_messages.TYPED_TYPE} was not found (build pair_vpr_ros_interfaces: "
+            "docs/interfaces.md); the other loop-closure topics are written"
+        )
+    try:
+        ts.register(get_types_from_msg(path.read_text("utf-8"), loop_messages.TYPED_TYPE))
+    except (OSError, UnicodeDecodeError, TypesysError) as err:
+        return f"/{loop_messages.TYPED_TOPIC} is not written: cannot read {path}: {err}"
+    return None
+
+
+def typed_msg(record: Any, types: dict[str, Any]) -> Any:
+    """The ``loop_closure/typed`` message of one loop record, as the node publishes it
+    (``loop_messages.loop_closure_fields``), built from the typestore's classes."""
+    f = loop_messages.loop_closure_fields(record)
+    time = types["builtin_interfaces/msg/Time"]
+    pose = f.pop("relative_pose")
+    header = f.pop("header")
+    for side in ("query", "match"):
+        f[f"{side}_stamp"] = time(*f[f"{side}_stamp"])
+    geo = {k: types[f"geometry_msgs/msg/{k}"] for k in ("Point", "Quaternion", "Pose")}
+    return types[loop_messages.TYPED_TYPE](
+        header=types["std_msgs/msg/Header"](
+            stamp=time(*header["stamp"]), frame_id=header["frame_id"]
+        ),
+        relative_pose=types["geometry_msgs/msg/PoseWithCovariance"](
+            pose=geo["Pose"](
+                position=geo["Point"](*pose["position"]),
+                orientation=geo["Quaternion"](*pose["orientation"]),
+            ),
+            covariance=np.asarray(pose["covariance"], dtype=np.float64),
+        ),
+        **f,
+    )

@@ -150,6 +150,7 @@ def replay_bag(
         total = min(total, o.max_frames) if o.max_frames is not None else total
         msgtype = reader.topics[topic].msgtype
         writer = LoopBagWriter(bag_out, topic, msgtype) if o.write_bag else None
+        summary.warnings += [writer.typed_note] if writer and writer.typed_note else []
         source = attach(run.frames(frames, Path(bag).name), geo)
         source = replay_notes.note_demo_model(with_right(source, reader, o, geo.counts), summary)
         start = time.perf_counter()

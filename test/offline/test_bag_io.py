@@ -279,9 +279,22 @@ def test_loop_bag_writer_round_trip(tmp_path):
             got.setdefault(c.topic, []).append((c.msgtype, t, reader.deserialize(raw, c.msgtype)))
     assert {k: len(v) for k, v in got.items()} == {
         "/cam": 1, "/loop_closure": 2, "/loop_closure/detail": 3, "/loop_closure/json": 3,
-        "/loop_closure/factor": 1,
+        "/loop_closure/factor": 1, "/loop_closure/typed": 3,
     }  # fmt: skip
     got = {k: v[0] for k, v in got.items()}
+    typed_type, _, typed = got["/loop_closure/typed"]  # as the node publishes it
+    assert typed_type == loop_messages.TYPED_TYPE == "pair_vpr_ros_interfaces/msg/LoopClosure"
+    assert (typed.header.stamp.sec, typed.header.stamp.nanosec) == (120, 250_000_000)
+    assert (typed.header.frame_id, typed.match_stamp.sec, typed.match_stamp.nanosec) == (
+        "cam", 101, 500_000_000,
+    )  # fmt: skip
+    assert (typed.query_id, typed.match_id, typed.pair_score, typed.accepted) == (7, 2, 3.5, True)
+    assert (typed.pose_status, typed.pose_inliers) == (typed.POSE_METRIC, 40)
+    position = typed.relative_pose.pose.position
+    assert (position.x, position.y, position.z, typed.relative_pose.pose.orientation.w) == (
+        1.0, 0.0, 0.5, 1.0,
+    )  # fmt: skip
+    assert typed.relative_pose.covariance.tolist() == list(cov)
     assert {t for _, t, _ in got.values()} == {120_250_000_000}
     pair = got["/loop_closure"][2]
     assert pair.data.tolist() == [120.25, 101.5] and pair.layout.dim == []

@@ -11,6 +11,7 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 from bag_fixtures import (
@@ -24,11 +25,12 @@ from bag_fixtures import (
     write_rosbag2,
 )
 from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
 
 from pair_vpr_ros import loop_messages
 from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.model import save_pairvpr
-from pair_vpr_ros.offline import replay
+from pair_vpr_ros.offline import loop_bag, replay
 from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
 from pair_vpr_ros.offline.replay_cli import main
 from pair_vpr_ros.pipeline import LoopClosurePipeline
@@ -96,6 +98,13 @@ def test_replay_end_to_end(tmp_path, tiny_model):
     first = loop_messages.detail_to_dict([d.label for d in details[0].layout.dim], details[0].data)
     assert (first["query_id"], first["match_id"], first["accepted"]) == (10.0, 0.0, 1.0)
     assert json.loads(got["/loop_closure/json"][0][1].data) == loops[0]
+    typed = [m for _, m in got["/loop_closure/typed"]]  # what the node publishes there
+    assert len(typed) == 7 and typed[0].__msgtype__ == loop_messages.TYPED_TYPE
+    assert (typed[0].query_id, typed[0].match_id, typed[0].accepted) == (10, 0, True)
+    assert (typed[0].query_stamp.sec, typed[0].header.stamp.sec) == (100, 100)
+    assert typed[0].pose_status == typed[0].POSE_NONE == 0
+    assert typed[0].global_similarity == loops[0]["global_similarity"]
+    assert np.isnan(typed[0].relative_pose.covariance).all()
 
 
 def test_replay_without_poses_and_map(tmp_path, tiny_model):
@@ -359,3 +368,30 @@ def test_replay_cli_runs_as_a_module(tmp_path) -> None:
     )
     assert run.returncode == 1
     assert run.stderr.startswith(f"error: bag {bag} does not exist")
+
+
+@pytest.mark.parametrize("definition", ["missing", "broken"])
+def test_output_bag_without_the_typed_definition(tmp_path, tiny_model, monkeypatch, definition):
+    """No LoopClosure.msg to be found (or one that does not parse): the bag is written without
+    /loop_closure/typed, and the summary says why."""
+    broken = tmp_path / "LoopClosure.msg"
+    broken.write_text("int32 x\nfoo/Bar[ y\n")
+    monkeypatch.setattr(loop_bag, "jazzy_typestore", lambda: get_typestore(Stores.ROS2_JAZZY))
+    monkeypatch.setattr(
+        loop_bag, "typed_definition", lambda: broken if definition == "broken" else None
+    )
+    images, poses = revisit_world()
+    bag = write_rosbag2(tmp_path / "bag", images, poses)
+    opts = ReplayOptions(write_bag=True, progress=False, save_map=False)
+    s = replay_bag(bag, tmp_path / "out", opts, model=tiny_model, config=CONFIG)
+    assert s.error is None and s.loops == 7
+    why = (
+        "was not found (build pair_vpr_ros_interfaces"
+        if definition == "missing"
+        else f"cannot read {broken}: "
+    )
+    assert len(s.warnings) == 1 and s.warnings[0].startswith("/loop_closure/typed is not written")
+    assert why in s.warnings[0]
+    with AnyReader([tmp_path / "out" / "bag"]) as reader:
+        topics = {c.topic for c in reader.connections}
+    assert "/loop_closure/typed" not in topics and "/loop_closure/json" in topics
