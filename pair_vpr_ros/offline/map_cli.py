@@ -1,9 +1,10 @@
-"""`pairvpr-map`: look into saved place maps and merge them (the library: `place_map.info`,
-`place_map.merge`). Exit codes: `pair_vpr_ros.cli`.
+"""`pairvpr-map`: look into saved place maps, merge them, prune a Milvus collection (the library:
+`place_map.info`, `place_map.merge`, `place_map.milvus_prune`). Exit codes: `pair_vpr_ros.cli`.
 
     pairvpr-map info maps/site                 # keyframes per robot/session, model, index, sizes
     pairvpr-map info maps/site --json
     pairvpr-map merge maps/r1 maps/r2 --out maps/site
+    pairvpr-map prune-milvus maps/site.db --maps maps       # lists stale rows; --yes removes
 """
 
 from __future__ import annotations
@@ -16,12 +17,14 @@ from pair_vpr_ros.cli import run_cli
 from pair_vpr_ros.place_map.index import INDEX_KINDS
 from pair_vpr_ros.place_map.info import map_info
 from pair_vpr_ros.place_map.merge import merge_maps
+from pair_vpr_ros.place_map.milvus_prune import prune_milvus
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="pairvpr-map",
-        description="Inspect and merge saved Pair-VPR place maps (never changes an input map).",
+        description="Inspect and merge saved Pair-VPR place maps (never changes an input map); "
+        "remove Milvus rows no saved map refers to.",
     )
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     info = sub.add_parser(
@@ -40,8 +43,46 @@ def build_parser() -> argparse.ArgumentParser:
         "--index", choices=INDEX_KINDS,
         help="index of the merged map (default: the first map's settings)",
     )  # fmt: skip
+    merge.add_argument(
+        "--milvus-uri", metavar="URI", help="index milvus: a milvus-lite file (.db) or "
+        "http(s)://host:port (default: the first map's; needed when it is not a milvus map)",
+    )  # fmt: skip
+    merge.add_argument(
+        "--milvus-collection", metavar="NAME",
+        help="index milvus: the collection (default: the first map's)",
+    )  # fmt: skip
     merge.add_argument("--quiet", action="store_true", help="no progress bar")
+    _prune_parser(sub)
     return p
+
+
+def _prune_parser(sub) -> None:
+    prune = sub.add_parser(
+        "prune-milvus", help="list the rows of a Milvus keyframe collection that no saved map "
+        "refers to (runs never saved, keyframes past a map's last save); --yes removes them",
+    )  # fmt: skip
+    prune.add_argument(
+        "uri", metavar="URI",
+        help="the maps' milvus_uri: a milvus-lite file (.db) or http(s)://host:port",
+    )  # fmt: skip
+    prune.add_argument(
+        "--maps", metavar="DIR", nargs="+", required=True,
+        help="folders holding every saved map of the collection (searched recursively): rows "
+        "of maps not found there count as stale (such a map gets them back on its next load)",
+    )  # fmt: skip
+    prune.add_argument(
+        "--collection", default="pairvpr_keyframes", metavar="NAME",
+        help="the collection (milvus_collection; default %(default)s)",
+    )  # fmt: skip
+    prune.add_argument(
+        "--token-env", default="PAIRVPR_MILVUS_TOKEN", metavar="NAME",
+        help="environment variable holding the server token (default %(default)s)",
+    )  # fmt: skip
+    prune.add_argument(
+        "--yes", action="store_true",
+        help="remove the stale rows (default: a dry run that only lists them); on a server, "
+        "stop the robots writing the collection first: a live map's unsaved rows are stale",
+    )  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -53,7 +94,14 @@ def _run(args: argparse.Namespace) -> int | None:
         info = map_info(args.map)
         print(json.dumps(info.to_dict(), indent=1) if args.json else "\n".join(info.lines()))
         return None
-    result = merge_maps(args.maps, args.out, index=args.index, progress=not args.quiet)
+    if args.command == "prune-milvus":
+        pruned = prune_milvus(args.uri, args.maps, args.collection, args.yes, args.token_env)
+        print("\n".join(pruned.lines()))
+        return None
+    result = merge_maps(
+        args.maps, args.out, index=args.index, progress=not args.quiet,
+        milvus_uri=args.milvus_uri, milvus_collection=args.milvus_collection,
+    )  # fmt: skip
     for warning in result.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     print(result.line())

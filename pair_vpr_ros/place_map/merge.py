@@ -13,6 +13,11 @@ continues the other's session (saved twice) and harmless otherwise for the searc
 (recent-keyframe exclusion inside that session works by stamp, so copies of one keyframe never
 match each other); but the pose graph would take them for one trajectory, so the warning says
 which inputs share which session.
+
+Index kind "milvus" (docs/milvus.md): the merged map gets its own writer key in the first
+input's collection (or the one `milvus_uri` / `milvus_collection` name), so the inputs' rows
+are never touched; inputs of any kinds mix, since keyframes are copied from each map's own
+descriptors. A merge that fails deletes the rows it wrote.
 """
 
 from __future__ import annotations
@@ -50,11 +55,16 @@ def merge_maps(
     out: str | os.PathLike,
     index: str | IndexConfig | None = None,
     progress: bool = False,
+    milvus_uri: str | None = None,
+    milvus_collection: str | None = None,
 ) -> MergeResult:
     """Merge the saved maps `inputs` (at least two) into the new folder `out` -> MergeResult.
-    index: the merged map's index (default: the first input's settings). ConfigError (too few
-    inputs, one given twice, `out` exists), MapError / MapFingerprintError (an input is not a
-    map, is damaged, or comes from another model); `out` is not created then."""
+    index: the merged map's index: an IndexConfig, or a kind that keeps the first input's
+    other settings (default: the first input's settings); milvus_uri / milvus_collection
+    replace the first input's (needed for kind "milvus" when the first input is not one).
+    ConfigError (too few inputs, one given twice, `out` exists, index settings), MapError /
+    MapFingerprintError (an input is not a map, is damaged, or comes from another model);
+    `out` is not created then."""
     target = Path(out).expanduser().resolve()
     dirs = [Path(d).expanduser().resolve() for d in inputs]
     _check_arguments(dirs, target)
@@ -63,10 +73,11 @@ def merge_maps(
         for d in dirs:
             maps.append(_open(d))
         _check_same_model(maps)
+        config = merged_index(maps[0], index, milvus_uri, milvus_collection)
         result = MergeResult(out=str(target))
         result.warnings += [m.load_note for m in maps if m.load_note]
         result.warnings += _shared_sessions(maps)
-        merged = _copy(maps, index, result, target.parent, progress)
+        merged = _copy(maps, config, result, target.parent, progress)
         _publish(merged, target)
     finally:
         for m in maps:
@@ -98,6 +109,30 @@ def _open(d: Path) -> PlaceMap:
         raise type(err)(f"input map {d} cannot be merged: {err}") from err
 
 
+def merged_index(
+    first: PlaceMap, index, milvus_uri: str | None, milvus_collection: str | None
+) -> IndexConfig:
+    """The merged map's IndexConfig (see merge_maps); ConfigError when milvus settings are
+    missing or given for another kind."""
+    if isinstance(index, IndexConfig):
+        return index
+    base = first.index_config
+    kind = index or base.kind
+    fields = {k: v for k, v in (("milvus_uri", milvus_uri), ("milvus_collection",
+              milvus_collection)) if v is not None}  # fmt: skip
+    if kind != "milvus" and fields:
+        raise ConfigError(
+            f"--milvus-uri and --milvus-collection apply to a milvus index only, the merged "
+            f"map's index is {kind!r}: add --index milvus or leave them out"
+        )
+    if kind == "milvus" and base.kind != "milvus" and "milvus_uri" not in fields:
+        raise ConfigError(
+            f"--index milvus needs --milvus-uri (a milvus-lite .db file or http://host:19530): "
+            f"the first map, {first.directory}, has a {base.kind!r} index and no Milvus settings"
+        )
+    return replace(base, kind=kind, **fields)
+
+
 def _check_same_model(maps: list[PlaceMap]) -> None:
     first = maps[0]
     for m in maps[1:]:
@@ -127,13 +162,10 @@ def _shared_sessions(maps: list[PlaceMap]) -> list[str]:
 
 
 def _copy(
-    maps: list[PlaceMap], index, result: MergeResult, work: Path, progress: bool
+    maps: list[PlaceMap], index: IndexConfig, result: MergeResult, work: Path, progress: bool
 ) -> PlaceMap:
     first = maps[0]
-    merged = PlaceMap(
-        first.desc_dim, first.dense_shape, first.fingerprint, index or first.index_config,
-        work_dir=work,
-    )  # fmt: skip
+    merged = PlaceMap(first.desc_dim, first.dense_shape, first.fingerprint, index, work_dir=work)
     total = sum(len(m) for m in maps)
     try:
         with tqdm(total=total, unit="keyframe", desc="merge", disable=not progress) as bar:
@@ -151,6 +183,7 @@ def _copy(
                     bar.update(len(ids))
         result.keyframes = len(merged)
     except BaseException:
+        merged.drop_index_rows()  # milvus: no saved map will name them
         merged.close()
         raise
     return merged
@@ -159,13 +192,17 @@ def _copy(
 def _publish(merged: PlaceMap, target: Path) -> None:
     """Save `merged` into a temporary folder beside `target`, then rename it to `target`."""
     tmp = target.parent / f".{target.name}.merging-{os.getpid()}"
+    closed = False
     try:
         merged.save(tmp)
-        merged.close()  # releases the folder's lock before the rename
         if target.exists():
             raise ConfigError(f"--out {target} appeared while merging: the merge is not saved")
+        merged.close()  # releases the folder's lock before the rename
+        closed = True
         os.rename(tmp, target)
     except BaseException:
+        if not closed:  # no saved map will name its rows (a failed rename leaves them: prune)
+            merged.drop_index_rows()
         merged.close()
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -162,6 +162,30 @@ class MilvusIndex:
             self.writer = secrets.randbelow(MAX_WRITER) + 1
         self._rows, self._synced, self._unsure = [], 0, 0
 
+    def rekey(self) -> None:
+        """Continue under a new writer key, the rows written again from the map's own copy:
+        for a save into a new folder, so that the folder it came from keeps the old key's rows
+        to itself (two folders continued apart must never write the same rows)."""
+        old = self.writer
+        try:
+            self.writer = self._new_writer()
+        except _faults() as err:
+            raise MapError(f"cannot read {self._where()} ({mc._reason(err)})") from err
+        self._synced = self._unsure = 0
+        if self.flush():
+            _log.info("place map: rows of writer %d copied to writer %d", old, self.writer)
+
+    def drop(self) -> None:
+        """Delete this map's rows from the collection (a map no saved folder will name: a
+        failed merge); if Milvus does not answer they stay, for `pairvpr-map prune-milvus`."""
+        try:
+            self.client.delete(self.collection, filter=id_range(self.base, 0, 2**ID_BITS))
+        except _faults() as err:
+            _log.warning(
+                "place map: %s did not answer (%s): the rows of writer %d stay; remove them "
+                "later with pairvpr-map prune-milvus", self._where(), mc._reason(err), self.writer,
+            )  # fmt: skip
+
     # ------------------------------------------------------------------------- queries
 
     def search(

@@ -51,6 +51,11 @@ def where(uri: str) -> str:
     return f"Milvus server {scheme}://{rest.rpartition('@')[2]}"
 
 
+def is_lite_folder(path: Path) -> bool:
+    """`path` holds milvus-lite's data (its LOCK file and collections folder)."""
+    return (path / "LOCK").is_file() and (path / "collections").is_dir()
+
+
 def connect(uri: str, token_env: str) -> Any:
     """A MilvusClient for `uri` (a milvus-lite file is created if missing); the token, if any,
     comes from the environment variable `token_env` and is never logged or stored."""
@@ -59,6 +64,12 @@ def connect(uri: str, token_env: str) -> Any:
         raise MapError(
             f"cannot open {where(uri)}: its folder {Path(uri).parent} does not exist; create it "
             "or set milvus_uri to a path in an existing folder"
+        )
+    if is_lite(uri) and Path(uri).exists() and not Path(uri).is_dir():
+        raise MapError(
+            f"cannot open {where(uri)}: it is a plain file, but milvus-lite keeps its data in a "
+            "folder of that name; set milvus_uri to the path the maps were made with or to a new "
+            "one"
         )
     token = os.environ.get(token_env, "") if token_env else ""
     try:
@@ -93,14 +104,19 @@ def open_collection(
             _create(client, milvus, name, dim, fingerprint, index)
         else:
             check_collection(client.describe_collection(name), uri, name, dim, fingerprint)
-        if str(client.get_load_state(name).get("state")) != "Loaded":
-            client.load_collection(name)  # a re-opened lite file comes back released
+        ensure_loaded(client, name)
         return str(client.describe_index(name, "desc").get("index_type", index["index_type"]))
     except milvus.MilvusException as err:
         raise MapError(
             f"cannot open collection {name!r} in {where(uri)} ({_reason(err)}): check that the "
             "server runs and that the token allows it"
         ) from err
+
+
+def ensure_loaded(client: Any, name: str) -> None:
+    """Load collection `name` for search and query (a re-opened lite file comes back released)."""
+    if str(client.get_load_state(name).get("state")) != "Loaded":
+        client.load_collection(name)
 
 
 def _create(client: Any, milvus: Any, name: str, dim: int, fingerprint: str, index: dict):
@@ -133,14 +149,8 @@ def check_collection(info: dict, uri: str, name: str, dim: int, fingerprint: str
     """MapError unless `info` (describe_collection) is a keyframe collection of `dim`-d
     descriptors made by the model `fingerprint` (MapFingerprintError when another model)."""
     place = f"collection {name!r} in {where(uri)}"
+    fields = check_layout(info, place)
     props = info.get("properties") or {}
-    fields = {f["name"]: f for f in info.get("fields", [])}
-    if props.get(FORMAT_KEY) != FORMAT or tuple(fields) != FIELDS:
-        raise MapError(
-            f"{place} is not a pair_vpr_ros keyframe collection (fields {list(fields)}, format "
-            f"{props.get(FORMAT_KEY)!r}; expected fields {list(FIELDS)}): set milvus_collection "
-            "to a new name or to one this package made"
-        )
     have = int(fields["desc"].get("params", {}).get("dim", -1))
     if have != int(dim):
         raise MapError(
@@ -157,3 +167,17 @@ def check_collection(info: dict, uri: str, name: str, dim: int, fingerprint: str
             f"{place} holds descriptors of model {stored!r}, this map's model is "
             f"{fingerprint!r}: use the same weights and image size, or another milvus_collection"
         )
+
+
+def check_layout(info: dict, place: str) -> dict:
+    """MapError unless `info` (describe_collection of `place`) has this package's keyframe
+    layout -> its fields by name."""
+    props = info.get("properties") or {}
+    fields = {f["name"]: f for f in info.get("fields", [])}
+    if props.get(FORMAT_KEY) != FORMAT or tuple(fields) != FIELDS:
+        raise MapError(
+            f"{place} is not a pair_vpr_ros keyframe collection (fields {list(fields)}, format "
+            f"{props.get(FORMAT_KEY)!r}; expected fields {list(FIELDS)}): set milvus_collection "
+            "to a new name or to one this package made"
+        )
+    return fields

@@ -186,6 +186,14 @@ class PlaceMap(MapSaving):
         self._discard(old)
         self._dense_committed = False
 
+    def drop_index_rows(self) -> None:
+        """Kind "milvus": delete this map's rows from the collection. Only for a map that no
+        saved folder names (a failed merge): a saved map would lose its rows until its next
+        load. Other kinds: nothing to do."""
+        self._check_open()
+        if self.filters_in_index:
+            self._index.drop()
+
     @property
     def index_config(self) -> IndexConfig:
         return self._index.config

@@ -32,7 +32,9 @@ class MapSaving:
         A crash at any moment leaves the previous save in `directory` loadable and intact. After
         a save the map continues in that directory: later saves there only append dense tokens.
         A map of another model saved there is refused (MapFingerprintError) unless `overwrite`.
-        A failed save into a folder it created leaves no folder behind.
+        A failed save into a folder it created leaves no folder behind. Kind "milvus": a save
+        into another folder than the last one writes the rows again under a new writer key
+        (the last folder keeps its own rows; cost: one insert of every keyframe).
         """
         self._check_writable("save")
         target = Path(directory).expanduser().resolve()
@@ -50,6 +52,8 @@ class MapSaving:
                 _remove_new_folder(target)
             raise
         in_place = self._dense_committed and target == self._home
+        if self._home is not None and target != self._home and self.filters_in_index:
+            self._index.rekey()  # milvus: `_home` keeps its rows, this save gets its own
         try:
             manifest, copied = persist.save(target, self._parts(), in_place)
         except BaseException as err:

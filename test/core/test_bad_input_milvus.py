@@ -66,6 +66,20 @@ def test_a_lite_file_in_a_missing_folder(tmp_path: Path) -> None:
     assert not uri.parent.exists()
 
 
+def test_a_lite_path_that_is_a_plain_file(tmp_path: Path) -> None:
+    """milvus-lite keeps a "file" in a folder: a plain file there is refused, not overwritten."""
+    uri = tmp_path / "maps.db"
+    uri.write_text("notes")
+    with pytest.raises(MapError) as err:
+        PlaceMap(DIM, SHAPE, "fp", index=IndexConfig(kind="milvus", milvus_uri=str(uri)))
+    assert str(err.value) == (
+        f"cannot open milvus-lite file {uri}: it is a plain file, but milvus-lite keeps its data "
+        "in a folder of that name; set milvus_uri to the path the maps were made with or to a "
+        "new one"
+    )
+    assert uri.read_text() == "notes"
+
+
 def test_a_server_unreachable_at_start(tmp_path: Path) -> None:
     config = IndexConfig(kind="milvus", milvus_uri="http://127.0.0.1:9")
     with pytest.raises(MapError) as err:
