@@ -17,7 +17,8 @@ which inputs share which session.
 Index kind "milvus" (docs/milvus.md): the merged map gets its own writer key in the first
 input's collection (or the one `milvus_uri` / `milvus_collection` name), so the inputs' rows
 are never touched; inputs of any kinds mix, since keyframes are copied from each map's own
-descriptors. A merge that fails deletes the rows it wrote.
+descriptors. A merge that fails deletes the rows it wrote (closing a never-saved map does; after
+the save into the temporary folder, `drop_index_rows`).
 """
 
 from __future__ import annotations
@@ -183,8 +184,7 @@ def _copy(
                     bar.update(len(ids))
         result.keyframes = len(merged)
     except BaseException:
-        merged.drop_index_rows()  # milvus: no saved map will name them
-        merged.close()
+        merged.close()  # milvus: deletes its rows, which no saved record names
         raise
     return merged
 

@@ -73,6 +73,8 @@ class MilvusIndex:
         self.down = False  # the last call to Milvus failed
         self.skipped = 0  # searches refused while Milvus was unreachable
         self.writer = self._new_writer() if writer is None else int(writer)
+        # no saved record names this writer key (yet): its rows are deleted on close
+        self.unrecorded = writer is None
 
     @property
     def base(self) -> int:
@@ -152,15 +154,18 @@ class MilvusIndex:
         ]
 
     def reset(self) -> None:
-        """Forget every keyframe: this map's rows are deleted (if Milvus answers) and it
-        continues under a new writer key, so rows left behind are never seen again."""
+        """Forget every keyframe: this map continues under a new writer key, so rows left
+        behind are never seen again; they are deleted (if Milvus answers) unless a saved record
+        names them (that folder keeps its rows)."""
         try:
-            self.client.delete(self.collection, filter=id_range(self.base, 0, 2**ID_BITS))
+            if self.unrecorded:
+                self.client.delete(self.collection, filter=id_range(self.base, 0, 2**ID_BITS))
             self.writer = self._new_writer()
         except _faults() as err:
             _log.warning("place map clear: %s did not answer (%s)", self._where(), err)
             self.writer = secrets.randbelow(MAX_WRITER) + 1
         self._rows, self._synced, self._unsure = [], 0, 0
+        self.unrecorded = True
 
     def rekey(self) -> None:
         """Continue under a new writer key, the rows written again from the map's own copy:
@@ -172,6 +177,7 @@ class MilvusIndex:
         except _faults() as err:
             raise MapError(f"cannot read {self._where()} ({mc._reason(err)})") from err
         self._synced = self._unsure = 0
+        self.unrecorded = True
         if self.flush():
             _log.info("place map: rows of writer %d copied to writer %d", old, self.writer)
 
@@ -236,6 +242,10 @@ class MilvusIndex:
         return self._desc[np.asarray(ids, np.int64)].copy()
 
     def close(self) -> None:
+        """Let go of the client; the rows of a map no saved record names (never saved: an
+        interrupted replay, a cancelled build) are deleted first, since nothing could load them."""
+        if self.unrecorded and self._rows:
+            self.drop()
         try:
             self.client.close()
         except _faults():
@@ -246,6 +256,7 @@ class MilvusIndex:
     def write(self, path: Path) -> None:
         """The record of this index: where its rows live, its writer key and its copy."""
         n = len(self._rows)
+        self.unrecorded = False  # from here on a save may name this key (kept even if it fails)
         record = dict(format=RECORD_FORMAT, uri=self.uri, collection=self.collection,
                       writer=self.writer, dim=self.dim, count=n)  # fmt: skip
         robots, sessions, stamps = [list(c) for c in zip(*self._rows, strict=True)] or [[]] * 3

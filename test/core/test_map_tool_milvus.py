@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from bad_input import saved_map_digest
+from bad_input import make_flaky, saved_map_digest
 from map_fixtures import DENSE, DIM, make_map
 
 from pair_vpr_ros.offline.map_cli import main
@@ -138,7 +138,8 @@ def test_a_merge_that_dies_removes_the_rows_it_wrote(milvus, tmp_path, capsys, m
 
 
 def _unsaved_run(config: IndexConfig, n: int) -> None:
-    """A map that writes `n` rows and is never saved (an interrupted replay)."""
+    """A map that writes `n` rows and is never saved, and cannot delete them when it closes
+    (Milvus gone then, or a crash)."""
     m = PlaceMap(DIM, DENSE, "model-a", index=config)
     for i in range(n):
         m.add(
@@ -146,6 +147,7 @@ def _unsaved_run(config: IndexConfig, n: int) -> None:
             np.zeros(DENSE),
             KeyframeMeta(stamp=i, robot="r9", session="crash"),
         )
+    make_flaky(m).down = True
     m.close()
 
 
@@ -169,6 +171,7 @@ def test_prune_removes_stale_rows_and_keeps_every_saved_one(site, tmp_path, caps
         m.save(b)
         m.add(QUERIES[1], np.zeros(DENSE), KeyframeMeta(stamp=51.0, robot="r1", session="mon"))
         writer_b = m._index.writer
+        make_flaky(m).down = True  # a crash: the 5th row stays
     assert writer_b != writer_a  # a save into a new folder writes its rows under its own key
     _unsaved_run(site, 4)
     writer_u = _stale_writer(site, {writer_a, writer_b})

@@ -295,3 +295,39 @@ def test_map_search_gives_milvus_the_identity_rules(milvus):
         assert [(c.id, c.robot, c.session) for c in got] == [
             (c.id, c.robot, c.session) for c in want
         ]
+
+
+def _rows_in(config: IndexConfig) -> int:
+    from pymilvus import MilvusClient
+
+    found = MilvusClient(config.milvus_uri).query(
+        config.milvus_collection, filter="pk >= 0", output_fields=["count(*)"]
+    )
+    return int(found[0]["count(*)"])
+
+
+def test_closing_a_never_saved_map_deletes_its_rows(milvus, tmp_path, caplog):
+    """Rows no saved record names could never be loaded (an interrupted replay): close deletes
+    them; rows a saved folder names stay, also through clear()."""
+    filled(milvus, 4).close()
+    assert _rows_in(milvus) == 0
+    with filled(milvus, 3) as m:
+        m.save(tmp_path / "map")
+        add_range(m, 3, 5)  # past the save: left for the next writable load (or prune-milvus)
+    assert _rows_in(milvus) == 5
+    with PlaceMap.load(tmp_path / "map", "fp") as m:  # removes the 2 unsaved rows
+        m.clear()  # the folder still names its 3 rows: they stay
+        add_range(m, 0, 2)
+    assert _rows_in(milvus) == 3
+    caplog.clear()
+    with caplog.at_level(logging.WARNING), PlaceMap.load(tmp_path / "map", "fp") as m:
+        assert m.search(desc_for(2), 1)[0][0] == 2 and caplog.text == ""
+    m = filled(milvus, 2)
+    make_flaky(m).down = True  # Milvus gone at close (or a crash): the rows stay
+    with caplog.at_level(logging.WARNING):
+        m.close()
+    assert (
+        f"did not answer (Fail connecting to server on 127.0.0.1:19530): the rows of writer "
+        f"{m._index.writer} stay; remove them later with pairvpr-map prune-milvus" in caplog.text
+    )
+    assert _rows_in(milvus) == 3 + 2
