@@ -116,7 +116,7 @@ def _prune(client, uri: str, collection: str, saved: dict, apply: bool) -> Prune
     place = f"collection {collection!r} in {mc.where(uri)}"
     if not client.has_collection(collection):
         raise MapError(
-            f"{place} does not exist (the file holds {sorted(client.list_collections())}): "
+            f"{place} does not exist (collections there: {sorted(client.list_collections())}): "
             "give --collection the maps' milvus_collection"
         )
     mc.check_layout(client.describe_collection(collection), place)

@@ -79,8 +79,8 @@ CASES = {
     ),
     "no such collection": (
         lambda t, s: [s, "--collection", "nope"],
-        "collection 'nope' in milvus-lite file {s} does not exist (the file holds ['kf']): give "
-        "--collection the maps' milvus_collection",
+        "collection 'nope' in milvus-lite file {s} does not exist (collections there: ['kf']): "
+        "give --collection the maps' milvus_collection",
     ),
     "collection of another program": (
         _other_program,
