@@ -37,6 +37,7 @@ from pair_vpr_ros.place_map.index import IndexConfig
 from pair_vpr_ros.place_map.place_map import PlaceMap
 
 CHUNK = 64  # keyframes whose dense tokens are read at once
+MILVUS_FIELDS = ("milvus_uri", "milvus_collection", "milvus_index", "milvus_token_env")
 
 
 @dataclass
@@ -131,6 +132,9 @@ def merged_index(
             f"--index milvus needs --milvus-uri (a milvus-lite .db file or http://host:19530): "
             f"the first map, {first.directory}, has a {base.kind!r} index and no Milvus settings"
         )
+    if kind != "milvus":  # a FAISS map records no Milvus settings
+        plain = IndexConfig()
+        fields = {k: getattr(plain, k) for k in MILVUS_FIELDS}
     return replace(base, kind=kind, **fields)
 
 

@@ -91,10 +91,13 @@ def test_merge_a_milvus_map_with_a_flat_one(milvus, tmp_path, capsys):
     flags = ["--index", "milvus", "--milvus-uri", other.milvus_uri]
     flags += ["--milvus-collection", other.milvus_collection, "--quiet"]
     assert main(["merge", str(f), str(m), "--out", str(tmp_path / "fm2"), *flags]) == 0
+    mf3 = ["merge", str(m), str(f), "--out", str(tmp_path / "mf3"), "--index", "flat"]
+    assert main([*mf3, "--quiet"]) == 0
     capsys.readouterr()
-    for out, kind, want in (("mf", "milvus", want_mf), ("fm", "flat", want_fm)):
+    for out, config, want in (("mf", milvus, want_mf), ("fm", IndexConfig(), want_fm),
+                              ("mf3", IndexConfig(), want_mf)):  # fmt: skip
         with PlaceMap.load(tmp_path / out, read_only=True) as merged:
-            assert (merged.index_config.kind, len(merged)) == (kind, 5)
+            assert (merged.index_config, len(merged)) == (config, 5)
             _assert_same(_results(merged, QUERIES), want)
     with PlaceMap.load(tmp_path / "fm2", read_only=True) as merged:
         assert merged.index_config == IndexConfig(
