@@ -91,8 +91,8 @@ def encode_views(
     model: PairVPR, paths: list[Path], batch: int = 64, grey: bool = False
 ) -> tuple[torch.Tensor, ...]:
     """Paths -> (dense [M,N,D], descriptors [M,C]) on the CPU, encoded at the model's image size
-    on its device; ``grey``: of
-    their grey versions, as the demo's mono8 bags and `imaging` make them."""
+    on its device; ``grey``: of their grey versions, as the demo's mono8 bags and `imaging`
+    make them."""
     dense, desc = [], []
     for i in range(0, len(paths), batch):
         rgb = [read_rgb(p) for p in paths[i : i + batch]]
