@@ -24,9 +24,14 @@ PARAMS: tuple[ParamSpec, ...] = (
     _p("odom_qos", "sensor_data", "odometry QoS: sensor_data (best effort, hears every "
        "publisher) or reliable", choices=("sensor_data", "reliable"), **RO),
     _p("trajectories", "", "several robot-sessions: comma-separated ROBOT/SESSION=ODOM_TOPIC "
-       "(e.g. 'a/day1=/a/odom, b/day1=/b/odom'), the first one the map frame, each robot's loops "
+       "(e.g. 'a/day1=/a/odom, b/day1=/b/odom'), the first one the map frame (after any "
+       "prior_map_dirs sessions), each robot's loops "
        "on /ROBOT/<loop_topic>; SESSION may be empty (any session of that robot); '' = one robot "
        "on odom_topic and loop_topic", **RO),
+    _p("prior_map_dirs", (), "saved place maps (e.g. vpr_node's prior_map_dirs) whose "
+       "keyframe poses become one trajectory per robot-session, loaded before any message: "
+       "the first one's first session is the map frame, the live trajectories join it by their "
+       "loops into those keyframes", strings=True, **RO),
     _p("map_frame", "map", "frame of the corrected path and parent of map_to_odom", **RO),
     _p("odom_frame", "", "child frame of map_to_odom ('' = the odometry's header.frame_id)", **RO),
     _p("path_period", 1.0, "seconds between corrected_path messages (the whole path each time)",

@@ -18,7 +18,9 @@ subscription per robot-session, one graph; the loops name their robots and sessi
 message's frame ids of a loop between two; a loop within one comes on its robot's
 ``/<robot>/<loop_topic>``). The first is the map frame; each robot's outputs go to
 ``<robot>/corrected_path``, ``<robot>/map_to_odom`` and ``<robot>/corrected_odom`` once it has
-joined the map frame.
+joined the map frame. Prior sessions (``prior_map_dirs``: saved maps' keyframe poses, one
+trajectory per robot-session, ``posegraph.priors``) come before the live ones: the first is the
+map frame, and a live robot's loops into their keyframes place it there (no outputs of their own).
 Only rclpy code lives here; the graph is ``posegraph.graph``, its parameters ``posegraph.params``.
 """
 
@@ -40,10 +42,11 @@ from pair_vpr_ros.errors import ConfigError, PairVPRError
 from pair_vpr_ros.loop_factor import LoopFactor, factor_from_msg
 from pair_vpr_ros.params import check_value, params_file_problem
 from pair_vpr_ros.posegraph import params
-from pair_vpr_ros.posegraph.graph import PoseGraph
 from pair_vpr_ros.posegraph.loops import own
+from pair_vpr_ros.posegraph.priors import graph_with_priors, read_prior_sessions
+from pair_vpr_ros.posegraph.tracks import label
 from pair_vpr_ros.posegraph.transforms import pose3, pose7
-from pair_vpr_ros.ros.parameters import descriptor
+from pair_vpr_ros.ros.parameters import declared_default, descriptor, read_value
 from pair_vpr_ros.types import message_pose, message_stamp, split_stamp
 
 
@@ -65,8 +68,8 @@ class PoseGraphNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__(params.NODE_NAME, **kwargs)
         for spec in params.PARAMS:
-            self.declare_parameter(spec.name, spec.default, descriptor(spec))
-        v = {spec.name: self.get_parameter(spec.name).value for spec in params.PARAMS}
+            self.declare_parameter(spec.name, declared_default(spec), descriptor(spec))
+        v = {spec.name: read_value(self, spec) for spec in params.PARAMS}
         if not isinstance(v["camera_to_base"], tuple):
             v["camera_to_base"] = tuple(float(x) for x in v["camera_to_base"])
         reasons = [r for name, value in v.items() if (r := check_value(name, value, params.SPECS))]
@@ -78,7 +81,18 @@ class PoseGraphNode(Node):
         if len(set(robots)) < len(robots):
             raise ConfigError("trajectories: a robot is given twice (a node follows one live "
                               "session per robot)")  # fmt: skip
-        self.graph = PoseGraph(params.posegraph_config(v), [(r, s) for r, s, _ in entries])
+        # Prior sessions first (the map frame), fed before any live message.
+        priors = read_prior_sessions(v["prior_map_dirs"])
+        live = [(r, s) for r, s, _ in entries]
+        self.graph = graph_with_priors(params.posegraph_config(v), priors, live)
+        for note in priors.notes:
+            self.get_logger().info(note)
+        for session in priors.sessions:
+            self.get_logger().info(
+                f"prior session {label(session.trajectory)}: {len(session.stamps)} keyframe poses"
+            )
+        if priors.skipped:
+            self.get_logger().warning(f"prior keyframes skipped: {dict(priors.skipped)}")
         self.loops_received = 0
         self.loops_undecodable = 0  # what became of the others: graph.counts
         qos = qos_profile_sensor_data if v["odom_qos"] == "sensor_data" else QoSProfile(depth=50)

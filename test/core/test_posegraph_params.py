@@ -50,6 +50,8 @@ def test_parameter_file_round_trip(tmp_path):
         ("loop_kernel", "l2", "loop_kernel='l2' must be one of cauchy, huber, none"),
         ("node_spacing_m", 0.0, "node_spacing_m=0.0 is out of range [0.01, 1000.0]"),
         ("loop_iterations", 1.5, "loop_iterations must be an integer, got 1.5"),
+        ("prior_map_dirs", "/a", "prior_map_dirs must be a list of non-empty strings, got '/a'"),
+        ("prior_map_dirs", ["/maps/a", ""], "prior_map_dirs must be a list of non-empty strings"),
     ],
 )
 def test_bad_values(name, value, reason):

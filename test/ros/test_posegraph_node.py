@@ -26,6 +26,7 @@ from ros_cli import wait_for
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.loop_factor import FACTOR_MSG_TYPES, factor_msg
 from pair_vpr_ros.posegraph.simulate import ground_truth_loops
+from pair_vpr_ros.posegraph.transforms import pose3
 from pair_vpr_ros.ros import posegraph_node
 from pair_vpr_ros.ros.posegraph_node import PoseGraphNode
 
@@ -235,3 +236,65 @@ def test_a_robot_twice_refuses_to_start(ros):
         PoseGraphNode(parameter_overrides=[
             Parameter("trajectories", value="a/s1=/a/odom, a/s2=/a2/odom")
         ])  # fmt: skip
+
+
+def test_prior_map_sessions_are_the_map_frame_a_live_robot_relocalises_into(ros, tmp_path):
+    """prior_map_dirs: the saved map's robot-session (a/day1, its keyframe poses) is the map
+    frame; the single live robot's loops into its keyframes are added, not skipped, and its
+    corrected odometry lands in a/day1's frame."""
+    import fleet_drives as fd
+    from map_fixtures import prior_drive_map
+
+    from pair_vpr_ros.loop_factor import factor_from_msg
+
+    a, b = fd.robot(0, seed=1, laps=1), fd.robot(60, seed=2, laps=1)
+    A, B = ("a", "day1"), ("b", "s1")
+    loops = fd.loops(b, a, B, A, 60, np.random.default_rng(0), every=5)
+    prior = prior_drive_map(tmp_path / "a_day1", a, without_pose={7})
+    node = PoseGraphNode(parameter_overrides=[
+        Parameter("prior_map_dirs", value=[prior]),
+        Parameter("camera_to_base", value=list(drives.CAMERA)),
+    ])  # fmt: skip
+    try:
+        assert [t.trajectory for t in node.graph.tracks] == [A, ("", "")]
+        assert list(node.outputs) == [("", "")]  # no outputs of a prior session
+        assert node.graph.counts.skipped == {"prior keyframe: no pose": 1}
+        k = 0
+        for stamp, pose in zip(b[0], b[2], strict=True):
+            node._on_odom(odom_msg(stamp, pose))
+            while k < len(loops) and loops[k].query_stamp <= stamp:
+                msg = factor_msg(loops[k], CLASSES)
+                assert "@b@s1" in msg.child_frame_id and "@a@day1" in msg.header.frame_id
+                assert node.add_loop(factor_from_msg(msg)) in ("added", "waiting")
+                k += 1
+        node.publish_path()
+        assert node.graph.counts.loops_added == len(loops)
+        assert node.graph.counts.skipped == {"prior keyframe: no pose": 1}
+        assert node.graph.joined(("", ""))
+        assert fd.world_error(node.graph, ("", ""), b, a) < 1.0
+        # corrected odometry at the last stamp, in the prior frame: map_to_odom * odometry
+        end = node.graph.map_to_odom(("", "")).compose(pose3(b[2][-1])).translation()[:2]
+        truth = pose3(a[1][0]).inverse().compose(pose3(b[1][-1])).translation()[:2]
+        assert np.linalg.norm(end - truth) < 1.0 < np.linalg.norm(b[2][-1][:2] - truth)
+    finally:
+        node.destroy_node()
+
+
+def test_a_prior_session_given_live_or_a_missing_map_refuses_to_start(ros, tmp_path, capfd):
+    import fleet_drives as fd
+    from map_fixtures import prior_drive_map
+
+    prior = prior_drive_map(tmp_path / "a_day1", fd.robot(0, seed=1, laps=1))
+    with pytest.raises(ConfigError, match="trajectories: robot-session a/day1 is a prior session"):
+        PoseGraphNode(parameter_overrides=[
+            Parameter("prior_map_dirs", value=[prior]),
+            Parameter("trajectories", value="a/day1=/a/odom"),
+        ])  # fmt: skip
+    rclpy.try_shutdown()
+    missing = tmp_path / "nowhere"
+    argv = ["posegraph_node", "--ros-args", "-p", f"prior_map_dirs:=['{missing}']"]
+    assert posegraph_node.main(argv) == 1
+    assert (
+        f"[posegraph_node]: cannot start: prior_map_dirs: {missing} does not exist or is not a "
+        "folder: give the folder of a saved place map (vpr_node's save_map, a replay's map/)"
+    ) in capfd.readouterr().err
