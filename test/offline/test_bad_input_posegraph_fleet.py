@@ -1,6 +1,6 @@
 """Bad-input matrix, pose graph of several robot-sessions (issue 22 part 5): pairvpr-posegraph
---trajectory and posegraph_node's `trajectories`. Each case is a clear error with exact words or
-a counted skip; nothing is written for an error."""
+--trajectory and posegraph_node's `trajectories` and `prior_map_dirs`. Each case is a clear
+error with exact words or a counted skip; nothing is written for an error."""
 
 from __future__ import annotations
 
@@ -9,12 +9,18 @@ import json
 import fleet_drives as fd
 import numpy as np
 import pytest
+from bad_input import tree_digest
+from map_fixtures import make_map, save_keyframes
 from test_posegraph_cli import write_odometry_bag
 from test_posegraph_fleet_cli import write_loops
 
-from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.errors import ConfigError, MapError
 from pair_vpr_ros.offline.posegraph import main
+from pair_vpr_ros.posegraph.graph import PoseGraphConfig
 from pair_vpr_ros.posegraph.params import parse_trajectories
+from pair_vpr_ros.posegraph.priors import graph_with_priors, read_prior_sessions
+
+IDENTITY7 = (0, 0, 0, 0, 0, 0, 1)
 
 
 @pytest.fixture(scope="module")
@@ -126,4 +132,84 @@ def test_node_trajectories_parse():
     assert parse_trajectories("", "odom") == [("", "", "odom")]
     assert parse_trajectories(" a/day1=/a/odom , b=/b/odom", "odom") == [
         ("a", "day1", "/a/odom"), ("b", "", "/b/odom")
+    ]  # fmt: skip
+
+
+# ---- posegraph_node's prior_map_dirs (posegraph.priors): refused before the graph is built, no
+# prior map changes; unusable keyframes are counted skips.
+def _damaged(t):
+    d = make_map(t / "d", "a", "day1", 2, seed=1)
+    (d / "meta-1.sqlite").write_bytes(b"x")
+    return [d]
+
+
+PRIOR_CASES = {
+    "missing": (lambda t: [t / "none"], ConfigError,
+                "prior_map_dirs: {t}/none does not exist or is not a folder: give the folder of a "
+                "saved place map (vpr_node's save_map, a replay's map/)"),
+    "a file": (lambda t: [t / "file"], ConfigError,
+               "prior_map_dirs: {t}/file does not exist or is not a folder"),
+    "not a map": (lambda t: [t / "empty"], MapError,
+                  "prior_map_dirs: {t}/empty cannot be used: {t}/empty/manifest.json is missing: "
+                  "{t}/empty is not a saved place map"),
+    "damaged": (_damaged, MapError,
+                "prior_map_dirs: {t}/d cannot be used: map file {t}/d/meta-1.sqlite (meta) does "
+                "not match its checksum"),
+    "given twice": (lambda t: [make_map(t / "a", "a", "day1", 2, seed=1), t / "a" / ".." / "a"],
+                    ConfigError, "prior_map_dirs: {t}/a/../a is given twice: give each folder "
+                    "once"),
+    "a prior session live too": (lambda t: [make_map(t / "a", "b", "s1", 2, seed=1)], ConfigError,
+                                 "trajectories: robot-session b/s1 is a prior session (in {t}/a): "
+                                 "a session id names one recording, so give the live robot a new "
+                                 "session id (or leave SESSION empty)"),
+    "more sessions than keys": (
+        lambda t: [save_keyframes(t / "m", [(1.0, IDENTITY7, f"r{i}", "s") for i in range(52)])],
+        ConfigError, "a pose graph holds at most 52 robot-sessions (prior sessions: 52)"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(PRIOR_CASES))
+def test_bad_prior_maps_are_refused_and_unchanged(tmp_path, case):
+    build, error, message = PRIOR_CASES[case]
+    (tmp_path / "file").write_text("x")
+    (tmp_path / "empty").mkdir()
+    dirs = build(tmp_path)
+    before = tree_digest(tmp_path)
+    with pytest.raises(error) as err:
+        graph_with_priors(PoseGraphConfig(), read_prior_sessions(dirs), [("b", "s1")])
+    assert message.format(t=tmp_path) in str(err.value)
+    assert tree_digest(tmp_path) == before
+
+
+def test_prior_keyframes_that_cannot_be_used_are_counted(tmp_path):
+    """No pose, no robot or session, a zero quaternion, a stamp given twice: counted skips; a
+    session left without a keyframe is no trajectory, and a loop into it a counted skip."""
+    path = save_keyframes(tmp_path / "m", [
+        (1.0, IDENTITY7, "a", "day1"), (2.0, None, "a", "day1"), (3.0, IDENTITY7, "", "day1"),
+        (4.0, (0, 0, 0, 0, 0, 0, 0), "a", "day1"), (1.0, IDENTITY7, "a", "day1"),
+        (5.0, None, "c", "day1"),
+    ])  # fmt: skip
+    graph = graph_with_priors(PoseGraphConfig(), read_prior_sessions([path]), [("b", "s1")])
+    assert [t.trajectory for t in graph.tracks] == [("a", "day1"), ("b", "s1")]
+    assert graph.counts.odometry == 1
+    assert graph.counts.skipped == {
+        "prior keyframe: no pose": 2,
+        "prior keyframe: no robot or session (a loop cannot name it)": 1,
+        "prior keyframe: pose has a zero quaternion": 1,
+        "prior keyframe: stamp of another keyframe of its session": 1,
+    }
+    b = fd.robot(0, seed=2, laps=1)
+    for stamp, pose in zip(b[0][:20], b[2][:20], strict=True):
+        graph.add_odometry(float(stamp), tuple(pose), ("b", "s1"))
+    loop = fd.loops(b, b, ("b", "s1"), ("c", "day1"), 0, np.random.default_rng(0), stop=10)[0]
+    assert graph.add_loop(loop).startswith("robot-session c/day1 is not in the graph")
+    assert graph.counts.skipped["loop: robot-session c/day1 is not in the graph"] == 1
+
+
+def test_a_prior_map_of_any_model_is_read(tmp_path):
+    """The graph needs the keyframes' poses only: no model fingerprint is checked."""
+    path = make_map(tmp_path / "m", "a", "day1", 3, seed=1, fingerprint="model-b")
+    priors = read_prior_sessions([path])
+    assert priors.trajectories == [("a", "day1")] and priors.sessions[0].stamps.tolist() == [
+        10.0, 11.0, 12.0
     ]  # fmt: skip
