@@ -275,6 +275,9 @@ def _config(args: argparse.Namespace) -> PoseGraphConfig:
     values: dict[str, Any] = {}
     if args.params_file is not None:
         values = read_params_file(args.params_file, NODE_NAME, PARAMS)
+        if values.get("prior_map_dirs"):  # the node's; offline every session is a bag
+            print("warning: prior_map_dirs is posegraph_node's, not read here: give each "
+                  "session as --trajectory ROBOT SESSION BAG", file=sys.stderr)  # fmt: skip
     for name, value in (("camera_to_base", args.camera_to_base), ("loop_kernel", args.kernel),
                         ("node_spacing_m", args.node_spacing)):  # fmt: skip
         if value is not None:

@@ -202,3 +202,18 @@ def test_cli_errors(world, tmp_path, capsys, args, code, message):
     argv = [str(bag), "--loops", str(replay), "--out", str(tmp_path / "o"), *args]
     assert main(argv) == code
     assert message.replace("{tmp}", str(tmp_path)) in capsys.readouterr().err
+
+
+def test_a_params_file_with_prior_maps_warns_that_they_are_not_read(tmp_path, capsys):
+    from argparse import Namespace
+
+    from pair_vpr_ros.offline.posegraph import _config
+
+    path = tmp_path / "p.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    prior_map_dirs: ['/maps/a']\n")
+    given = Namespace(params_file=path, camera_to_base=None, kernel=None, node_spacing=None)
+    assert _config(given) == PoseGraphConfig()
+    assert capsys.readouterr().err == (
+        "warning: prior_map_dirs is posegraph_node's, not read here: give each session as "
+        "--trajectory ROBOT SESSION BAG\n"
+    )
