@@ -8,7 +8,9 @@
 exits (e.g. vpr_node finds no weights), the launch shuts the other down. `camera_to_base`
 (the camera's pose in the odometry's child frame, `[x, y, z, qx, qy, qz, qw]`) is given as a
 YAML list, e.g. camera_to_base:="[0.0, 0.0, 1.6, -0.5, 0.5, -0.5, 0.5]" for the demo camera;
-'' keeps the posegraph_params_file's value. Weights are found as in vpr_node.launch.py.
+'' keeps the posegraph_params_file's value. `prior_map_dirs` (a YAML list of saved maps) goes to
+both nodes: vpr_node searches them, posegraph_node makes their sessions its map frame. Weights
+are found as in vpr_node.launch.py.
 Run in a real `ros2 launch` as docs/launch.md says; CI runs it with the stand-ins of
 test/launch_standins.py (test/ros/test_launch_posegraph.py).
 """
@@ -42,6 +44,15 @@ def _nodes(context) -> list[Node]:
                 'camera_to_base:="[x, y, z, qx, qy, qz, qw]"'
             )
         graph_parameters.append({"camera_to_base": [float(v) for v in pose]})
+    if arg("prior_map_dirs"):  # both nodes: vpr_node searches them, the graph is anchored in them
+        dirs = yaml.safe_load(arg("prior_map_dirs"))
+        if not (isinstance(dirs, list) and dirs and all(isinstance(d, str) and d for d in dirs)):
+            raise ValueError(
+                f"prior_map_dirs:={arg('prior_map_dirs')!r} is not a list of folders: give "
+                "prior_map_dirs:=\"['/maps/monday', '/maps/r2']\""
+            )
+        vpr_parameters.append({"prior_map_dirs": dirs})
+        graph_parameters.append({"prior_map_dirs": dirs})
     return [
         Node(
             package="pair_vpr_ros",
@@ -87,6 +98,12 @@ def generate_launch_description() -> LaunchDescription:
             default_value="",
             description="camera pose in the odometry's child frame, '[x, y, z, qx, qy, qz, "
             "qw]'; '' = the posegraph_params_file's",
+        ),
+        DeclareLaunchArgument(
+            "prior_map_dirs",
+            default_value="",
+            description="saved maps for both nodes, '[/maps/a, /maps/b]': vpr_node searches "
+            "them, posegraph_node takes their sessions as the map frame; '' = each params file's",
         ),
         DeclareLaunchArgument(
             "vpr_params_file",

@@ -87,9 +87,10 @@ class PoseGraphNode(Node):
         self.graph = graph_with_priors(params.posegraph_config(v), priors, live)
         for note in priors.notes:
             self.get_logger().info(note)
-        for session in priors.sessions:
+        for i, session in enumerate(priors.sessions):
             self.get_logger().info(
-                f"prior session {label(session.trajectory)}: {len(session.stamps)} keyframe poses"
+                f"prior session {label(session.trajectory)}{' (the map frame)' if i == 0 else ''}"
+                f": {len(session.stamps)} keyframe poses"
             )
         if priors.skipped:
             self.get_logger().warning(f"prior keyframes skipped: {dict(priors.skipped)}")

@@ -63,6 +63,19 @@ def test_camera_to_base_and_weights_reach_the_nodes(share):
     assert ls.ros_args(graph)[-4:-2] == ["-p", f"camera_to_base:={DEMO_CAMERA}"]
 
 
+def test_prior_map_dirs_reach_both_nodes(share):
+    vpr, graph = launched(share, prior_map_dirs="['/maps/monday', /maps/r2]")
+    dirs = {"prior_map_dirs": ["/maps/monday", "/maps/r2"]}
+    assert vpr.parameters[1:] == [dirs] and graph.parameters[2:] == [dirs]
+    for value in ("/maps/a", "[]", "[1]", "['']"):
+        with pytest.raises(ValueError) as err:
+            launched(share, prior_map_dirs=value)
+        assert str(err.value) == (
+            f"prior_map_dirs:={value!r} is not a list of folders: give "
+            "prior_map_dirs:=\"['/maps/monday', '/maps/r2']\""
+        )
+
+
 @pytest.mark.parametrize("value", ["[1.0, 2.0]", "0.5", "{x: 1}"])
 def test_a_camera_to_base_that_is_no_seven_list_is_refused(share, value):
     with pytest.raises(ValueError) as err:
