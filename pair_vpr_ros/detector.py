@@ -46,6 +46,9 @@ class DetectorConfig:
     min_inliers: int = 15  # with geometric verification
     mode: str = "mapping"  # "mapping": query then add; "localization": query only
     rerank_budget_ms: float = 0.0  # stop re-ranking once this is spent (0: score all top_k)
+    # With prior maps: each map (live, each prior) gives its own top_k and at most one loop of
+    # the keyframe; False: one top_k of all maps together, one loop. One map: the same.
+    loop_per_map: bool = True
 
     def __post_init__(self) -> None:
         checks = [
@@ -59,6 +62,7 @@ class DetectorConfig:
             ("temporal_tolerance", self.temporal_tolerance >= 0, ">= 0"),
             ("min_inliers", self.min_inliers >= 0, ">= 0"),
             ("mode", self.mode in MODES, f"one of {MODES}"),
+            ("loop_per_map", isinstance(self.loop_per_map, bool), "true or false"),
             ("score_threshold", math.isfinite(self.score_threshold), "a finite number"),
             (
                 "global_weight",
@@ -195,14 +199,21 @@ class LoopDetector:
     clock: Callable[[], float] = time.perf_counter  # s, for the re-rank budget (tests fake it)
 
     def __post_init__(self) -> None:
-        self._recent_matches: deque[tuple] = deque(maxlen=self.config.temporal_consistency)
+        # recent matches per track (the map a decision is about with loop_per_map, else None)
+        self._tracks: dict[int | None, deque[tuple]] = {}
 
     def reset(self) -> None:
-        self._recent_matches.clear()
+        self._tracks.clear()
 
     def set_config(self, config: DetectorConfig) -> None:
         self.config = config
-        self._recent_matches = deque(self._recent_matches, maxlen=config.temporal_consistency)
+        n = config.temporal_consistency
+        self._tracks = {key: deque(old, maxlen=n) for key, old in self._tracks.items()}
+
+    def _recent(self, track: int | None) -> deque[tuple]:
+        if track not in self._tracks:
+            self._tracks[track] = deque(maxlen=self.config.temporal_consistency)
+        return self._tracks[track]
 
     def is_new_keyframe(self, similarity_to_last: float | None) -> bool:
         """A frame becomes a keyframe unless it nearly repeats the previous keyframe."""
@@ -220,18 +231,22 @@ class LoopDetector:
         step: int = 2,
         first: int = 1,
         query_identity: tuple[str, str] = ("", ""),
+        track: int | None = None,
     ) -> LoopRecord | None:
         """Re-rank `candidates` (global order) and accept or reject the best one. `rerank`
         scores a list of candidates ([k] scores); with a budget it is called for the first
-        `first`, then `step` at a time. `query_identity`: (robot, session) of the query."""
+        `first`, then `step` at a time. `query_identity`: (robot, session) of the query.
+        `track`: whose temporal consistency this decision counts in (one per map searched on
+        its own, `loop_per_map`; None: the one stream of decisions)."""
+        recent = self._recent(track)
         if not candidates:
-            self._recent_matches.clear()
+            recent.clear()
             return None
         c = self.config
         query = (query_stamp, query_frame_id, *query_identity)
         best_global = candidates[0]
         if best_global.global_similarity < c.global_floor:
-            self._recent_matches.clear()
+            recent.clear()
             record = self._record(*query, best_global, "below global floor")
             record.candidates = len(candidates)
             return record
@@ -242,10 +257,10 @@ class LoopDetector:
         record = self._record(*query, best, reason)
         record.candidates, record.scored = len(candidates), len(scored)
         if reason:
-            self._recent_matches.clear()
+            recent.clear()
             return record
-        if not self._temporally_consistent(best):
-            seen = len(self._recent_matches)
+        if not self._temporally_consistent(recent, best):
+            seen = len(recent)
             record.reason = f"awaiting temporal consistency ({seen}/{c.temporal_consistency})"
             return record
         if c.geometric_verification and verify is not None:
@@ -289,10 +304,9 @@ class LoopDetector:
         weight = self.config.global_weight
         return rank_by_pair_score(candidates[:done], np.concatenate(parts), weight)
 
-    def _temporally_consistent(self, match: Candidate) -> bool:
+    def _temporally_consistent(self, recent: deque[tuple], match: Candidate) -> bool:
         """Agreeing: matches of one map, robot and session whose ids lie within
         `temporal_tolerance` (ids of different robots or sessions say nothing about place)."""
-        recent = self._recent_matches
         if recent:
             group, last = recent[-1]
             if group != match.group or abs(match.id - last) > self.config.temporal_tolerance:

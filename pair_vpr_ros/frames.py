@@ -38,12 +38,21 @@ class FrameOutcome:
     keyframe_id: int | None = None  # id in the map when the frame was added
     skipped: str = ""  # why the frame was not a keyframe ("" when it was)
     loop: LoopRecord | None = None  # the best candidate after re-ranking, accepted or not
+    # loop_per_map: one decision per map searched (live map first), `loop` the best of them
+    # (accepted first, then by re-rank score); empty: `loop` is the only one
+    loops: list[LoopRecord] = field(default_factory=list)
     # Candidates in global (FAISS) order with their pair scores: [0] is what ranking by global
     # similarity alone would return.
     candidates: list[Candidate] = field(default_factory=list)
     timings_ms: dict[str, float] = field(default_factory=dict)
     # > 0: the stamps jumped back this many seconds before this frame, which starts a session
     clock_jump_s: float = 0.0
+
+    def reported(self) -> list[LoopRecord]:
+        """The records to publish or write: every accepted loop (at most one per map), else the
+        best rejected decision (`loop`), else none."""
+        accepted = [r for r in self.loops or [self.loop] if r is not None and r.accepted]
+        return accepted or ([self.loop] if self.loop is not None else [])
 
 
 @dataclass
@@ -76,9 +85,10 @@ class PipelineCounts:
         return asdict(self)
 
 
-def match_candidate(outcome: FrameOutcome) -> Candidate | None:
-    """The candidate an outcome's loop record names (its rank before re-ranking is unique)."""
-    loop = outcome.loop
+def match_candidate(outcome: FrameOutcome, loop: LoopRecord | None = None) -> Candidate | None:
+    """The candidate a loop record of the outcome names (default: `outcome.loop`); its rank
+    before re-ranking is unique among the outcome's candidates, whichever map they come from."""
+    loop = outcome.loop if loop is None else loop
     if loop is None:
         return None
     return next(c for c in outcome.candidates if c.rank_before == loop.rank_before)

@@ -2,8 +2,9 @@
 
 Each map is searched with its own FAISS index for the top-K ids it may give (recent keyframes
 of the query's own robot and session left out, `recency.GroupedRecency`); the hits of all maps
-are merged by global similarity into one top-K list of `Candidate` s, each knowing its map
-(`Candidate.prior`: -1 live, i >= 0 the i-th prior map). Re-ranking reads every candidate's
+are merged by global similarity into one top-K list of `Candidate` s (`search`), or kept as one
+top-K list per map (`search_each`, for `DetectorConfig.loop_per_map`), each candidate knowing
+its map (`Candidate.prior`: -1 live, i >= 0 the i-th prior map). Re-ranking reads every candidate's
 dense tokens from its own map, so a prior map's keyframes are scored with their own tokens.
 Prior maps are never written: they are loaded with `read_only=True` and closed by their owner.
 """
@@ -51,6 +52,31 @@ class MapSearch:
     ) -> list[Candidate] | None:
         """The top-`config.top_k` candidates of all maps, best global similarity first (ties:
         the live map, then prior maps in order); None when no map has an eligible keyframe."""
+        hits = self._hits(desc, stamp, who, config)
+        if hits is None:
+            return None
+        return [self._candidate(*hit, rank) for rank, hit in enumerate(hits[: config.top_k], 1)]
+
+    def search_each(
+        self, desc: np.ndarray, stamp: float, who: Identity, config: DetectorConfig
+    ) -> list[list[Candidate]] | None:
+        """The top-`config.top_k` candidates of each map on its own (`loop_per_map`): one list
+        per map with hits, live map first, each best global similarity first. `rank_before`
+        counts over all of them (by similarity, ties as `search`), so it names one candidate
+        of the keyframe. None when no map has an eligible keyframe."""
+        hits = self._hits(desc, stamp, who, config)
+        if hits is None:
+            return None
+        groups: dict[int, list[Candidate]] = {}
+        for rank, hit in enumerate(hits, start=1):
+            groups.setdefault(hit[1], []).append(self._candidate(*hit, rank))
+        return [groups[prior] for prior in sorted(groups)]
+
+    def _hits(
+        self, desc: np.ndarray, stamp: float, who: Identity, config: DetectorConfig
+    ) -> list[tuple[float, int, int]] | None:
+        """Each map's top-`config.top_k` as (similarity, map, id), all maps together, best
+        first (ties: the live map, then prior maps in order); None: no eligible keyframe."""
         hits: list[tuple[float, int, int]] = []  # (similarity, map, id)
         found = False
         recencies = [self._recency, *self._prior_recency]
@@ -74,17 +100,14 @@ class MapSearch:
         if not found:
             return None
         hits.sort(key=lambda h: (-h[0], h[1]))  # stable: FAISS's order within one map
-        return [
-            self._candidate(kf_id, prior, sim, rank)
-            for rank, (sim, prior, kf_id) in enumerate(hits[: config.top_k], start=1)
-        ]
+        return hits
 
     @property
     def maps(self) -> list[PlaceMap]:
         """The live map, then the prior maps."""
         return [self.live, *self.priors]
 
-    def _candidate(self, kf_id: int, prior: int, sim: float, rank: int) -> Candidate:
+    def _candidate(self, sim: float, prior: int, kf_id: int, rank: int) -> Candidate:
         meta = (self.live if prior < 0 else self.priors[prior]).meta(kf_id)
         return Candidate(
             kf_id, meta.stamp, meta.frame_id, float(sim), rank,

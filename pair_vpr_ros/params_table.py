@@ -182,6 +182,11 @@ PARAMS: tuple[ParamSpec, ...] = (
     _p("temporal_tolerance", 5, "agreeing: matched ids within this many keyframes", 0, 100000),
     _p("geometric_verification", False, "also require ORB + fundamental-matrix RANSAC inliers"),
     _p("min_inliers", 15, "inliers needed with geometric_verification", 0, 100000),
+    _p("loop_per_map", True, "with prior_map_dirs: search the live map and each prior map for "
+       "top_k candidates on its own and accept at most one loop per map (a keyframe can close "
+       "loops into its own earlier session and other robots' maps at once; re-ranks up to "
+       "top_k x maps, rerank_budget_ms per map); false = one top_k of all maps, one loop. "
+       "Without prior maps both are the same"),
 )  # fmt: skip
 
 PARAMS += tuple(  # fleet exchange: all start-up only; a row may end with keyword arguments
@@ -205,4 +210,5 @@ DETECTOR_PARAMS = (
     "temporal_tolerance",
     "geometric_verification",
     "min_inliers",
+    "loop_per_map",
 )

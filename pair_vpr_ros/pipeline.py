@@ -18,6 +18,7 @@ life cycle (new, checked, saved, loaded, cleared) in pipeline_maps.py (`Pipeline
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import replace
@@ -25,7 +26,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from pair_vpr_ros.detector import Candidate, DetectorConfig, LoopDetector
+from pair_vpr_ros.detector import Candidate, DetectorConfig, LoopDetector, LoopRecord, rerank_score
 from pair_vpr_ros.errors import ConfigError, MapUnavailableError
 from pair_vpr_ros.frames import Frame, FrameOutcome, PipelineCounts, frame_due, match_candidate
 from pair_vpr_ros.geometry.features import Features
@@ -183,13 +184,16 @@ class LoopClosurePipeline(PipelineMaps):
             features = self.geometry.extract(frame.rgb, frame.depth, frame.camera,
                                              frame.right, frame.baseline)  # fmt: skip
             outcome.timings_ms["features"] = (time.perf_counter() - t0) * 1e3
-        outcome.loop = self._query(frame, dense, desc, outcome, features)
-        loop = outcome.loop
-        if loop is not None and loop.accepted and self.geometry.config.relative_pose:
-            best = match_candidate(outcome)
-            match = self._stored_features(best)
-            near = self._scale_neighbours(best)
-            outcome.timings_ms["pose"] = self.geometry.pose(loop, features, match, near)
+        self._query(frame, dense, desc, outcome, features)
+        decisions = outcome.loops or ([outcome.loop] if outcome.loop is not None else [])
+        accepted = [r for r in decisions if r.accepted]
+        if accepted and self.geometry.config.relative_pose:
+            outcome.timings_ms["pose"] = 0.0
+            for loop in accepted:  # each with its own match's features, from its own map
+                best = match_candidate(outcome, loop)
+                match = self._stored_features(best)
+                near = self._scale_neighbours(best)
+                outcome.timings_ms["pose"] += self.geometry.pose(loop, features, match, near)
         if self.config.mode == "mapping":
             who = self.identity
             meta = KeyframeMeta(
@@ -201,28 +205,35 @@ class LoopClosurePipeline(PipelineMaps):
             self.maps.added(replace(meta, id=outcome.keyframe_id))
             pending = self._place_map.index_diagnostics.get("map_keyframes_pending", 0)
             self.counts.map_keyframes_pending = pending
-            if outcome.loop is not None:
-                outcome.loop.query_id = outcome.keyframe_id
+            for loop in decisions:
+                loop.query_id = outcome.keyframe_id
         self._last_desc = desc
         self.counts.keyframes += 1
-        if outcome.loop is not None and outcome.loop.accepted:
-            self.counts.loops += 1
-        elif outcome.loop is not None:
-            self.counts.rejected += 1
+        self.counts.loops += len(accepted)
+        self.counts.rejected += int(bool(decisions) and not accepted)
         return outcome
 
-    def _query(self, frame: Frame, dense, desc, outcome: FrameOutcome, features: Features | None):
+    def _query(
+        self, frame: Frame, dense, desc, outcome: FrameOutcome, features: Features | None
+    ) -> None:
+        """Search, re-rank and decide: `outcome.loop` (and, with `loop_per_map` and prior
+        maps, `outcome.loops`: one decision per map), `outcome.candidates` (all maps')."""
         timings = outcome.timings_ms
         t0 = time.perf_counter()
+        per_map, who = self.config.loop_per_map, self.identity
         try:
-            found = self.maps.search(desc, frame.stamp, self.identity, self.config)
+            if per_map:
+                groups = self.maps.search_each(desc, frame.stamp, who, self.config)
+            else:
+                found = self.maps.search(desc, frame.stamp, who, self.config)
+                groups = None if found is None else [found]
         except MapUnavailableError:  # logged by the map once per outage; nothing is lost
             self.counts.map_searches_skipped += 1
-            return None
-        if found is None:
-            return None
+            return
+        if groups is None:
+            return
         timings["search"] = (time.perf_counter() - t0) * 1e3
-        outcome.candidates = candidates = found
+        outcome.candidates = sorted((c for g in groups for c in g), key=lambda c: c.rank_before)
 
         def rerank(cands: list[Candidate]) -> np.ndarray:  # called once per step with a budget
             t1 = time.perf_counter()
@@ -240,14 +251,25 @@ class LoopClosurePipeline(PipelineMaps):
         # A back end compiled for a fixed chunk (OpenVINO) pads shorter calls: whole chunks.
         fixed = getattr(self.model, "chunk_size", None)
         step = fixed or self.rerank_chunk or default_chunk(torch.device(self.model.device))
-        record = self.detector.decide(
-            frame.stamp, frame.frame_id, candidates, rerank, verify, step=step, first=fixed or 1,
-            query_identity=(self.identity.robot, self.identity.session),
-        )  # fmt: skip
-        if record is not None:
-            self.counts.candidates_scored += record.scored
-            self.counts.rerank_budget_cut += int(0 < record.scored < record.candidates)
-        return record
+        records = []
+        for candidates in groups:  # one group (all maps together) unless loop_per_map
+            record = self.detector.decide(
+                frame.stamp, frame.frame_id, candidates, rerank, verify, step=step,
+                first=fixed or 1, query_identity=(who.robot, who.session),
+                track=candidates[0].prior if per_map else None,
+            )  # fmt: skip
+            if record is not None:
+                self.counts.candidates_scored += record.scored
+                self.counts.rerank_budget_cut += int(0 < record.scored < record.candidates)
+                records.append(record)
+        weight = self.config.global_weight
+
+        def order(r: LoopRecord) -> tuple:  # accepted first, then the best re-rank score
+            score = rerank_score(r.pair_score, r.global_similarity, weight)
+            return not r.accepted, -score if math.isfinite(score) else math.inf, r.rank_before
+
+        outcome.loop = min(records, key=order) if records else None
+        outcome.loops = records if len(records) > 1 else []
 
     def _stored_features(self, match: Candidate) -> Features | None:
         return self.geometry.unpack(self.maps.map_of(match).features(match.id))
@@ -259,9 +281,11 @@ class LoopClosurePipeline(PipelineMaps):
         load = lambda i: self._stored_features(replace(match, id=i))  # noqa: E731
         return self.geometry.neighbours(meta, near, load)
 
-    def match_meta(self, outcome: FrameOutcome) -> KeyframeMeta | None:
-        """The metadata of the outcome's loop match, from whichever map holds it."""
-        best = match_candidate(outcome)
+    def match_meta(
+        self, outcome: FrameOutcome, loop: LoopRecord | None = None
+    ) -> KeyframeMeta | None:
+        """The metadata of the match of `loop` (default `outcome.loop`), from its own map."""
+        best = match_candidate(outcome, loop)
         return None if best is None else self.maps.map_of(best).meta(best.id)
 
     def pair_scores(self, dense: np.ndarray, ids: list[int]) -> np.ndarray:

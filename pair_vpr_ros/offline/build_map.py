@@ -79,7 +79,7 @@ def build_map(
     )
     try:
         for outcome in pipe.process_many(frames, batch_size=batch_size):
-            result.loops += bool(outcome.loop and outcome.loop.accepted)
+            result.loops += sum(loop.accepted for loop in outcome.reported())
             if stop is not None and stop.is_set():
                 result.cancelled = True
                 break

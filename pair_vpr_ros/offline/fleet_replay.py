@@ -102,8 +102,7 @@ def run_fleet(
     for stamp, robot, outcome in tqdm(merged, unit="frame", desc="fleet", disable=not progress):
         clock[0] = max(clock[0], stamp)
         ex = bus.exchanges[robot]
-        if outcome.loop is not None:
-            run.robot_loops[robot].append(outcome.loop.to_dict())
+        run.robot_loops[robot] += [loop.to_dict() for loop in outcome.reported()]
         ex.on_keyframe(outcome)
         run.loops += bus.deliver()
     for ex in bus.exchanges.values():  # the last period's selected requests

@@ -72,16 +72,16 @@ def drive(
                 summary.keyframes += 1
             if writer is not None and bf.cdr is not None:
                 writer.write_image(bf.cdr, bf.log_time_ns)
-            if outcome.loop is not None:
-                run.records.append(outcome.loop)
-                if outcome.loop.query_id >= 0:
-                    run.global_top1.append(global_top1_record(outcome.loop, outcome.candidates[0]))
-                if outcome.loop.accepted:
+            if outcome.loop is not None and outcome.loop.query_id >= 0:
+                run.global_top1.append(global_top1_record(outcome.loop, outcome.candidates[0]))
+            for loop in outcome.reported():  # each accepted loop (one per map), or the best
+                run.records.append(loop)
+                if loop.accepted:
                     summary.loops += 1
-                    key = f"{outcome.loop.match_robot}/{outcome.loop.match_session}"
+                    key = f"{loop.match_robot}/{loop.match_session}"
                     summary.loops_by_match[key] = summary.loops_by_match.get(key, 0) + 1
                     if writer is not None:
-                        writer.write_loop(outcome.loop, bf.log_time_ns)
+                        writer.write_loop(loop, bf.log_time_ns)
             bar.update(run.counts.frames - bar.n)
             bar.set_postfix(keyframes=summary.keyframes, loops=summary.loops, refresh=False)
     except KeyboardInterrupt:

@@ -133,7 +133,7 @@ class FrameIntake:
                 f"frame without depth: {inputs.last_problem}", throttle_duration_sec=10.0
             )
         try:
-            outcome, match_pose = self.maps.process(frame)
+            outcome, loops = self.maps.process(frame)
             self.stats.counts.processed += 1
             if outcome.clock_jump_s:
                 self.get_logger().warning(
@@ -148,8 +148,8 @@ class FrameIntake:
             self.stats.add_ms("stamp_age", now_ms - frame.stamp * 1e3)
             for key, ms in outcome.timings_ms.items():
                 self.stats.add_ms(key, ms)
-            if outcome.loop is not None:
-                self._publish_loop(outcome.loop, frame.pose, match_pose)
+            for loop, match_pose in loops:  # accepted ones (one per map), else the best
+                self._publish_loop(loop, frame.pose, match_pose)
             if self.fleet is not None:
                 self.fleet.on_outcome(outcome)
         except Exception as err:  # noqa: BLE001 - the worker must outlive any one frame

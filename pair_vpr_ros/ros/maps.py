@@ -19,7 +19,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, TypeVar
 
-from pair_vpr_ros.detector import DetectorConfig
+from pair_vpr_ros.detector import DetectorConfig, LoopRecord
 from pair_vpr_ros.errors import ConfigError, MapError, PairVPRError
 from pair_vpr_ros.frames import Frame, FrameOutcome, PipelineCounts
 from pair_vpr_ros.offline.build_map import BuildResult, build_map
@@ -137,15 +137,17 @@ class MapControl:
             )
 
     # ---- live map ----------------------------------------------------------------------------
-    def process(self, frame: Frame) -> tuple[FrameOutcome, Pose | None]:
-        """One frame through the pipeline -> (outcome, pose of an accepted loop's match)."""
+    def process(self, frame: Frame) -> tuple[FrameOutcome, list[tuple[LoopRecord, Pose | None]]]:
+        """One frame through the pipeline -> (outcome, its records to publish, each with the
+        pose of its match when accepted: `FrameOutcome.reported`, one per map at most)."""
 
-        def run() -> tuple[FrameOutcome, Pose | None]:
+        def run() -> tuple[FrameOutcome, list[tuple[LoopRecord, Pose | None]]]:
             outcome = self.pipeline.process(frame)
-            loop = outcome.loop
-            if loop is None or not loop.accepted:
-                return outcome, None
-            return outcome, self.pipeline.match_meta(outcome).pose  # live or prior map
+            pipe = self.pipeline
+            return outcome, [
+                (r, pipe.match_meta(outcome, r).pose if r.accepted else None)  # live or prior
+                for r in outcome.reported()
+            ]
 
         return self.call(run)
 

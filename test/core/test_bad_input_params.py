@@ -118,6 +118,14 @@ CASES = {
         section('prior_map_dirs: ["/maps/a", ""]').encode(),
         "prior_map_dirs must be a list of non-empty strings, got ['/maps/a', '']",
     ),
+    "loop per map a string": (
+        section('loop_per_map: "yes"').encode(),
+        "loop_per_map must be true or false, got 'yes'",
+    ),
+    "loop per map a number": (
+        section("loop_per_map: 1").encode(),
+        "loop_per_map must be true or false, got 1",
+    ),
 }
 
 

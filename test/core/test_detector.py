@@ -190,6 +190,7 @@ def test_keyframe_selection_by_similarity():
         (dict(score_threshold=float("nan")), "detector score_threshold=nan must be a finite"),
         (dict(temporal_consistency=0), "temporal_consistency=0 must be >= 1"),
         (dict(global_weight=-1.0), "detector global_weight=-1.0 must be a finite number >= 0"),
+        (dict(loop_per_map="no"), "detector loop_per_map='no' must be true or false"),
         (dict(global_weight=float("inf")), "detector global_weight=inf must be a finite number"),
     ],
 )

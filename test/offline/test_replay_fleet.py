@@ -57,7 +57,8 @@ def test_a_prior_map_is_searched_at_once_and_never_written(bag, first, tmp_path,
     options = ReplayOptions(
         progress=False, robot_id="r1", session_id="tue", prior_maps=(first / "map",)
     )
-    s = replay_bag(bag, tmp_path / "out", options, model=tiny_model, config=CONFIG)
+    config = CONFIG.updated(loop_per_map=False)  # one top-K of both maps, one loop a keyframe
+    s = replay_bag(bag, tmp_path / "out", options, model=tiny_model, config=config)
     assert s.error is None and s.keyframes == 17
     # the same bag again: every frame finds itself in the prior map at once (same stamps: a
     # map recorded on an overlapping clock keeps its candidates); the 5 revisits see their
@@ -75,6 +76,28 @@ def test_a_prior_map_is_searched_at_once_and_never_written(bag, first, tmp_path,
     assert saved_map_digest(first / "map") == before
     with PlaceMap.load(tmp_path / "out" / "map", read_only=True) as live:
         assert len(live) == 17 and {m.session for m in live.all_meta()} == {"tue"}
+
+
+def test_a_keyframe_closes_one_loop_into_each_map(bag, first, tmp_path, tiny_model):
+    # loop_per_map (the default): each map gives its own top-K and at most one loop. Every
+    # frame finds its own image in the prior map (17), and the live map gives the 7 loops the
+    # first replay found within its own drive (threshold -1e9: every query with an eligible
+    # keyframe, t >= 100 s): 24 loops, two for each of the 7 keyframes at t >= 100 s
+    options = ReplayOptions(
+        progress=False, robot_id="r1", session_id="tue", prior_maps=(first / "map",)
+    )
+    s = replay_bag(bag, tmp_path / "out", options, model=tiny_model, config=CONFIG)
+    assert s.error is None and s.keyframes == 17
+    assert s.loops == 24 and s.loops_by_match == {"r1/mon": 17, "r1/tue": 7}
+    first_loops = json.loads((first / "loops.json").read_text())
+    loops = json.loads((tmp_path / "out" / "loops.json").read_text())
+    within = [(r["query_id"], r["match_id"]) for r in loops if r["match_session"] == "tue"]
+    assert within == [(r["query_id"], r["match_id"]) for r in first_loops if r["accepted"]]
+    into_prior = [(r["query_id"], r["match_id"]) for r in loops if r["match_session"] == "mon"]
+    place = [*range(10), *range(5), 10, 11]  # revisit_world: keyframe -> its image
+    assert [q for q, _ in into_prior] == list(range(17))  # each keyframe finds its own image
+    assert all(place[m] == place[q] for q, m in into_prior)  # (a revisit's: a tie of two)
+    assert len({(r["query_id"], r["match_session"]) for r in loops}) == 24  # one per map
 
 
 def test_prior_map_bad_input(bag, first, tmp_path, tiny_model):

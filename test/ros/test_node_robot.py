@@ -132,6 +132,7 @@ def test_nothing_is_published_once_the_context_is_shut_down(harness, places):
     rclpy.shutdown()
     assert not publish_while_up(h.node, h.node.pub_diag, DiagnosticArray())
     h.node._publish_diagnostics()  # the timer's callback: no exception
-    outcome, match_pose = h.node.maps.process(Frame(104.0, places[1], "cam"))
-    h.node._publish_loop(outcome.loop, None, match_pose)  # the worker's
+    outcome, loops = h.node.maps.process(Frame(104.0, places[1], "cam"))
+    [(loop, match_pose)] = loops
+    h.node._publish_loop(loop, None, match_pose)  # the worker's
     assert outcome.loop.accepted and h.node.stats.counts.loops == 2
