@@ -179,8 +179,9 @@ class VprNode(ParameterHandling, FrameIntake, NodeServices, Node):
         if not (record.accepted or self.values["publish_rejected"]):
             return
         counts = self.stats.counts
+        number = counts.loops + counts.loops_unordered + 1  # a marker id of its own per loop
         sent, note = self.outputs.publish(
-            record, (pose, match_pose), self.values["marker_frame_id"], counts.loops + 1
+            record, (pose, match_pose), self.values["marker_frame_id"], number
         )
         if record.accepted and sent:
             counts.loops += 1
