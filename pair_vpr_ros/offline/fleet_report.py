@@ -110,7 +110,10 @@ def loop_figures(fleet: Path, radius_m: float = 10.0) -> dict[str, Any]:
         me, priors = ids[n], ids[:n]
         first_session = next(i for i in ids if i[0] == me[0])
         reloc = in_map = None
-        for k, record in enumerate(replay_records(fleet, drive), start=1):
+        queried: set[float] = set()  # keyframes so far (a keyframe may have a loop per map)
+        for record in replay_records(fleet, drive):
+            queried.add(record["query_stamp"])
+            k = len(queried)
             at = _position(truth[me], record["query_stamp"])
             for kind in ("inter_robot", "inter_session"):
                 near = [p for p in priors if _kind(me, p) == kind and np.min(np.linalg.norm(

@@ -53,6 +53,20 @@ def fleet(tmp_path):
     return tmp_path
 
 
+def test_relocalisation_counts_keyframes_not_loops(fleet):
+    # loop_per_map: a keyframe may have a loop into each map; b/s1's comes first here
+    per_map = []
+    for i in range(40):
+        per_map += [record(STAMPS[i], STAMPS[i], "b", "s1"),
+                    record(STAMPS[i], STAMPS[i], "a", "s1", accepted=i >= 2)]  # fmt: skip
+    (fleet / "replay" / "a_s2" / "loops.json").write_text(json.dumps(per_map))
+    summary = fleet_summary(fleet)
+    assert summary["relocalisation"] == {
+        "a/s2": {"keyframes_until_relocalised": 3, "keyframes_until_in_the_map": 1}
+    }  # records: the 6th is the first true loop into a/s1, of the 3rd keyframe
+    assert (summary["inter_session"]["true"], summary["inter_robot"]["true"]) == (38, 20 + 40)
+
+
 def test_summary_counts_and_targets(fleet, capsys):
     summary = fleet_summary(fleet)
     robot = summary["inter_robot"]
