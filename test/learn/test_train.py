@@ -51,6 +51,7 @@ from pair_vpr_ros.learn.train.options import config_from_args
 from pair_vpr_ros.learn.train.stage1 import Stage1, Stage1Config, Stage1Objective, train_stage1
 from pair_vpr_ros.learn.train.stage2 import Stage2Config, Stage2Objective, train_stage2
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, load_pairvpr
+from pair_vpr_ros.model.preprocess import MEAN, STD
 
 TINY = dict(arch="tiny", image_size=56, workers=0, device="cpu", log_every=1, save_every=0)
 
@@ -247,6 +248,29 @@ def test_place_images_dataset(tmp_path: Path) -> None:
     assert not torch.equal(data[1][0], images)  # new epoch, new order of the 3 images
 
 
+def _is_grey(images: torch.Tensor) -> list[bool]:
+    """[k,3,S,S] normalised -> per image: are its three channels one grey value?"""
+    mean, std = torch.tensor(MEAN).view(3, 1, 1), torch.tensor(STD).view(3, 1, 1)
+    pixels = images * std + mean
+    return [bool((p.amax(0) - p.amin(0)).max() < 1e-5) for p in pixels]
+
+
+def test_grey_places_turn_whole_places_grey(tmp_path: Path) -> None:
+    make_place_folders(tmp_path, places=12, per_place=3)
+    places = load_place_folders(tmp_path)
+    colour = PlaceImagesDataset(places, 3, size=28, seed=0)
+    assert not any(g for i in range(12) for g in _is_grey(colour[i][0]))
+    grey = PlaceImagesDataset(places, 3, size=28, seed=0, grey_places=1.0)
+    assert all(g for i in range(12) for g in _is_grey(grey[i][0]))
+    # 0 draws nothing: the same images as a dataset without the option
+    off = PlaceImagesDataset(places, 3, size=28, seed=0, grey_places=0.0)
+    assert all(torch.equal(off[i][0], colour[i][0]) for i in range(12))
+    half = PlaceImagesDataset(places, 3, size=28, seed=0, grey_places=0.5)
+    kinds = [set(_is_grey(half[i][0])) for i in range(12)]
+    assert all(len(k) == 1 for k in kinds)  # a place is all grey or all colour
+    assert {next(iter(k)) for k in kinds} == {True, False}
+
+
 def _batch(tmp_path: Path, places: int, per_place: int) -> tuple[torch.Tensor, torch.Tensor]:
     make_place_folders(tmp_path, places=places, per_place=per_place)
     data = PlaceImagesDataset(load_place_folders(tmp_path), per_place, size=56)
@@ -332,6 +356,8 @@ def test_stage_two_global_only_leaves_the_decoder_alone(trained: dict[str, Path]
         ("pair_positives", "easy", "pair_positives must be 'hardest' or 'random', got 'easy'"),
         ("grey", 1.5, "grey=1.5: a probability, use a value in 0..1"),
         ("grey", float("nan"), r"grey=nan: a probability, use a value in 0..1"),
+        ("grey_places", 1.5, "grey_places=1.5: a probability, use a value in 0..1"),
+        ("grey_places", -0.1, "grey_places=-0.1: a probability, use a value in 0..1"),
         ("exposure", -0.1, r"exposure=-0.1: must be >= 0 \(0 = no gain jitter\)"),
     ],
 )
@@ -611,6 +637,7 @@ def test_cli_flags_defaults_and_values(tmp_path: Path, capsys: pytest.CaptureFix
         "--resume": ("r.pt", "resume", Path("r.pt")),
         "--warmup-steps": ("6", "warmup_steps", 6),
         "--grey": ("0.5", "grey", 0.5),
+        "--grey-places": ("0.5", "grey_places", 0.5),
         "--exposure": ("0.3", "exposure", 0.3),
         "--conditions": ("3", "conditions", 3),
     }

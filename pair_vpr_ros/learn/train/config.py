@@ -57,6 +57,12 @@ class TrainConfig:
         "with augmentation: probability of training on a grey version of an image, so that "
         "mono8 cameras work (default %(default)s)",
     )
+    grey_places: float = option(
+        0.0,
+        "probability that all views of a place in a batch are grey (as a mono8 camera sees "
+        "it): grey places are told apart from grey places, and no place has a grey view "
+        "beside a colour one (default %(default)s; jitter or not)",
+    )
     exposure: float = option(
         0.0,
         "with augmentation: scale the pixel values by a gain drawn log-uniformly from "

@@ -132,6 +132,7 @@ class PlaceImagesDataset(Dataset):
         seed: int = 0,
         conditions: int = 0,
         pair_conditions: bool = False,
+        grey_places: float = 0.0,
     ) -> None:
         keep = [i for i, p in enumerate(places.places) if len(p) >= images_per_place]
         if not keep:
@@ -145,6 +146,9 @@ class PlaceImagesDataset(Dataset):
         self.k, self.size, self.augment, self.seed = images_per_place, size, augment, seed
         self.conds = [[view_condition(v, conditions) for v in p] for p in self.places]
         self.pair_conditions = pair_conditions
+        self.grey_places = grey_places
+        # a grey place: every view grey, with the jitter of the other views (or none)
+        self.grey_augment = replace(augment or GREY_ONLY, grey=1.0)
         self.epoch = 0
 
     def set_epoch(self, epoch: int) -> None:
@@ -159,9 +163,10 @@ class PlaceImagesDataset(Dataset):
         rng = np.random.default_rng([self.seed, epoch, index])
         paths, conds = self.places[index], self.conds[index]
         chosen = choose_views(conds, self.k, rng, self.pair_conditions)
-        images = torch.stack(
-            [image_tensor(paths[i], self.size, rng, self.augment) for i in chosen]
-        )
+        # drawn only when on, so that runs without grey places keep their random streams
+        grey = self.grey_places > 0 and rng.uniform() < self.grey_places
+        augment = self.grey_augment if grey else self.augment
+        images = torch.stack([image_tensor(paths[i], self.size, rng, augment) for i in chosen])
         labels = torch.full((self.k,), self.labels[index], dtype=torch.int64)
         return images, labels, torch.tensor([conds[i] for i in chosen], dtype=torch.int64)
 
@@ -242,6 +247,7 @@ def place_data(
         seed=cfg.seed,
         conditions=cfg.conditions,
         pair_conditions=pair_conditions,
+        grey_places=cfg.grey_places,
     )
     sampler = PlaceBatchSampler(
         len(dataset), cfg.places_per_batch, ctx.rank, ctx.world_size, cfg.seed

@@ -90,8 +90,10 @@ class Stage(ABC):
 
     def check(self) -> None:
         """Config errors found before any process group, dataset or model exists."""
-        if not 0.0 <= self.cfg.grey <= 1.0:
-            raise ConfigError(f"grey={self.cfg.grey}: a probability, use a value in 0..1")
+        for name in ("grey", "grey_places"):
+            value = getattr(self.cfg, name)
+            if not 0.0 <= value <= 1.0:  # also NaN
+                raise ConfigError(f"{name}={value}: a probability, use a value in 0..1")
         if self.cfg.conditions < 0:
             raise ConfigError(f"conditions={self.cfg.conditions}: must be >= 0 (0 = unknown)")
         if not self.cfg.exposure >= 0:
