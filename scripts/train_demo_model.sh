@@ -33,6 +33,13 @@ STAGE2_PLACES=${STAGE2_PLACES:-16}  # places per stage-two batch (x 4 views)
 PAIR_NEGATIVES=${PAIR_NEGATIVES:-random}  # hardest (the paper) or random: docs/training.md
 STAGE2_LR=${STAGE2_LR:-2.5e-4}
 STAGE2_GREY=${STAGE2_GREY:-0.2}  # share of grey views in stage two
+# Grey (mono8) cameras, docs/training.md: share of places whose views are ALL grey in the
+# encoder pre-training, stage one and stage two (0: the shipped recipe), the per-view grey
+# share of the pre-training and stage one, and the worlds the place datasets come from.
+GREY_PLACES=${GREY_PLACES:-0}
+EARLY_GREY=${EARLY_GREY:-0.2}
+WORLD_SEEDS=${WORLD_SEEDS:-101 102 103 104}
+GREY_DRIVE_SEEDS=${GREY_DRIVE_SEEDS:-}  # drives also replayed in grey for the drive stage
 PAIR_TUNE_STEPS=${PAIR_TUNE_STEPS:-600}
 PAIR_TUNE_EVAL_EVERY=${PAIR_TUNE_EVAL_EVERY:-200}
 # drives of these training worlds for the pair classifier (12: with 4 it over-fits in ~300 steps)
@@ -44,7 +51,7 @@ COMMON=(--arch small --image-size 112 --workers 1 --device cpu --seed 0 --log-ev
         --checkpoint-every 0 --epochs 100000 --save-every "$SAVE_EVERY" --conditions 3)
 
 data=()
-for seed in 101 102 103 104; do
+for seed in $WORLD_SEEDS; do
     root="$OUT/data/world$seed"
     [ -d "$root" ] || "$PY" -m pair_vpr_ros.demo.make_bag --dataset "$root" --seed "$seed" \
         --places 150 --views 6 --size 160x120
@@ -76,7 +83,8 @@ if [ ! -f "$OUT/stage1/stage1_final.pt" ]; then
     [ -f "$OUT/pretrain/encoder_reg4.pth" ] ||
     run_stage pretrain stage2_final.pt pair_vpr_ros.learn.train.stage2 \
         --train-blocks 4 --max-steps "$PRETRAIN_STEPS" --places-per-batch 32 --lr 1e-3 \
-        --warmup-steps 50 --pair-weight 0 --patch-weight 1.0 --no-augment --grey 0.2
+        --warmup-steps 50 --pair-weight 0 --patch-weight 1.0 --no-augment --grey "$EARLY_GREY" \
+        --grey-places "$GREY_PLACES"
     [ -f "$OUT/pretrain/encoder_reg4.pth" ] ||
     "$PY" scripts/export_encoder.py "$OUT/pretrain/stage2_final.pt" \
         "$OUT/pretrain/encoder_reg4.pth"
@@ -87,10 +95,12 @@ fi
 # epochs, so it keeps the peak lr of the earlier demo recipe (5e-4; docs/training.md).
 run_stage stage1 stage1_final.pt pair_vpr_ros.learn.train.stage1 \
     --dinov2 "$OUT/pretrain/encoder_reg4.pth" --train-blocks 2 --max-steps "$STAGE1_STEPS" \
-    --places-per-batch 32 --lr 5e-4 --warmup-steps 100 --no-augment --grey 0.2
+    --places-per-batch 32 --lr 5e-4 --warmup-steps 100 --no-augment --grey "$EARLY_GREY" \
+    --grey-places "$GREY_PLACES"
 run_stage stage2 stage2_final.pt pair_vpr_ros.learn.train.stage2 \
     --init "$OUT/stage1/stage1_final.pt" --train-blocks 4 --max-steps "$STAGE2_STEPS" \
     --places-per-batch "$STAGE2_PLACES" --lr "$STAGE2_LR" --warmup-steps 100 --no-augment --grey "$STAGE2_GREY" \
+    --grey-places "$GREY_PLACES" \
     --patch-weight 0.5 --twin-share 0.25 --pair-directions first \
     --pair-negatives "$PAIR_NEGATIVES" \
     --heldout "$HELDOUT" --eval-every "$EVAL_EVERY"
@@ -102,13 +112,17 @@ run_stage stage2 stage2_final.pt pair_vpr_ros.learn.train.stage2 \
 replay() {
     "$PY" -m pair_vpr_ros.offline.replay_cli "$@"
 }
+# drive <seed>[g]: world <seed>, in colour or ("g") as a mono8 camera sees it
 if [ ! -f "$OUT/pair_tune/pair_tune_final.pt" ]; then
-    for seed in $DRIVE_SEEDS 201; do
-        run="$OUT/drives/replay$seed"
+    for name in $DRIVE_SEEDS 201 $(for s in $GREY_DRIVE_SEEDS; do echo "${s}g"; done); do
+        seed=${name%g}
+        mono=()
+        [ "$name" != "$seed" ] && mono=(--mono)
+        run="$OUT/drives/replay$name"
         [ -f "$run/drive.done" ] && continue
-        "$PY" -m pair_vpr_ros.demo.make_bag "$OUT/drives/world$seed.mcap" --seed "$seed" \
-            --frames "$DRIVE_FRAMES" --force
-        replay "$OUT/drives/world$seed.mcap" --topic /camera/image_raw \
+        "$PY" -m pair_vpr_ros.demo.make_bag "$OUT/drives/world$name.mcap" --seed "$seed" \
+            --frames "$DRIVE_FRAMES" --force "${mono[@]}"
+        replay "$OUT/drives/world$name.mcap" --topic /camera/image_raw \
             --weights "$OUT/stage2/stage2_final.pt" --params-file config/demo.yaml \
             --pose-topic /ground_truth --gt-topic /ground_truth --top-k 1 --out "$run" \
             --overwrite --quiet
@@ -118,6 +132,7 @@ if [ ! -f "$OUT/pair_tune/pair_tune_final.pt" ]; then
     [ -f "$OUT/pair_tune/last.pt" ] && resume=(--resume "$OUT/pair_tune/last.pt")
     drives=()
     for seed in $DRIVE_SEEDS; do drives+=(--drive "$OUT/drives/replay$seed/map"); done
+    for seed in $GREY_DRIVE_SEEDS; do drives+=(--drive "$OUT/drives/replay${seed}g/map"); done
     "$PY" -m pair_vpr_ros.learn.train.pair_tune --init "$OUT/stage2/stage2_final.pt" \
         "${drives[@]}" --val "$OUT/drives/replay201/map" --out "$OUT/pair_tune" \
         --steps "$PAIR_TUNE_STEPS" --save-every "$SAVE_EVERY" --eval-every "$PAIR_TUNE_EVAL_EVERY" \
