@@ -65,15 +65,8 @@ def open_prior_maps(
     out, seen = PriorMaps(), set()
     try:
         for given in dirs:
-            path = Path(given).expanduser().resolve()
-            if path in seen:
-                raise ConfigError(f"{what} {given} is given twice: give each folder once")
-            seen.add(path)
-            if not path.is_dir():
-                raise ConfigError(
-                    f"{what} {given} does not exist or is not a folder: give the folder of a "
-                    "saved place map (PlaceMap.save, vpr_node's save_map, a replay's map/)"
-                )
+            path = prior_folder(given, seen, what, "PlaceMap.save, vpr_node's save_map, a "
+                                "replay's map/")  # fmt: skip
             out.maps.append(_open(path, given, fingerprint, identity, what, out.notes))
         if save_to is not None:
             refuse_prior_target(save_to, out.maps)
@@ -81,6 +74,21 @@ def open_prior_maps(
         out.close()
         raise
     return out
+
+
+def prior_folder(given: str | Path, seen: set[Path], label: str, made_by: str) -> Path:
+    """The resolved folder of one prior map, added to ``seen``; ConfigError, starting with
+    ``label``, for a folder given twice (as resolved) or missing (``made_by``: what saves one)."""
+    path = Path(given).expanduser().resolve()
+    if path in seen:
+        raise ConfigError(f"{label} {given} is given twice: give each folder once")
+    seen.add(path)
+    if not path.is_dir():
+        raise ConfigError(
+            f"{label} {given} does not exist or is not a folder: give the folder of a saved "
+            f"place map ({made_by})"
+        )
+    return path
 
 
 def _open(

@@ -32,6 +32,7 @@ from pair_vpr_ros.posegraph.config import PoseGraphConfig
 from pair_vpr_ros.posegraph.graph import PoseGraph
 from pair_vpr_ros.posegraph.tracks import TrajectoryId, label
 from pair_vpr_ros.posegraph.transforms import valid_pose7
+from pair_vpr_ros.prior_maps import prior_folder
 
 WHAT = "prior_map_dirs"
 
@@ -68,15 +69,7 @@ def read_prior_sessions(dirs: Sequence[str | Path], what: str = WHAT) -> PriorSe
     sources: dict[TrajectoryId, list[str]] = {}
     out, seen = PriorSessions(), set()
     for given in dirs:
-        path = Path(given).expanduser().resolve()
-        if path in seen:
-            raise ConfigError(f"{what}: {given} is given twice: give each folder once")
-        seen.add(path)
-        if not path.is_dir():
-            raise ConfigError(
-                f"{what}: {given} does not exist or is not a folder: give the folder of a saved "
-                "place map (vpr_node's save_map, a replay's map/)"
-            )
+        path = prior_folder(given, seen, f"{what}:", "vpr_node's save_map, a replay's map/")
         metas = _keyframes(path, given, what)
         for meta in metas:
             reason = _problem(meta.robot, meta.session, meta.pose)
