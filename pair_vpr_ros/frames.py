@@ -48,10 +48,14 @@ class FrameOutcome:
     # > 0: the stamps jumped back this many seconds before this frame, which starts a session
     clock_jump_s: float = 0.0
 
+    def decisions(self) -> list[LoopRecord]:
+        """Every decision made for this frame: `loops`, else `loop` alone, else none."""
+        return self.loops or ([self.loop] if self.loop is not None else [])
+
     def reported(self) -> list[LoopRecord]:
         """The records to publish or write: every accepted loop (at most one per map), else the
         best rejected decision (`loop`), else none."""
-        accepted = [r for r in self.loops or [self.loop] if r is not None and r.accepted]
+        accepted = [r for r in self.decisions() if r.accepted]
         return accepted or ([self.loop] if self.loop is not None else [])
 
 

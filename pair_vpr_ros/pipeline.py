@@ -185,7 +185,7 @@ class LoopClosurePipeline(PipelineMaps):
                                              frame.right, frame.baseline)  # fmt: skip
             outcome.timings_ms["features"] = (time.perf_counter() - t0) * 1e3
         self._query(frame, dense, desc, outcome, features)
-        decisions = outcome.loops or ([outcome.loop] if outcome.loop is not None else [])
+        decisions = outcome.decisions()
         accepted = [r for r in decisions if r.accepted]
         if accepted and self.geometry.config.relative_pose:
             outcome.timings_ms["pose"] = 0.0
