@@ -64,6 +64,15 @@ DETAIL_TOPIC = "loop_closure/detail"
 JSON_TOPIC = "loop_closure/json"
 TYPED_TOPIC = "loop_closure/typed"
 TYPED_TYPE = "pair_vpr_ros_interfaces/msg/LoopClosure"
+TYPED_MSG_TYPES = (  # every message type `typed_msg` constructs
+    "builtin_interfaces/msg/Time",
+    "std_msgs/msg/Header",
+    "geometry_msgs/msg/Point",
+    "geometry_msgs/msg/Quaternion",
+    "geometry_msgs/msg/Pose",
+    "geometry_msgs/msg/PoseWithCovariance",
+    TYPED_TYPE,
+)
 FLOAT64_ARRAY_TYPE = "std_msgs/msg/Float64MultiArray"
 STRING_TYPE = "std_msgs/msg/String"
 
@@ -123,6 +132,8 @@ __all__ = [
     "factor_msg",
     "loop_closure_fields",
     "loop_messages",
+    "TYPED_MSG_TYPES",
+    "typed_msg",
 ]
 
 
@@ -276,3 +287,30 @@ def loop_closure_fields(record: Any) -> dict[str, Any]:
         },
     }
     return out
+
+
+def typed_msg(record: Any, types: dict[str, Any]) -> Any:
+    """Build the ``loop_closure/typed`` message of ``record`` (``loop_closure_fields``) with the
+    message classes in ``types`` (keys: ``TYPED_MSG_TYPES``; rclpy classes or a rosbags
+    typestore's ``types``), as ``factor_msg`` does for the factor."""
+    f = loop_closure_fields(record)
+    time = types["builtin_interfaces/msg/Time"]
+    header, pose = f.pop("header"), f.pop("relative_pose")
+    for side in ("query", "match"):
+        sec, nanosec = f[f"{side}_stamp"]
+        f[f"{side}_stamp"] = time(sec=sec, nanosec=nanosec)
+    sec, nanosec = header["stamp"]
+    point, quat = types["geometry_msgs/msg/Point"], types["geometry_msgs/msg/Quaternion"]
+    return types[TYPED_TYPE](
+        header=types["std_msgs/msg/Header"](
+            stamp=time(sec=sec, nanosec=nanosec), frame_id=header["frame_id"]
+        ),
+        relative_pose=types["geometry_msgs/msg/PoseWithCovariance"](
+            pose=types["geometry_msgs/msg/Pose"](
+                position=point(**dict(zip("xyz", pose["position"], strict=True))),
+                orientation=quat(**dict(zip("xyzw", pose["orientation"], strict=True))),
+            ),
+            covariance=np.asarray(pose["covariance"], dtype=np.float64),
+        ),
+        **f,
+    )

@@ -117,7 +117,7 @@ class LoopBagWriter:
                 (loop_messages.FACTOR_TOPIC, loop_messages.factor_msg(content.factor, ts.types))
             )
         if self.typed_note is None:
-            msgs.append((loop_messages.TYPED_TOPIC, typed_msg(record, ts.types)))
+            msgs.append((loop_messages.TYPED_TOPIC, loop_messages.typed_msg(record, ts.types)))
         for topic, msg in msgs:
             cdr = ts.serialize_cdr(msg, msg.__msgtype__)
             self._write(self._connections[topic], log_time_ns, cdr)
@@ -154,28 +154,3 @@ def register_typed(ts: Any) -> str | None:
     except (OSError, UnicodeDecodeError, TypesysError) as err:
         return f"/{loop_messages.TYPED_TOPIC} is not written: cannot read {path}: {err}"
     return None
-
-
-def typed_msg(record: Any, types: dict[str, Any]) -> Any:
-    """The ``loop_closure/typed`` message of one loop record, as the node publishes it
-    (``loop_messages.loop_closure_fields``), built from the typestore's classes."""
-    f = loop_messages.loop_closure_fields(record)
-    time = types["builtin_interfaces/msg/Time"]
-    pose = f.pop("relative_pose")
-    header = f.pop("header")
-    for side in ("query", "match"):
-        f[f"{side}_stamp"] = time(*f[f"{side}_stamp"])
-    geo = {k: types[f"geometry_msgs/msg/{k}"] for k in ("Point", "Quaternion", "Pose")}
-    return types[loop_messages.TYPED_TYPE](
-        header=types["std_msgs/msg/Header"](
-            stamp=time(*header["stamp"]), frame_id=header["frame_id"]
-        ),
-        relative_pose=types["geometry_msgs/msg/PoseWithCovariance"](
-            pose=geo["Pose"](
-                position=geo["Point"](*pose["position"]),
-                orientation=geo["Quaternion"](*pose["orientation"]),
-            ),
-            covariance=np.asarray(pose["covariance"], dtype=np.float64),
-        ),
-        **f,
-    )

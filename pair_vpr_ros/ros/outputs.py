@@ -58,10 +58,11 @@ def publish_while_up(node: Node, publisher, msg) -> bool:
 
 
 @cache
-def message_classes() -> dict[str, type]:
-    """rclpy classes of the messages `loop_messages.factor_msg` builds, by type name."""
+def message_classes(names: tuple[str, ...] = lm.FACTOR_MSG_TYPES) -> dict[str, type]:
+    """rclpy classes of the message types `names` (default: what `loop_messages.factor_msg`
+    builds), by type name."""
     out = {}
-    for name in lm.FACTOR_MSG_TYPES:
+    for name in names:
         package, kind, cls = name.split("/")
         out[name] = getattr(importlib.import_module(f"{package}.{kind}"), cls)
     return out
@@ -133,7 +134,7 @@ class LoopOutputs:
         self._send(self.detail, detail)
         self._send(self.json, String(data=content.json))
         if self.typed is not None:
-            self._send(self.typed, loop_closure_msg(lm.loop_closure_fields(record)))
+            self._send(self.typed, lm.typed_msg(record, message_classes(lm.TYPED_MSG_TYPES)))
         if record.accepted and content.factor is not None:
             self._send(self.factor, lm.factor_msg(content.factor, message_classes()))
         if record.accepted and None not in poses:
@@ -145,23 +146,6 @@ class LoopOutputs:
 
     def clear_markers(self) -> None:
         self._send(self.markers, MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
-
-
-def loop_closure_msg(fields: dict):
-    """A `LoopClosure` message from `loop_messages.loop_closure_fields`' plain values."""
-    values = dict(fields)
-    header, pose = values.pop("header"), values.pop("relative_pose")
-    msg = LoopClosure(**{k: v for k, v in values.items() if not k.endswith("_stamp")})
-    msg.header.frame_id = header["frame_id"]
-    msg.header.stamp.sec, msg.header.stamp.nanosec = header["stamp"]
-    for side in ("query", "match"):
-        stamp = getattr(msg, f"{side}_stamp")
-        stamp.sec, stamp.nanosec = values[f"{side}_stamp"]
-    p, q = msg.relative_pose.pose.position, msg.relative_pose.pose.orientation
-    p.x, p.y, p.z = pose["position"]
-    q.x, q.y, q.z, q.w = pose["orientation"]
-    msg.relative_pose.covariance = pose["covariance"]
-    return msg
 
 
 def loop_marker(record: LoopRecord, pose_a: Pose, pose_b: Pose, frame_id: str, number: int):
