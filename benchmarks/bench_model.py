@@ -5,6 +5,7 @@ OpenVINO back end), memory, and how closely each path agrees with torch fp32.
     python benchmarks/bench_model.py --k 10 --json out.json
     python benchmarks/bench_model.py --weights pairvpr-vitB.pth --device cuda
     python benchmarks/bench_model.py --agreement-only --calibration demo_seed9.mcap
+    python benchmarks/bench_model.py --agreement-only --agreement-k 5 --agreement-global-weight 100
 
 Paths: `fp32` (torch, fast path), `reference` (torch, plain path), `int8` (torch dynamic int8),
 `openvino` (backend openvino, static int8 calibrated on synthetic scenes, as the node runs it) and
@@ -101,20 +102,25 @@ def variants(model, device: str, calibration=None) -> dict:
 
 
 def agreement(
-    models: dict, images: torch.Tensor, k: int, places: np.ndarray | None = None
+    models: dict,
+    images: torch.Tensor,
+    k: int,
+    places: np.ndarray | None = None,
+    global_weight: float = 0.0,
 ) -> dict[str, dict[str, float]]:
     """Per path, against fp32 (each image a query, its k nearest others by fp32 descriptor the
-    candidates of every path): `top1`, the fraction of queries whose top-1 after re-ranking is
-    the same candidate; `same_place`, whose top-1 is within `SAME_PLACE_M` of fp32's (with
-    `places` [n, 2] m: the loop closure a back end would get is the same); `regret_max`, the
-    largest fp32 score lost by taking the path's top-1 instead of fp32's; `cosine`, the mean
-    descriptor cosine."""
+    candidates of every path; re-ranked by the detector's score, pair score + `global_weight` x
+    the path's own descriptor similarity): `top1`, the fraction of queries whose top-1 after
+    re-ranking is the same candidate; `same_place`, whose top-1 is within `SAME_PLACE_M` of
+    fp32's (with `places` [n, 2] m: the loop closure a back end would get is the same);
+    `regret_max`, the largest fp32 score lost by taking the path's top-1 instead of fp32's;
+    `cosine`, the mean descriptor cosine."""
     base = models["fp32"]
     with torch.inference_mode():
         dense, desc = base.encode(images)
         sims = (desc @ desc.T).fill_diagonal_(-2.0)
         nearest = sims.topk(k, dim=1).indices
-        want = torch.stack([base.pair_scores(dense[i], dense[o]) for i, o in enumerate(nearest)])
+        want = rerank_scores(base, dense, desc, nearest, global_weight)
         top2 = want.topk(2, dim=1).values
         margin = float((top2[:, 0] - top2[:, 1]).median())
         spread = float((want.max(1).values - want.min(1).values).median())
@@ -126,9 +132,7 @@ def agreement(
             if name in ("fp32", "reference"):
                 continue
             mdense, mdesc = model.encode(images)
-            got = torch.stack(
-                [model.pair_scores(mdense[i], mdense[o]) for i, o in enumerate(nearest)]
-            )
+            got = rerank_scores(model, mdense, mdesc, nearest, global_weight)
             best, pick = want.argmax(1), got.argmax(1)
             regret = want.max(1).values - want.gather(1, pick[:, None])[:, 0]
             out[name] = {
@@ -142,6 +146,19 @@ def agreement(
                 dist = np.linalg.norm(np.array(chosen) - np.array(truth), axis=1)
                 out[name]["same_place"] = float(np.mean(dist <= SAME_PLACE_M))
     return out
+
+
+def rerank_scores(
+    model, dense: torch.Tensor, desc: torch.Tensor, nearest: torch.Tensor, global_weight: float
+) -> torch.Tensor:
+    """[Q, k] re-rank scores of each query's candidates `nearest` [Q, k]: pair scores plus
+    `global_weight` x descriptor similarity (`detector.rerank_score`; dense [N, T, D], desc
+    [N, C])."""
+    pair = torch.stack([model.pair_scores(dense[i], dense[o]) for i, o in enumerate(nearest)])
+    if global_weight == 0:
+        return pair
+    sims = torch.stack([desc[o].float() @ desc[i].float() for i, o in enumerate(nearest)])
+    return pair + global_weight * sims
 
 
 def descriptor_cosine(models: dict, images: torch.Tensor) -> dict[str, float]:
@@ -226,6 +243,19 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help="image topic of a --calibration bag (default: its only one)",
     )
     p.add_argument(
+        "--agreement-k",
+        type=int,
+        default=10,
+        help="candidates each agreement query re-ranks (default 10; config/demo.yaml: 5)",
+    )
+    p.add_argument(
+        "--agreement-global-weight",
+        type=float,
+        default=0.0,
+        help="re-rank the agreement queries by pair score + this x descriptor similarity, as the "
+        "detector's global_weight does (default 0: the pair score alone; config/demo.yaml: 100)",
+    )
+    p.add_argument(
         "--agreement-only",
         action="store_true",
         help="skip the timed paths; measure only the agreement with fp32",
@@ -291,9 +321,16 @@ def main(argv: list[str] | None = None) -> int:
     else:
         amodel = load_pairvpr(weights)
         images, places = agreement_images(amodel.config.image_size, AGREEMENT_QUERIES)
-        figures["agreement"] = agreement(variants(amodel, "cpu", calibration), images, 10, places)
+        figures["agreement"] = agreement(
+            variants(amodel, "cpu", calibration),
+            images,
+            args.agreement_k,
+            places,
+            args.agreement_global_weight,
+        )
         print(f"agreement with fp32 ({Path(weights).name}, {len(images)} demo-world queries x "
-              "10 candidates):")  # fmt: skip
+              f"{args.agreement_k} candidates, pair score + {args.agreement_global_weight:g} x "
+              "similarity):")  # fmt: skip
         for name, a in figures["agreement"].items():
             place = f", same place {a['same_place']:.1%}" if "same_place" in a else ""
             print(f"  {name}: top-1 after re-ranking {a['top1']:.1%}{place}, fp32 score lost at "

@@ -2,7 +2,8 @@
 
 A CPU run of scripts/train_demo_model.sh can outlast a sitting (issue 24). ``pack`` stores what
 the next sitting needs to continue it: stage one's final weights and stage two's last.pt (weights,
-AdamW moments and progress), the training logs and curves. Weights go to float16 and AdamW
+AdamW moments and progress), or stage two's final weights once it has finished (the drive stage
+starts from them), the training logs and curves. Weights go to float16 and AdamW
 moments to bfloat16 (float16 would flush the smallest second moments to zero); position tables
 and step counters stay as they are. ``unpack`` writes them back as float32 files the trainers
 read, so re-running the recipe resumes stage two where it stopped:
@@ -21,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-CHECKPOINTS = ("stage1/stage1_final.pt", "stage2/last.pt")
+CHECKPOINTS = ("stage1/stage1_final.pt", "stage2/stage2_final.pt", "stage2/last.pt")
 COPIED = (
     "pretrain/train_log.jsonl",
     "stage1/train_log.jsonl",
@@ -51,6 +52,8 @@ def pack(out: Path, dest: Path) -> list[Path]:
     """Small copies of ``out``'s resumable state under ``dest``; returns the files written."""
     written = []
     for rel in CHECKPOINTS:
+        if rel == "stage2/last.pt" and (out / "stage2" / "stage2_final.pt").is_file():
+            continue  # stage two has finished: its final weights are all the next stage needs
         if (out / rel).is_file():
             state = torch.load(out / rel, map_location="cpu", weights_only=True)
             (dest / rel).parent.mkdir(parents=True, exist_ok=True)

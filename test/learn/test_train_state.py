@@ -50,3 +50,19 @@ def test_pack_and_unpack_a_run(tmp_path: Path) -> None:
         assert torch.allclose(again.state_dict()[name], value, atol=2e-3), name
     assert (back / "stage2" / "train_log.jsonl").read_text() == '{"step": 1, "loss": 1.0}\n'
     assert main(["pack", str(tmp_path / "empty"), str(tmp_path / "p2")]) == 1
+
+
+def test_a_finished_stage_two_is_packed_as_its_final_weights(tmp_path: Path) -> None:
+    run, packed, back = tmp_path / "run", tmp_path / "packed", tmp_path / "back"
+    model = build_pairvpr(ModelConfig.tiny(), seed=0)
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-3)
+    save_training_checkpoint(model, run / "stage2" / "last.pt", opt, {"stage": 2, "step": 9})
+    save_pairvpr(model, run / "stage2" / "stage2_final.pt", extra={"stage": 2})
+    main = _module().main
+    assert main(["pack", str(run), str(packed)]) == 0
+    assert sorted(p.name for p in (packed / "stage2").iterdir()) == ["stage2_final.pt"]
+    assert main(["unpack", str(packed), str(back)]) == 0
+    again = load_pairvpr(back / "stage2" / "stage2_final.pt")
+    assert again.state_dict()["dec_pos_embed"].dtype == torch.float32
+    for name, value in model.state_dict().items():
+        assert torch.allclose(again.state_dict()[name], value, atol=2e-3), name
