@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pair_vpr_ros.detector import rerank_score
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, load_pairvpr, quantize_int8
 from pair_vpr_ros.model.config import PATCH
 from pair_vpr_ros.offline.calibration_images import calibration_loader
@@ -151,14 +152,12 @@ def agreement(
 def rerank_scores(
     model, dense: torch.Tensor, desc: torch.Tensor, nearest: torch.Tensor, global_weight: float
 ) -> torch.Tensor:
-    """[Q, k] re-rank scores of each query's candidates `nearest` [Q, k]: pair scores plus
-    `global_weight` x descriptor similarity (`detector.rerank_score`; dense [N, T, D], desc
-    [N, C])."""
+    """[Q, k] re-rank scores of each query's candidates `nearest` [Q, k], as the detector ranks
+    them (`detector.rerank_score`: pair score + `global_weight` x descriptor similarity; dense
+    [N, T, D], desc [N, C])."""
     pair = torch.stack([model.pair_scores(dense[i], dense[o]) for i, o in enumerate(nearest)])
-    if global_weight == 0:
-        return pair
     sims = torch.stack([desc[o].float() @ desc[i].float() for i, o in enumerate(nearest)])
-    return pair + global_weight * sims
+    return rerank_score(pair, sims, global_weight)
 
 
 def descriptor_cosine(models: dict, images: torch.Tensor) -> dict[str, float]:

@@ -51,13 +51,16 @@ from pair_vpr_ros.types import split_stamp
 
 FACTOR_TOPIC = "loop_closure/factor"
 FACTOR_TYPE = "nav_msgs/msg/Odometry"
-FACTOR_MSG_TYPES = (  # every message type `factor_msg` constructs
+POSE_MSG_TYPES = (  # a stamped header and a pose with covariance: what both loop messages hold
     "builtin_interfaces/msg/Time",
     "std_msgs/msg/Header",
     "geometry_msgs/msg/Point",
     "geometry_msgs/msg/Quaternion",
     "geometry_msgs/msg/Pose",
     "geometry_msgs/msg/PoseWithCovariance",
+)
+FACTOR_MSG_TYPES = (  # every message type `factor_msg` constructs
+    *POSE_MSG_TYPES,
     "geometry_msgs/msg/Vector3",
     "geometry_msgs/msg/Twist",
     "geometry_msgs/msg/TwistWithCovariance",

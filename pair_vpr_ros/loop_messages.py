@@ -52,6 +52,7 @@ from pair_vpr_ros.loop_factor import (
     FACTOR_MSG_TYPES,
     FACTOR_TOPIC,
     FACTOR_TYPE,
+    POSE_MSG_TYPES,
     LoopFactor,
     factor_from_msg,
     factor_from_record,
@@ -64,15 +65,7 @@ DETAIL_TOPIC = "loop_closure/detail"
 JSON_TOPIC = "loop_closure/json"
 TYPED_TOPIC = "loop_closure/typed"
 TYPED_TYPE = "pair_vpr_ros_interfaces/msg/LoopClosure"
-TYPED_MSG_TYPES = (  # every message type `typed_msg` constructs
-    "builtin_interfaces/msg/Time",
-    "std_msgs/msg/Header",
-    "geometry_msgs/msg/Point",
-    "geometry_msgs/msg/Quaternion",
-    "geometry_msgs/msg/Pose",
-    "geometry_msgs/msg/PoseWithCovariance",
-    TYPED_TYPE,
-)
+TYPED_MSG_TYPES = (*POSE_MSG_TYPES, TYPED_TYPE)  # every message type `typed_msg` constructs
 FLOAT64_ARRAY_TYPE = "std_msgs/msg/Float64MultiArray"
 STRING_TYPE = "std_msgs/msg/String"
 
