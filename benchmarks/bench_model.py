@@ -136,16 +136,25 @@ def agreement(
             got = rerank_scores(model, mdense, mdesc, nearest, global_weight)
             best, pick = want.argmax(1), got.argmax(1)
             regret = want.max(1).values - want.gather(1, pick[:, None])[:, 0]
+            # the queries whose top-1 differs: fp32's gap between its top-1 and the path's,
+            # and the path's own gap the other way (how far it moved the two apart)
+            flips = [
+                [i, float(regret[i]), float(got[i, pick[i]] - got[i, best[i]])]
+                for i in torch.nonzero(best != pick).flatten().tolist()
+            ]
             out[name] = {
                 "top1": float((best == pick).float().mean()),
                 "cosine": float((desc.float() * mdesc.float()).sum(-1).mean()),
                 "regret_max": float(regret.max()),
+                "flips": flips,
             }
             if places is not None:
                 chosen = [places[nearest[i, j]] for i, j in enumerate(pick.tolist())]
                 truth = [places[nearest[i, j]] for i, j in enumerate(best.tolist())]
                 dist = np.linalg.norm(np.array(chosen) - np.array(truth), axis=1)
                 out[name]["same_place"] = float(np.mean(dist <= SAME_PLACE_M))
+                for flip in flips:
+                    flip.append(float(dist[flip[0]]))
     return out
 
 
@@ -334,6 +343,10 @@ def main(argv: list[str] | None = None) -> int:
             place = f", same place {a['same_place']:.1%}" if "same_place" in a else ""
             print(f"  {name}: top-1 after re-ranking {a['top1']:.1%}{place}, fp32 score lost at "
                   f"most {a['regret_max']:.4f}, cosine {a['cosine']:.5f}")  # fmt: skip
+            for query, gap, moved, *dist in a["flips"]:
+                where = f", {dist[0]:.1f} m from fp32's" if dist else ""
+                print(f"    query {query}: fp32's top-1 ahead by {gap:.3f}, this path puts the "
+                      f"other {moved:.3f} ahead{where}")  # fmt: skip
     if args.json:
         args.json.write_text(json.dumps(figures, indent=2) + "\n")
         print(f"wrote {args.json}")

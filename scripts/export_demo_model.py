@@ -39,7 +39,7 @@ STAGE2_KEYS = (
     "max_steps", "places_per_batch", "lr", "conditions", "twin_share", "grey", "grey_places",
 )  # fmt: skip
 PAIR_TUNE_KEYS = (
-    "steps", "batch", "twins", "lr", "weight_decay", "top_k", "exclude_recent_s",
+    "steps", "batch", "twins", "lonely", "lr", "weight_decay", "top_k", "exclude_recent_s",
     "exclude_recent_keyframes", "gt_radius", "negative_radius", "seed", "drive", "val",
 )  # fmt: skip
 

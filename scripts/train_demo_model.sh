@@ -16,10 +16,11 @@
 #    shortcut (--conditions 3), identical / near-identical pairs as positives (--twin-share),
 #    half the places all grey, re-ranked vs global AP on the held-out world (colour and grey)
 #    every EVAL_EVERY steps;
-# 5. stage two on drives (docs/training.md): drive bags of the training worlds 101-112 (101-106
+# 5. stage two on drives (docs/training.md): drive bags of the training worlds 101-124 (101-112
 #    also as mono8) and of the held-out world 201, replayed with the stage-two model; only the
 #    pair classifier is fine-tuned, on each keyframe's global top-K (what re-ranking in the node
-#    faces), with AP on the held-out drive every PAIR_TUNE_EVAL_EVERY steps;
+#    faces) and on keyframes of new ground (PAIR_TUNE_LONELY a step, so that a first visit
+#    scores low), with AP on the held-out drive every PAIR_TUNE_EVAL_EVERY steps;
 # 6. export as float16 with its config and a training summary beside it.
 # Every stage is resumable: re-running the script skips finished stages and continues an
 # interrupted one from OUT/<stage>/last.pt (written every SAVE_EVERY steps).
@@ -42,11 +43,13 @@ GREY_PLACES=${GREY_PLACES:-0.5}
 STAGE2_GREY=${STAGE2_GREY:-0}
 EARLY_GREY=${EARLY_GREY:-0}
 WORLD_SEEDS=${WORLD_SEEDS:-$(seq -s ' ' 101 132)}
-GREY_DRIVE_SEEDS=${GREY_DRIVE_SEEDS:-101 102 103 104 105 106}  # drives also replayed as mono8
-PAIR_TUNE_STEPS=${PAIR_TUNE_STEPS:-600}
-PAIR_TUNE_EVAL_EVERY=${PAIR_TUNE_EVAL_EVERY:-200}
-# drives of these training worlds for the pair classifier (12: with 4 it over-fits in ~300 steps)
-DRIVE_SEEDS=${DRIVE_SEEDS:-101 102 103 104 105 106 107 108 109 110 111 112}
+GREY_DRIVE_SEEDS=${GREY_DRIVE_SEEDS:-$(seq -s ' ' 101 112)}  # drives also replayed as mono8
+PAIR_TUNE_STEPS=${PAIR_TUNE_STEPS:-2400}
+PAIR_TUNE_LONELY=${PAIR_TUNE_LONELY:-32}  # keyframes of new ground a step (pair_tune --lonely)
+PAIR_TUNE_TWINS=${PAIR_TUNE_TWINS:-8}  # identical pairs a step (pair_tune --twins)
+PAIR_TUNE_EVAL_EVERY=${PAIR_TUNE_EVAL_EVERY:-600}
+# drives of these training worlds for the pair classifier (with 4 it over-fits in ~300 steps)
+DRIVE_SEEDS=${DRIVE_SEEDS:-$(seq -s ' ' 101 124)}
 DRIVE_FRAMES=${DRIVE_FRAMES:-600}  # frames of each drive bag (10 Hz)
 SAVE_EVERY=${SAVE_EVERY:-100}
 EVAL_EVERY=${EVAL_EVERY:-450}
@@ -181,7 +184,8 @@ if [ ! -f "$OUT/pair_tune/pair_tune_final.pt" ]; then
     for seed in $GREY_DRIVE_SEEDS; do drives+=(--drive "$OUT/drives/replay${seed}g/map"); done
     "$PY" -m pair_vpr_ros.learn.train.pair_tune --init "$OUT/stage2/stage2_final.pt" \
         "${drives[@]}" --val "$OUT/drives/replay201/map" --out "$OUT/pair_tune" \
-        --steps "$PAIR_TUNE_STEPS" --save-every "$SAVE_EVERY" --eval-every "$PAIR_TUNE_EVAL_EVERY" \
+        --steps "$PAIR_TUNE_STEPS" --lonely "$PAIR_TUNE_LONELY" --twins "$PAIR_TUNE_TWINS" \
+        --save-every "$SAVE_EVERY" --eval-every "$PAIR_TUNE_EVAL_EVERY" \
         --seed 0 --device "$DEVICE" "${resume[@]}"
 fi
 "$PY" -c "from pathlib import Path; from pair_vpr_ros.learn.train.curves import draw_curves; \

@@ -38,7 +38,7 @@ def test_demo_model_is_small_and_loads_through_load_pairvpr():
 def test_demo_parameter_file_is_valid():
     config = detector_config(read_params_file(ROOT.parent / "config" / "demo.yaml"))
     assert (config.top_k, config.exclude_recent_s, config.global_floor) == (5, 8.0, -1.0)
-    assert (config.keyframe_max_similarity, config.score_threshold) == (1.0, 60.0)
+    assert (config.keyframe_max_similarity, config.score_threshold) == (1.0, 64.0)
     assert config.global_weight == 100.0 and config.geometric_verification
 
 

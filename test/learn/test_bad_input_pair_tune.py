@@ -18,6 +18,8 @@ FLAGS = {
     "lr zero": (["--lr", "0"], 1, "error: lr=0.0: must be > 0"),
     "batch zero": (["--batch", "0"], 1, "error: batch=0: must be >= 1"),
     "twins negative": (["--twins=-1"], 1, "error: twins=-1: must be >= 0"),
+    "lonely negative": (["--lonely=-2"], 1, "error: lonely=-2: must be >= 0"),
+    "lonely text": (["--lonely", "some"], 2, "argument --lonely: invalid int value: 'some'"),
     "steps zero": (["--steps", "0"], 1, "error: steps=0: must be >= 1"),
     "save-every zero": (["--save-every", "0"], 1, "error: save_every=0: must be >= 1"),
     "eval-every negative": (["--eval-every=-1"], 1, "eval_every=-1: must be >= 0 (0 = never)"),

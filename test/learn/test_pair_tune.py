@@ -16,6 +16,7 @@ from drive_maps import A, X, loop_drive, tiny_checkpoint, write_drive
 
 from pair_vpr_ros.learn.train import pair_tune
 from pair_vpr_ros.learn.train.drive_pairs import MiningRule, detection_ap, load_drive, mine_drive
+from pair_vpr_ros.learn.train.losses import pair_bce
 from pair_vpr_ros.model import load_pairvpr
 
 RULE = MiningRule(top_k=2, exclude_recent_s=2.5, exclude_recent_keyframes=1)
@@ -43,6 +44,7 @@ def test_mining_follows_the_detector_exclusion_and_the_radii() -> None:
     # keyframe 3 (1 m away) is not in the top-2 but is the nearest eligible: a positive too
     assert got[6] == ([2, 0], (0, 3), (2,), True)
     assert [q.query for q in queries if q.trainable] == [4, 6]
+    assert [q.query for q in queries if q.lonely] == [5]  # new ground with hard negatives
     np.testing.assert_allclose(queries[1].distance, [98.5, 1.5])
     np.testing.assert_allclose(queries[1].similarity, [math.cos(0.05), math.cos(0.3)])
 
@@ -72,6 +74,34 @@ def test_load_drive_reads_the_map_as_stored(tmp_path: Path) -> None:
     assert [(q.query, q.positives, q.negatives) for q in drive.queries] == [
         (q.query, q.positives, q.negatives) for q in expected
     ]
+
+
+def test_lonely_rows_come_from_new_ground_on_a_stream_of_their_own() -> None:
+    queries = mine_drive(*hand_arrays(), RULE)
+    pools, lonely = [[q for q in queries if q.trainable]], [[q for q in queries if q.lonely]]
+    rows = pair_tune.sample_lonely(lonely, 6, seed=3, step=7)
+    assert [d for d, _ in rows] == [0] and len(rows[0][1]) == 6
+    assert set(rows[0][1]) <= {(5, 1), (5, 0)}  # query 5 against its own negatives
+    assert rows == pair_tune.sample_lonely(lonely, 6, seed=3, step=7)
+    assert pair_tune.sample_lonely(lonely, 0, 3, 7) == [] == pair_tune.sample_lonely([[]], 6, 3, 7)
+    # the positive/negative rows do not depend on whether lonely rows are drawn
+    assert pair_tune.sample_batch(pools, 4, 3, 7) == pair_tune.sample_batch(pools, 4, 3, 7)
+
+
+def test_lonely_rows_enter_the_loss_as_negatives_in_both_orders(tmp_path: Path) -> None:
+    _, model = tiny_checkpoint(tmp_path / "init.pt")
+    drive = load_drive(write_drive(tmp_path / "map", model), RULE,
+                       (model.num_patches, model.config.embed_dim), model.weights_id)  # fmt: skip
+    picked, lonely = [(0, [(4, 0, 1), (6, 3, 2)])], [(0, [(5, 1), (5, 0)])]
+    got = pair_tune.batch_loss(model, [drive], picked, 1, lonely)
+    d = drive.dense
+    logit = lambda i, j: model.pair_logits(d[[i]], d[[j]])  # noqa: E731
+    pos = [logit(4, 0), logit(6, 3), logit(0, 4), logit(3, 6), logit(4, 4)]
+    neg = [logit(4, 1), logit(6, 2), logit(1, 4), logit(2, 6)]
+    neg += [logit(5, 1), logit(5, 0), logit(1, 5), logit(0, 5)]
+    want = pair_bce(torch.cat(pos), torch.cat(neg))
+    assert got.item() == pytest.approx(want.item(), rel=1e-5)
+    assert got.item() != pytest.approx(pair_tune.batch_loss(model, [drive], picked, 1).item())
 
 
 def _run(tmp_path: Path, out: str, steps: int, *extra: str) -> Path:

@@ -47,6 +47,12 @@ class DriveQuery:
     def trainable(self) -> bool:
         return bool(self.positives) and bool(self.negatives)
 
+    @property
+    def lonely(self) -> bool:
+        """No true match anywhere in the map, but hard negatives: a keyframe of new ground,
+        which the node must not call a loop whatever its candidates look like."""
+        return not self.has_match and bool(self.negatives)
+
 
 @dataclass(frozen=True)
 class MiningRule:
@@ -103,6 +109,10 @@ class Drive:
     @property
     def trainable(self) -> list[DriveQuery]:
         return [q for q in self.queries if q.trainable]
+
+    @property
+    def lonely(self) -> list[DriveQuery]:
+        return [q for q in self.queries if q.lonely]
 
 
 def load_drive(

@@ -6,7 +6,9 @@ This stage fine-tunes ONLY the pair classifier (decoder, its class token and `cl
 encoder and global descriptor frozen, so the maps' dense tokens and descriptors stay valid) on
 replayed drives (`drive_pairs`): each batch takes `batch` mined queries, one random positive and
 one random hard negative (a global top-K candidate far away) each, scored in both orders, plus
-`twins` identical pairs per batch so that an exact repeat keeps outscoring a revisit; binary
+`twins` identical pairs per batch so that an exact repeat keeps outscoring a revisit, plus
+`lonely` keyframes of new ground (no true match anywhere before them) against one hard negative
+each, so that a first visit scores low whatever its candidates look like; binary
 cross-entropy, AdamW. Batches are drawn from a generator seeded with (seed, step), so a resumed
 run takes the same batches as an uninterrupted one.
 
@@ -81,6 +83,11 @@ class PairTuneConfig:
     )
     batch: int = option(32, "queries per step (default %(default)s)")
     twins: int = option(8, "identical pairs (q, q) per batch, as positives (default %(default)s)")
+    lonely: int = option(
+        0,
+        "keyframes per step with no true match in the map (new ground), each against one hard "
+        "negative in both orders, so that a first visit scores low (default %(default)s)",
+    )
     steps: int = option(600, "optimiser steps in total (default %(default)s)")
     lr: float = option(1e-4, "AdamW learning rate (default %(default)s)")
     weight_decay: float = option(0.05, "AdamW weight decay (default %(default)s)")
@@ -105,6 +112,7 @@ class PairTuneConfig:
             ("negative_radius", self.negative_radius >= self.gt_radius, "must be >= gt_radius"),
             ("batch", self.batch >= 1, "must be >= 1"),
             ("twins", self.twins >= 0, "must be >= 0"),
+            ("lonely", self.lonely >= 0, "must be >= 0"),
             ("steps", self.steps >= 1, "must be >= 1"),
             ("lr", self.lr > 0, "must be > 0"),
             ("weight_decay", self.weight_decay >= 0, "must be >= 0"),
@@ -153,17 +161,47 @@ def sample_batch(
     return out
 
 
-def batch_loss(model: PairVPR, drives: list[Drive], picked: list, twins: int) -> Tensor:
-    """BCE over logit(a,b) and logit(b,a) of each (query, positive) and (query, negative),
-    plus the first ``twins`` queries against themselves (q, q) as positives. All drives' rows
-    go through the classifier together (one call per kind: a call per drive is ~10x slower
-    with a dozen drives on a CPU)."""
+def sample_lonely(
+    pools: list[list[DriveQuery]], count: int, seed: int, step: int
+) -> list[tuple[int, list[tuple[int, int]]]]:
+    """(drive, [(query, negative)]) per drive: ``count`` keyframes of new ground drawn in step
+    ``step``, keyed by (seed, step) on a stream of their own (``sample_batch`` draws the same
+    rows whatever ``count`` is); [] when no drive has such a keyframe."""
+    flat = [(d, q) for d, pool in enumerate(pools) for q in pool]
+    if not count or not flat:
+        return []
+    rng = np.random.default_rng([seed, step, 1])
+    picks = [flat[i] for i in rng.integers(0, len(flat), count)]
+    out = []
+    for d in range(len(pools)):
+        rows = [(q.query, int(rng.choice(q.negatives))) for dq, q in picks if dq == d]
+        if rows:
+            out.append((d, rows))
+    return out
+
+
+def _stack(model: PairVPR, drives: list[Drive], picked: list) -> tuple[Tensor, ...]:
+    """Each column of ``picked``'s rows (ids) -> the dense tokens of all drives, stacked."""
     cols = [[drives[d].dense[list(col)] for col in zip(*rows, strict=True)] for d, rows in picked]
-    a, p, n = (torch.cat(part).to(model.device) for part in zip(*cols, strict=True))
+    return tuple(torch.cat(part).to(model.device) for part in zip(*cols, strict=True))
+
+
+def batch_loss(
+    model: PairVPR, drives: list[Drive], picked: list, twins: int, lonely: list | None = None
+) -> Tensor:
+    """BCE over logit(a,b) and logit(b,a) of each (query, positive) and (query, negative),
+    plus the first ``twins`` queries against themselves (q, q) as positives and each
+    (query, negative) of ``lonely`` (`sample_lonely`) as negatives. All drives' rows go
+    through the classifier together (one call per kind: a call per drive is ~10x slower with
+    a dozen drives on a CPU)."""
+    a, p, n = _stack(model, drives, picked)
     pos = [model.pair_logits(a, p), model.pair_logits(p, a)]
     neg = [model.pair_logits(a, n), model.pair_logits(n, a)]
     if twins:
         pos.append(model.pair_logits(a[:twins], a[:twins]))
+    if lonely:
+        la, ln = _stack(model, drives, lonely)
+        neg += [model.pair_logits(la, ln), model.pair_logits(ln, la)]
     return pair_bce(torch.cat(pos), torch.cat(neg))
 
 
@@ -202,6 +240,7 @@ def pair_tune(cfg: PairTuneConfig) -> Path:
     drives = _load_drives(cfg.drive, cfg, model, training=True)
     val = _load_drives((cfg.val,), cfg, model, training=False) if cfg.val else []
     pools = [d.trainable for d in drives]
+    lonely_pools = [d.lonely for d in drives]
     params = freeze_all_but_pair_classifier(model)
     opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
     start = 0
@@ -217,7 +256,9 @@ def pair_tune(cfg: PairTuneConfig) -> Path:
         log.write(step=0, val=rerank_ap(model, val, cfg.gt_radius))
     model.train()
     for step in tqdm(range(start + 1, cfg.steps + 1), disable=not cfg.progress, desc=STAGE):
-        loss = batch_loss(model, drives, sample_batch(pools, cfg.batch, cfg.seed, step), cfg.twins)
+        picked = sample_batch(pools, cfg.batch, cfg.seed, step)
+        lonely = sample_lonely(lonely_pools, cfg.lonely, cfg.seed, step)
+        loss = batch_loss(model, drives, picked, cfg.twins, lonely)
         if not torch.isfinite(loss):
             raise TrainingError(f"loss is {loss.item()} at step {step}: lower --lr")
         opt.zero_grad(set_to_none=True)
