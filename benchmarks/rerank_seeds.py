@@ -24,10 +24,12 @@ import numpy as np
 from tqdm import tqdm
 
 from pair_vpr_ros.demo import generate_world, render_frame
+from pair_vpr_ros.detector import rerank_score
 from pair_vpr_ros.frames import Frame
 from pair_vpr_ros.offline.loop_truth import (
     KeyframeInfo,
     PRCurve,
+    is_true_loop,
     pr_curve,
     queries_with_true_match,
 )
@@ -66,15 +68,13 @@ def world_queries(model, seed: int, top_k: int, mono: bool) -> tuple[list, int]:
     pipe.close()
     queries = []
     for query, cands in rows:
-        table = [(sim, pair, _true(query, match)) for match, sim, pair in cands]
+        table = [
+            (sim, pair, is_true_loop(query, match, GT_RADIUS, EXCLUSION_S))
+            for match, sim, pair in cands
+        ]
         queries.append(np.array(table, dtype=np.float64))
     positives = len(queries_with_true_match(list(infos.values()), GT_RADIUS, EXCLUSION_S))
     return queries, positives
-
-
-def _true(query: KeyframeInfo, match: KeyframeInfo) -> bool:
-    far = np.hypot(query.pose[0] - match.pose[0], query.pose[1] - match.pose[1]) > GT_RADIUS
-    return match.id < query.id and query.stamp - match.stamp >= EXCLUSION_S and not far
 
 
 def curve(queries: list[np.ndarray], positives: int, k: int, w: float | None) -> PRCurve:
@@ -85,7 +85,7 @@ def curve(queries: list[np.ndarray], positives: int, k: int, w: float | None) ->
         if w is None:
             best, score = 0, q[0, 0]
         else:
-            fused = q[:k, 1] + w * q[:k, 0]
+            fused = rerank_score(q[:k, 1], q[:k, 0], w)
             best = int(np.argmax(fused))
             score = fused[best]
         scores.append(score)

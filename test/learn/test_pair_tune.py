@@ -84,8 +84,11 @@ def test_lonely_rows_come_from_new_ground_on_a_stream_of_their_own() -> None:
     assert set(rows[0][1]) <= {(5, 1), (5, 0)}  # query 5 against its own negatives
     assert rows == pair_tune.sample_lonely(lonely, 6, seed=3, step=7)
     assert pair_tune.sample_lonely(lonely, 0, 3, 7) == [] == pair_tune.sample_lonely([[]], 6, 3, 7)
-    # the positive/negative rows do not depend on whether lonely rows are drawn
-    assert pair_tune.sample_batch(pools, 4, 3, 7) == pair_tune.sample_batch(pools, 4, 3, 7)
+    # the training rows of a step come from their own stream: (seed, step) alone fixes them
+    batch = pair_tune.sample_batch(pools, 4, 3, 7)
+    assert [d for d, _ in batch] == [0] and len(batch[0][1]) == 4
+    assert set(batch[0][1]) <= {(4, 0, 1), (6, 0, 2), (6, 3, 2)}
+    assert batch == pair_tune.sample_batch(pools, 4, 3, 7)
 
 
 def test_lonely_rows_enter_the_loss_as_negatives_in_both_orders(tmp_path: Path) -> None:

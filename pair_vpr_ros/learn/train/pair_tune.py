@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -141,24 +142,32 @@ def freeze_all_but_pair_classifier(model: PairVPR) -> list[torch.nn.Parameter]:
     return params
 
 
+def _draw(
+    pools: list[list[DriveQuery]], count: int, rng: np.random.Generator, row: Callable
+) -> list[tuple[int, list[tuple]]]:
+    """(drive, [row(query)]) per drive: ``count`` queries drawn uniformly over all ``pools``."""
+    flat = [(d, q) for d, pool in enumerate(pools) for q in pool]
+    picks = [flat[i] for i in rng.integers(0, len(flat), count)]
+    out = []
+    for d in range(len(pools)):
+        rows = [row(q) for dq, q in picks if dq == d]
+        if rows:
+            out.append((d, rows))
+    return out
+
+
 def sample_batch(
     pools: list[list[DriveQuery]], batch: int, seed: int, step: int
 ) -> list[tuple[int, list[tuple[int, int, int]]]]:
     """(drive, [(query, positive, negative)]) per drive drawn in step ``step``: ``batch``
     queries uniformly over all drives' trainable queries, keyed by (seed, step) alone."""
     rng = np.random.default_rng([seed, step])
-    flat = [(d, q) for d, pool in enumerate(pools) for q in pool]
-    picks = [flat[i] for i in rng.integers(0, len(flat), batch)]
-    out = []
-    for d in range(len(pools)):
-        rows = [
-            (q.query, int(rng.choice(q.positives)), int(rng.choice(q.negatives)))
-            for dq, q in picks
-            if dq == d
-        ]
-        if rows:
-            out.append((d, rows))
-    return out
+    return _draw(
+        pools,
+        batch,
+        rng,
+        lambda q: (q.query, int(rng.choice(q.positives)), int(rng.choice(q.negatives))),
+    )
 
 
 def sample_lonely(
@@ -167,17 +176,10 @@ def sample_lonely(
     """(drive, [(query, negative)]) per drive: ``count`` keyframes of new ground drawn in step
     ``step``, keyed by (seed, step) on a stream of their own (``sample_batch`` draws the same
     rows whatever ``count`` is); [] when no drive has such a keyframe."""
-    flat = [(d, q) for d, pool in enumerate(pools) for q in pool]
-    if not count or not flat:
+    if not count or not any(pools):
         return []
     rng = np.random.default_rng([seed, step, 1])
-    picks = [flat[i] for i in rng.integers(0, len(flat), count)]
-    out = []
-    for d in range(len(pools)):
-        rows = [(q.query, int(rng.choice(q.negatives))) for dq, q in picks if dq == d]
-        if rows:
-            out.append((d, rows))
-    return out
+    return _draw(pools, count, rng, lambda q: (q.query, int(rng.choice(q.negatives))))
 
 
 def _stack(model: PairVPR, drives: list[Drive], picked: list) -> tuple[Tensor, ...]:
