@@ -75,10 +75,10 @@ setup(
         "console_scripts": [
             "vpr_node = pair_vpr_ros.ros.entry:vpr_node",
             "posegraph_node = pair_vpr_ros.ros.entry:posegraph_node",
-            "pairvpr-posegraph = pair_vpr_ros.offline.posegraph:main",
-            "pairvpr-bag-replay = pair_vpr_ros.offline.replay_cli:main",
+            "pairvpr-posegraph = pair_vpr_ros.offline.posegraph.cli:main",
+            "pairvpr-bag-replay = pair_vpr_ros.offline.replay.cli:main",
             "pairvpr-map = pair_vpr_ros.offline.map_cli:main",
-            "pairvpr-fleet-replay = pair_vpr_ros.offline.fleet_replay_cli:main",
+            "pairvpr-fleet-replay = pair_vpr_ros.offline.fleet.cli:main",
             "pairvpr-eval = pair_vpr_ros.learn.evaluate:main",
             "pairvpr-train-stage1 = pair_vpr_ros.learn.train.stage1:main",
             "pairvpr-train-stage2 = pair_vpr_ros.learn.train.stage2:main",

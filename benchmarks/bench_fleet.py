@@ -27,6 +27,7 @@ import numpy as np
 
 from pair_vpr_ros.fleet import KeyframeDescriptor, ScoreRequest, ScoreResponse, encode, model_tag
 from pair_vpr_ros.geometry.features import Features, pack_features
+from pair_vpr_ros.offline.bags.opening import open_bag
 
 SESSION = "20261125T160000Z"
 SHAPES = {"ViT-B/322": (529, 768), "ViT-L/322": (529, 1024), "demo-small/112": (64, 128)}
@@ -58,10 +59,9 @@ def wire_sizes() -> None:
 
 def split_frames(bag: str, part: int, parts: int, args, truth: dict) -> object:
     """Frames of time slice `part` of `parts`, stamps shifted to start with the bag."""
-    from pair_vpr_ros.offline import bag_io
-    from pair_vpr_ros.offline.sources import FrameCounts, source_frames
+    from pair_vpr_ros.offline.bags.sources import FrameCounts, source_frames
 
-    with bag_io.open_bag(bag) as reader:
+    with open_bag(bag) as reader:
         start, end = reader.start_time / 1e9, reader.end_time / 1e9
     width = (end - start) / parts
     lo, hi = start + part * width, start + (part + 1) * width
@@ -73,8 +73,9 @@ def split_frames(bag: str, part: int, parts: int, args, truth: dict) -> object:
 
 
 def fleet_run(args) -> None:
-    from pair_vpr_ros.offline.fleet_replay import FleetRobot, run_fleet
-    from pair_vpr_ros.params import detector_config, geometry_config, read_params_file
+    from pair_vpr_ros.offline.fleet.replay import FleetRobot, run_fleet
+    from pair_vpr_ros.params.configs import detector_config, geometry_config
+    from pair_vpr_ros.params.file import read_params_file
     from pair_vpr_ros.weights import load_model
 
     values = read_params_file(args.params_file)

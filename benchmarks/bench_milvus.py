@@ -27,11 +27,11 @@ import numpy as np
 from map_data import trajectory, trajectory_queries
 from tqdm import tqdm
 
+from pair_vpr_ros.loops.recency import eligible_keyframes
 from pair_vpr_ros.place_map import IndexConfig
 from pair_vpr_ros.place_map.index import DescriptorIndex
 from pair_vpr_ros.place_map.milvus import MilvusIndex
 from pair_vpr_ros.place_map.milvus_expr import Exclusion
-from pair_vpr_ros.recency import eligible_keyframes
 
 KINDS = ("flat", "hnsw", "ivf", "milvus-HNSW", "milvus-IVF_FLAT", "milvus-FLAT")
 BULK = 10_000  # rows handed to one add while building

@@ -36,11 +36,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pair_vpr_ros.detector import rerank_score
+from pair_vpr_ros.loops.detector import rerank_score
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, load_pairvpr, quantize_int8
 from pair_vpr_ros.model.config import PATCH
-from pair_vpr_ros.offline.calibration_images import calibration_loader
-from pair_vpr_ros.offline.replay import ReplayOptions
+from pair_vpr_ros.offline.bags.calibration import calibration_loader
+from pair_vpr_ros.offline.replay.options import ReplayOptions
 
 AGREEMENT_QUERIES = 100  # demo-world queries, each re-ranking its 10 nearest frames
 SAME_PLACE_M = ReplayOptions().gt_radius  # what the replay report counts as one place

@@ -22,8 +22,9 @@ import numpy as np
 from pair_vpr_ros.demo.camera import Camera, camera_to_base
 from pair_vpr_ros.demo.odometry import drifting_odometry
 from pair_vpr_ros.demo.world import generate_world
-from pair_vpr_ros.offline.trajectories import Trajectory, trajectory_errors
-from pair_vpr_ros.posegraph.graph import PoseGraph, PoseGraphConfig
+from pair_vpr_ros.offline.report.trajectories import Trajectory, trajectory_errors
+from pair_vpr_ros.posegraph.config import PoseGraphConfig
+from pair_vpr_ros.posegraph.graph import PoseGraph
 from pair_vpr_ros.posegraph.simulate import false_loops, ground_truth_loops
 from pair_vpr_ros.posegraph.transforms import planar_pose7
 

@@ -24,11 +24,15 @@ from pathlib import Path
 import numpy as np
 
 from pair_vpr_ros.demo.camera import Camera, camera_to_base
-from pair_vpr_ros.offline import bag_io
-from pair_vpr_ros.offline.posegraph import PoseGraphSummary, read_track
-from pair_vpr_ros.offline.posegraph_fleet import optimise_fleet
-from pair_vpr_ros.offline.trajectories import Trajectory, reference_alignment, trajectory_errors
-from pair_vpr_ros.posegraph.graph import PoseGraphConfig
+from pair_vpr_ros.offline.bags.opening import open_bag
+from pair_vpr_ros.offline.posegraph.fleet import optimise_fleet
+from pair_vpr_ros.offline.posegraph.single import PoseGraphSummary, read_track
+from pair_vpr_ros.offline.report.trajectories import (
+    Trajectory,
+    reference_alignment,
+    trajectory_errors,
+)
+from pair_vpr_ros.posegraph.config import PoseGraphConfig
 from pair_vpr_ros.posegraph.simulate import make_factor, trajectory_loops
 from pair_vpr_ros.posegraph.transforms import pose3
 
@@ -48,7 +52,7 @@ def read(fleet: Path) -> dict:
     drives = {}
     for entry in json.loads((fleet / "fleet.json").read_text())["drives"]:
         scratch = PoseGraphSummary()
-        with bag_io.open_bag(fleet / entry["bag"]) as reader:
+        with open_bag(fleet / entry["bag"]) as reader:
             odom = read_track(reader, "/odom", "odometry", scratch)
             truth = read_track(reader, "/ground_truth", "ground truth", scratch)
         drives[(entry["robot"], entry["session"])] = (odom, truth)

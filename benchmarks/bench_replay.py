@@ -20,10 +20,11 @@ from pathlib import Path
 
 import torch
 
-from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.errors import PairVPRError
+from pair_vpr_ros.loops.detector import DetectorConfig
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, load_pairvpr
-from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
+from pair_vpr_ros.offline.replay.options import ReplayOptions
+from pair_vpr_ros.offline.replay.run import replay_bag
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:

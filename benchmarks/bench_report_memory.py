@@ -22,9 +22,9 @@ import tracemalloc
 
 import numpy as np
 
-from pair_vpr_ros.detector import LoopRecord
-from pair_vpr_ros.offline import report
-from pair_vpr_ros.offline.report import KeyframeInfo
+from pair_vpr_ros.loops.detector import LoopRecord
+from pair_vpr_ros.offline.report import folder as report
+from pair_vpr_ros.offline.report.loop_truth import KeyframeInfo, queries_with_true_match
 
 PARTS = ("gt", "evaluate", "report")
 
@@ -62,7 +62,7 @@ def measure(n: int, part: str) -> dict:
     tracemalloc.start()
     start = time.perf_counter()
     if part == "gt":
-        report.queries_with_true_match(keyframes, 10.0, 30.0)
+        queries_with_true_match(keyframes, 10.0, 30.0)
     elif part == "evaluate":
         report.evaluate_loops(records, keyframes, 10.0, 30.0, records)
     else:

@@ -21,8 +21,8 @@ import time
 
 import numpy as np
 
+from pair_vpr_ros.loops.recency import GroupedRecency
 from pair_vpr_ros.place_map import PlaceMap
-from pair_vpr_ros.recency import GroupedRecency
 
 
 def build(size: int, dim: int, seed: int = 0) -> PlaceMap:

@@ -26,7 +26,7 @@ import numpy as np
 from pair_vpr_ros.demo import generate_world
 from pair_vpr_ros.demo.camera import Camera
 from pair_vpr_ros.demo.views import pose_errors, true_relative_pose
-from pair_vpr_ros.loop_factor import factor_from_record
+from pair_vpr_ros.messages.factor import factor_from_record
 
 
 def evaluate(records: list[dict], seed: int, frames: int, gt_radius: float) -> dict:

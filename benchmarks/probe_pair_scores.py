@@ -19,8 +19,8 @@ import numpy as np
 import torch
 
 from pair_vpr_ros.demo import generate_world, render_frame
+from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.model import load_pairvpr, preprocess_batch
-from pair_vpr_ros.pipeline import LoopClosurePipeline
 
 DEMO = Path(__file__).parents[1] / "pair_vpr_ros" / "demo" / "assets" / "demo-small.pth"
 

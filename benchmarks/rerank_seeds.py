@@ -24,18 +24,18 @@ import numpy as np
 from tqdm import tqdm
 
 from pair_vpr_ros.demo import generate_world, render_frame
-from pair_vpr_ros.detector import rerank_score
-from pair_vpr_ros.frames import Frame
-from pair_vpr_ros.offline.loop_truth import (
+from pair_vpr_ros.loops.detector import rerank_score
+from pair_vpr_ros.loops.frames import Frame
+from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
+from pair_vpr_ros.offline.report.loop_truth import (
     KeyframeInfo,
     PRCurve,
     is_true_loop,
     pr_curve,
     queries_with_true_match,
 )
-from pair_vpr_ros.params import detector_config
-from pair_vpr_ros.params_file import read_params_file
-from pair_vpr_ros.pipeline import LoopClosurePipeline
+from pair_vpr_ros.params.configs import detector_config
+from pair_vpr_ros.params.file import read_params_file
 from pair_vpr_ros.weights import load_model
 
 ROOT = Path(__file__).parents[1]

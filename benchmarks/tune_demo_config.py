@@ -19,11 +19,11 @@ from pathlib import Path
 
 from pair_vpr_ros.demo.bag import write_world_bag
 from pair_vpr_ros.demo.world import generate_world
-from pair_vpr_ros.offline import replay
-from pair_vpr_ros.offline.loop_truth import LoopEvaluation
-from pair_vpr_ros.offline.replay_options import ReplayOptions
-from pair_vpr_ros.params import detector_config
-from pair_vpr_ros.params_file import read_params_file
+from pair_vpr_ros.offline.replay import run as replay
+from pair_vpr_ros.offline.replay.options import ReplayOptions
+from pair_vpr_ros.offline.report.loop_truth import LoopEvaluation
+from pair_vpr_ros.params.configs import detector_config
+from pair_vpr_ros.params.file import read_params_file
 from pair_vpr_ros.weights import load_model
 
 ROOT = Path(__file__).parents[1]

@@ -27,7 +27,6 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from pair_vpr_ros.devices import check_device
 from pair_vpr_ros.errors import CheckpointError, ConfigError
 from pair_vpr_ros.model import (
     ModelConfig,
@@ -36,7 +35,8 @@ from pair_vpr_ros.model import (
     load_pairvpr,
     quantize_int8,
 )
-from pair_vpr_ros.params import read_params_file
+from pair_vpr_ros.model.devices import check_device
+from pair_vpr_ros.params.file import read_params_file
 
 ENV_VAR = "PAIRVPR_WEIGHTS"
 RANDOM_PREFIX = "random-"  # "random-<preset>": a randomly initialised network (tests, benchmarks)
@@ -150,7 +150,7 @@ def load_model(
     or with ``backend`` openvino the same weights compiled by OpenVINO for the CPU
     (``OpenVINOModel``: fp32, bf16, or int8 calibrated on synthetic scenes, or on the images
     ``openvino_calibration`` returns for the model's image size, [B,3,S,S]:
-    ``offline.calibration_images.calibration_loader``), its converted graphs kept in
+    ``offline.bags.calibration.calibration_loader``), its converted graphs kept in
     ``openvino_cache_dir`` for the next start (``auto``: the per-user cache folder; '' or None:
     no cache; ``model/openvino_cache.py``).
 

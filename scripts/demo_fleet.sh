@@ -58,12 +58,12 @@ for d in json.load(open(sys.argv[1]))["drives"]:
 "$VENV/bin/pairvpr-fleet-replay" "${exchange[@]}" --weights pair_vpr_ros/demo/assets/demo-small.pth \
     --params-file config/demo.yaml --topic /camera/image_raw --pose-topic /odom \
     --out "$OUT/exchange" --overwrite --quiet
-"$PY" -m pair_vpr_ros.offline.fleet_loops "$OUT"
+"$PY" -m pair_vpr_ros.offline.fleet.loops "$OUT"
 
 # The demo camera is an optical frame 1.6 m above base_link (the odometry's child frame).
 "$VENV/bin/pairvpr-posegraph" "${trajectories[@]}" "${loops[@]}" \
     --loops "$OUT/exchange/added_loops.json" --odom-topic /odom \
     --gt-topic /ground_truth --camera-to-base "0 0 1.6 -0.5 0.5 -0.5 0.5" --out "$OUT/posegraph"
-"$PY" -m pair_vpr_ros.offline.fleet_report "$OUT"
+"$PY" -m pair_vpr_ros.offline.fleet.report "$OUT"
 echo "demo-fleet: $OUT/summary.json, $OUT/posegraph/posegraph.png," \
     "$OUT/posegraph/<robot>/<session>/optimised.tum"

@@ -1,8 +1,8 @@
 """MkDocs hooks (mkdocs.yml `hooks:`): generated parameter tables and a nav that follows docs/.
 
 - A line `<!-- params: vpr_node -->` (or `posegraph_node`) in a page becomes the node's parameter
-  table, rendered from the one table in `pair_vpr_ros/params.py` (`posegraph/params.py`), so the
-  docs never restate a default, range or description by hand.
+  table, rendered from the one table in `pair_vpr_ros/params/table.py` (`params/posegraph.py`),
+  so the docs never restate a default, range or description by hand.
 - Nav entries whose page does not exist yet are dropped (pages other work adds are listed ahead),
   and a page of docs/ that the nav does not name is added under "More".
 """
@@ -22,8 +22,8 @@ MARKER = re.compile(r"^<!-- params: (\w+) -->$", re.M)
 
 
 def _tables() -> dict[str, tuple]:
-    from pair_vpr_ros.params import PARAMS
-    from pair_vpr_ros.posegraph.params import PARAMS as POSEGRAPH_PARAMS
+    from pair_vpr_ros.params.posegraph import PARAMS as POSEGRAPH_PARAMS
+    from pair_vpr_ros.params.table import PARAMS
 
     return {"vpr_node": PARAMS, "posegraph_node": POSEGRAPH_PARAMS}
 

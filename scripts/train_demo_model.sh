@@ -154,7 +154,7 @@ run_stage stage2 stage2_final.pt pair_vpr_ros.learn.train.stage2 \
 # finished one and a drive without it is redone), then tune.
 # Seeds 7 (demo) and 8 (validation of config/demo.yaml) are never used here.
 replay() {
-    "$PY" -m pair_vpr_ros.offline.replay_cli "$@"
+    "$PY" -m pair_vpr_ros.offline.replay.cli "$@"
 }
 # drive <seed>[g]: render world <seed>'s drive, in colour or ("g") as a mono8 camera sees it,
 # and replay it (skipped when done)

@@ -33,7 +33,8 @@ from pair_vpr_ros.fleet.messages import encode as encode_message
 from pair_vpr_ros.fleet.owner import InterRobotLoop, score_request
 from pair_vpr_ros.fleet.peers import SELECTIONS, PeerStore, Proposal, RequestBudget
 from pair_vpr_ros.fleet.wire import check_name, model_tag
-from pair_vpr_ros.pipeline import FrameOutcome, LoopClosurePipeline
+from pair_vpr_ros.loops.frames import FrameOutcome
+from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 
 CHANNELS = {"keyframes": KeyframeDescriptor, "request": ScoreRequest, "response": ScoreResponse}
 REMEMBERED = 4096  # request ids remembered for duplicate / late detection

@@ -13,11 +13,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from pair_vpr_ros.detector import Candidate, LoopRecord, rank_by_pair_score
 from pair_vpr_ros.errors import FleetMessageError
 from pair_vpr_ros.fleet.messages import ScoreRequest, ScoreResponse
-from pair_vpr_ros.pipeline import LoopClosurePipeline
-from pair_vpr_ros.scoring import map_pair_scores
+from pair_vpr_ros.loops.detector import Candidate, LoopRecord, rank_by_pair_score
+from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
+from pair_vpr_ros.loops.scoring import map_pair_scores
 
 IDENTITY = ("query_robot", "query_session", "match_robot", "match_session")
 

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from pair_vpr_ros.errors import GeometryInputError, ImageConversionError
-from pair_vpr_ros.raw_image import image_samples
+from pair_vpr_ros.images.raw import image_samples
 
 DEPTH_SCALE = {"16uc1": 1e-3, "mono16": 1e-3, "32fc1": 1.0}  # -> metres
 

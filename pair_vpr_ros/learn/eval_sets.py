@@ -1,7 +1,7 @@
 """Evaluation sets (``load_eval_set(ROOT)``): database and query images, ground truth.
 
 Ground truth is ``ROOT/ground_truth.npy`` (read without pickle) or UTM file names; see
-:mod:`pair_vpr_ros.learn.datasets` for the rules.
+:mod:`pair_vpr_ros.learn` for the rules.
 """
 
 from __future__ import annotations

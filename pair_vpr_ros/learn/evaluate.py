@@ -8,8 +8,7 @@ A query counts as found at N if any of its first N results is one of its positiv
 without positives count as misses (reported as ``queries_without_positives``).
 
 The measurement of one set lives in ``recall`` (``EvalConfig``, ``EvalResult``, ``evaluate_set``
-and its stages); this module is the tool (weights, all sets, JSON, table, ``main``) and
-re-exports those names so ``from pair_vpr_ros.learn.evaluate import ...`` keeps working.
+and its stages); this module is the tool (weights, all sets, JSON, table, ``main``).
 """
 
 from __future__ import annotations
@@ -32,35 +31,9 @@ from pair_vpr_ros.cli import (
 )
 from pair_vpr_ros.errors import ConfigError, DatasetError
 from pair_vpr_ros.learn.eval_sets import load_eval_set
-from pair_vpr_ros.learn.recall import (
-    EvalConfig,
-    EvalResult,
-    StageSeconds,
-    evaluate_set,
-    fill_map,
-    rank_queries,
-    recall_at_n,
-    rerank,
-)
+from pair_vpr_ros.learn.recall import EvalConfig, EvalResult, evaluate_set
 from pair_vpr_ros.weights import RANDOM_PREFIX, Weights, resolve_weights
 from pair_vpr_ros.weights import load_model as load_weights
-
-__all__ = [
-    "EvalConfig",
-    "EvalResult",
-    "StageSeconds",
-    "build_parser",
-    "eval_weights",
-    "evaluate_set",
-    "fill_map",
-    "format_table",
-    "load_model",
-    "main",
-    "rank_queries",
-    "recall_at_n",
-    "rerank",
-    "run_evaluation",
-]
 
 
 def eval_weights(cfg: EvalConfig) -> Weights:

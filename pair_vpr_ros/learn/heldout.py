@@ -91,7 +91,7 @@ def encode_views(
     model: PairVPR, paths: list[Path], batch: int = 64, grey: bool = False
 ) -> tuple[torch.Tensor, ...]:
     """Paths -> (dense [M,N,D], descriptors [M,C]) on the CPU, encoded at the model's image size
-    on its device; ``grey``: of their grey versions, as the demo's mono8 bags and `imaging`
+    on its device; ``grey``: of their grey versions, as the demo's mono8 bags and `images.convert`
     make them."""
     dense, desc = [], []
     for i in range(0, len(paths), batch):

@@ -11,8 +11,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from pair_vpr_ros.encoded_image import IMAGE_SUFFIXES, file_to_rgb
 from pair_vpr_ros.errors import DatasetError, ImageConversionError
+from pair_vpr_ros.images.encoded import IMAGE_SUFFIXES, file_to_rgb
 from pair_vpr_ros.model import preprocess
 
 
@@ -48,7 +48,7 @@ def parse_utm_name(name: str) -> tuple[float, float] | None:
 
 def read_rgb(path: str | Path) -> np.ndarray:
     """Image file -> [H,W,3] uint8 RGB, decoded as the node decodes image files
-    (`imaging.file_to_rgb`); DatasetError if missing, undecodable or too large."""
+    (`images.encoded.file_to_rgb`); DatasetError if missing, undecodable or too large."""
     try:
         return file_to_rgb(path)
     except ImageConversionError as err:

@@ -1,6 +1,6 @@
 """Place collections for training (``load_places("KIND:ROOT")``): gsv, folders, gldv2, sfxl.
 
-The layouts each loader expects are described in :mod:`pair_vpr_ros.learn.datasets`.
+The layouts each loader expects are described in :mod:`pair_vpr_ros.learn`.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ unlike a camera's (perf-facts: descriptor cosine ~0.998), so these images have w
 indoor frames have: smooth shading, large flat regions, straight edges, repeated windows, a
 horizon. They are made here (the core may not use the demo world) and are the same on every
 run (fixed seeds). Images of the robot's own camera can replace them:
-`offline/calibration_images.py` (parameter `openvino_calibration`).
+`offline/bags/calibration.py` (parameter `openvino_calibration`).
 """
 
 from __future__ import annotations

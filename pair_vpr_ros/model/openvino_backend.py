@@ -6,7 +6,7 @@ The graphs come from our own modules (`export.py`); `precision` picks what OpenV
 - bf16: OpenVINO's default on a CPU with bf16 instructions (f32 elsewhere);
 - int8: static int8 from NNCF (symmetric, per-tensor activations whose ranges are the min/max
   seen on synthetic scenes from `calibration.py` or on images the caller passes, such as the
-  user's own bag or image folder, `offline/calibration_images.py`; per-channel weights); the
+  user's own bag or image folder, `offline/bags/calibration.py`; per-channel weights); the
   float layers run in f32.
 
 `OpenVINOModel` implements `PairVPRModel`, so the pipeline, map and replay run it unchanged.

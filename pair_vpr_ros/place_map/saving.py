@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 import sqlite3
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TypeVar
 
 from pair_vpr_ros.errors import MapError, MapFingerprintError
 from pair_vpr_ros.identity import DEFAULT_ROBOT, LEGACY_SESSION
@@ -19,8 +19,8 @@ from pair_vpr_ros.place_map.dense_store import DenseStore
 from pair_vpr_ros.place_map.files import LOCK_NAME, DirLock, fsync_path
 from pair_vpr_ros.place_map.manifest import MANIFEST_NAME, Manifest, read_manifest, remove_stale
 
-if TYPE_CHECKING:
-    from pair_vpr_ros.place_map.place_map import PlaceMap
+# The class `load` is called on (PlaceMap): saving.py never imports place_map.py, which imports it.
+MapT = TypeVar("MapT", bound="MapSaving")
 
 
 class MapSaving:
@@ -124,7 +124,7 @@ class MapSaving:
 
     @classmethod
     def load(
-        cls,
+        cls: type[MapT],
         directory: str | os.PathLike,
         expected_fingerprint: str | None = None,
         *,
@@ -135,7 +135,7 @@ class MapSaving:
         verify_dense_reads: bool = True,
         work_dir: str | os.PathLike | None = None,
         legacy_identity: tuple[str, str] = (DEFAULT_ROBOT, LEGACY_SESSION),
-    ) -> PlaceMap:
+    ) -> MapT:
         """Open a saved map to continue mapping (or only to query, with read_only=True).
         legacy_identity: (robot, session) of the keyframes of a format-1 map (`load_note`).
 

@@ -32,15 +32,9 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from pair_vpr_ros.loop_factor import LoopFactor
+from pair_vpr_ros.messages.factor import LoopFactor
 from pair_vpr_ros.posegraph import joining, noise
-from pair_vpr_ros.posegraph.config import (  # noqa: F401 (re-exported)
-    IDENTITY,
-    INLIER_CHI2,
-    KERNELS,
-    MAX_PENDING,
-    PoseGraphConfig,
-)
+from pair_vpr_ros.posegraph.config import INLIER_CHI2, MAX_PENDING, PoseGraphConfig
 from pair_vpr_ros.posegraph.loops import LoopEntry, camera_pose, loop_problem
 from pair_vpr_ros.posegraph.tracks import (
     SINGLE,

@@ -1,5 +1,5 @@
-"""Loop closures as the pose graph takes them: ``loop_factor.LoopFactor`` (the record vpr_node and
-the replay publish), checked and moved from the camera frames into the graph's nodes.
+"""Loop closures as the pose graph takes them: ``messages.factor.LoopFactor`` (the record
+vpr_node and the replay publish), checked and moved from the camera frames into the graph's nodes.
 
 A ``LoopFactor`` holds ``T_match_query`` (the query camera's pose in the match camera's frame)
 and its covariance; ``LoopFactor.gtsam_covariance()`` gives it in GTSAM's order and frame
@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 import gtsam
 import numpy as np
 
-from pair_vpr_ros.loop_factor import LoopFactor
+from pair_vpr_ros.messages.factor import LoopFactor
 from pair_vpr_ros.posegraph.transforms import valid_pose7
 
 

@@ -27,12 +27,12 @@ import numpy as np
 
 from pair_vpr_ros.errors import ConfigError, MapError
 from pair_vpr_ros.identity import DEFAULT_ROBOT, LEGACY_SESSION
+from pair_vpr_ros.loops.prior_maps import prior_folder
 from pair_vpr_ros.place_map import PlaceMap
 from pair_vpr_ros.posegraph.config import PoseGraphConfig
 from pair_vpr_ros.posegraph.graph import PoseGraph
 from pair_vpr_ros.posegraph.tracks import TrajectoryId, label
 from pair_vpr_ros.posegraph.transforms import valid_pose7
-from pair_vpr_ros.prior_maps import prior_folder
 
 WHAT = "prior_map_dirs"
 

@@ -17,8 +17,8 @@ import gtsam
 import numpy as np
 
 from pair_vpr_ros.errors import PoseGraphError
-from pair_vpr_ros.loop_factor import LoopFactor
-from pair_vpr_ros.posegraph.graph import IDENTITY
+from pair_vpr_ros.messages.factor import LoopFactor
+from pair_vpr_ros.posegraph.config import IDENTITY
 from pair_vpr_ros.posegraph.transforms import pose3, pose7
 
 

@@ -17,7 +17,7 @@ import gtsam
 import numpy as np
 
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.loop_factor import LoopFactor
+from pair_vpr_ros.messages.factor import LoopFactor
 from pair_vpr_ros.posegraph.odometry import OdometryHistory
 
 TrajectoryId = tuple[str, str]  # (robot, session)

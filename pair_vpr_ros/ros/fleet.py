@@ -27,11 +27,11 @@ from std_msgs.msg import UInt8MultiArray
 
 from pair_vpr_ros.errors import ConfigError, FleetMessageError
 from pair_vpr_ros.fleet import FleetExchange, InterRobotLoop, Outgoing
-from pair_vpr_ros.fleet.params import fleet_config
 from pair_vpr_ros.fleet.typed import from_typed, to_typed
 from pair_vpr_ros.identity import Identity
-from pair_vpr_ros.loop_messages import POSE_STATUS_CODES
-from pair_vpr_ros.pipeline import FrameOutcome
+from pair_vpr_ros.loops.frames import FrameOutcome
+from pair_vpr_ros.messages.loop import POSE_STATUS_CODES
+from pair_vpr_ros.params.fleet import fleet_config
 from pair_vpr_ros.ros.maps import MapControl
 from pair_vpr_ros.ros.outputs import publish_while_up
 

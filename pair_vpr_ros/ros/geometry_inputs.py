@@ -18,7 +18,7 @@ from pair_vpr_ros.geometry.camera import CameraModel, camera_from_info, camera_f
 from pair_vpr_ros.geometry.camera_notes import CAMERA_INFO_WAIT_S, camera_info_silence_note
 from pair_vpr_ros.geometry.depth import depth_from_msg
 from pair_vpr_ros.geometry.stereo import stereo_baseline
-from pair_vpr_ros.imaging import msg_to_rgb
+from pair_vpr_ros.images.convert import msg_to_rgb
 from pair_vpr_ros.types import message_stamp
 
 

@@ -15,8 +15,8 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from pair_vpr_ros.errors import ImageConversionError
 from pair_vpr_ros.geometry.camera_notes import demo_model_note
-from pair_vpr_ros.imaging import msg_to_rgb
-from pair_vpr_ros.pipeline import Frame, frame_due
+from pair_vpr_ros.images.convert import msg_to_rgb
+from pair_vpr_ros.loops.frames import Frame, frame_due
 from pair_vpr_ros.types import message_pose, message_stamp
 
 POSE_TYPES = {

@@ -19,8 +19,9 @@ from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from visualization_msgs.msg import Marker, MarkerArray
 
-from pair_vpr_ros import loop_messages as lm
-from pair_vpr_ros.detector import LoopRecord
+from pair_vpr_ros.loops.detector import LoopRecord
+from pair_vpr_ros.messages import loop as lm
+from pair_vpr_ros.messages.factor import FACTOR_MSG_TYPES, FACTOR_TOPIC, factor_msg
 from pair_vpr_ros.types import Pose, split_stamp
 
 try:  # built by `make setup` (scripts/build_interfaces.sh) or colcon in a ROS workspace
@@ -36,7 +37,7 @@ SUBTOPICS = {  # output -> its topic relative to the base (loop_messages' names,
     for name, topic in (
         ("detail", lm.DETAIL_TOPIC),
         ("json", lm.JSON_TOPIC),
-        ("factor", lm.FACTOR_TOPIC),
+        ("factor", FACTOR_TOPIC),
         ("typed", lm.TYPED_TOPIC),
         ("markers", MARKER_TOPIC),
     )
@@ -58,7 +59,7 @@ def publish_while_up(node: Node, publisher, msg) -> bool:
 
 
 @cache
-def message_classes(names: tuple[str, ...] = lm.FACTOR_MSG_TYPES) -> dict[str, type]:
+def message_classes(names: tuple[str, ...] = FACTOR_MSG_TYPES) -> dict[str, type]:
     """rclpy classes of the message types `names` (default: what `loop_messages.factor_msg`
     builds), by type name."""
     out = {}
@@ -136,7 +137,7 @@ class LoopOutputs:
         if self.typed is not None:
             self._send(self.typed, lm.typed_msg(record, message_classes(lm.TYPED_MSG_TYPES)))
         if record.accepted and content.factor is not None:
-            self._send(self.factor, lm.factor_msg(content.factor, message_classes()))
+            self._send(self.factor, factor_msg(content.factor, message_classes()))
         if record.accepted and None not in poses:
             self._send(self.markers, loop_marker(record, *poses, marker_frame_id, number))
         return content.pair is not None, note

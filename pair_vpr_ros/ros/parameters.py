@@ -18,7 +18,7 @@ from rclpy.parameter import Parameter
 from pair_vpr_ros import params
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.geometry.camera_notes import fallback_intrinsics_note
-from pair_vpr_ros.params import ParamSpec, Value
+from pair_vpr_ros.params.table import ParamSpec, Value
 
 
 def descriptor(spec: ParamSpec) -> ParameterDescriptor:

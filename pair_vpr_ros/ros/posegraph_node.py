@@ -39,9 +39,10 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 
 from pair_vpr_ros.errors import ConfigError, PairVPRError
-from pair_vpr_ros.loop_factor import LoopFactor, factor_from_msg
-from pair_vpr_ros.params import check_value, params_file_problem
-from pair_vpr_ros.posegraph import params
+from pair_vpr_ros.messages.factor import LoopFactor, factor_from_msg
+from pair_vpr_ros.params import posegraph as params
+from pair_vpr_ros.params.check import check_value
+from pair_vpr_ros.params.file import params_file_problem
 from pair_vpr_ros.posegraph.loops import own
 from pair_vpr_ros.posegraph.priors import graph_with_priors, read_prior_sessions
 from pair_vpr_ros.posegraph.tracks import label

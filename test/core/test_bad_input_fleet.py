@@ -9,7 +9,6 @@ import zlib
 import numpy as np
 import pytest
 
-from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.errors import ConfigError, FleetMessageError
 from pair_vpr_ros.fleet import (
     FleetConfig,
@@ -21,7 +20,9 @@ from pair_vpr_ros.fleet import (
     model_tag,
 )
 from pair_vpr_ros.identity import Identity
-from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
+from pair_vpr_ros.loops.detector import DetectorConfig
+from pair_vpr_ros.loops.frames import Frame
+from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 
 S = "20261125T160000Z"
 

@@ -14,14 +14,9 @@ import numpy as np
 import pytest
 
 from pair_vpr_ros.errors import ImageConversionError, ImageTooLargeError
-from pair_vpr_ros.imaging import (
-    MAX_PIXELS,
-    SUPPORTED_ENCODINGS,
-    compressed_to_rgb,
-    encoded_size,
-    file_to_rgb,
-    image_to_rgb,
-)
+from pair_vpr_ros.images.encoded import compressed_to_rgb, encoded_size, file_to_rgb
+from pair_vpr_ros.images.pixels import MAX_PIXELS
+from pair_vpr_ros.images.raw import SUPPORTED_ENCODINGS, image_to_rgb
 
 H, W = 8, 12  # even, so every encoding (4:2:0 YUV too) accepts the shape
 BYTES_PER_PIXEL = {"8": 1, "16": 2}

@@ -20,7 +20,7 @@ from test_place_map_persist import DIM, N0, SHAPE, add_range, assert_holds, flip
 
 from pair_vpr_ros.errors import MapError, MapFingerprintError
 from pair_vpr_ros.hashing import sha256_file
-from pair_vpr_ros.pipeline import LoopClosurePipeline
+from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap, dense_store, files, manifest, persist
 from pair_vpr_ros.place_map.files import LOCK_NAME
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.params import params_file_problem, read_params_file
+from pair_vpr_ros.params.file import params_file_problem, read_params_file
 
 
 def section(body: str) -> str:

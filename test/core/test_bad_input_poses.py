@@ -55,8 +55,8 @@ def test_build_map_reports_the_bad_poses_it_skipped(tiny_model, tmp_path) -> Non
     ones without a word; its result line (map_info, the node's log) now names them."""
     from bag_fixtures import synthetic_images, write_rosbag2
 
-    from pair_vpr_ros.detector import DetectorConfig
-    from pair_vpr_ros.offline.build_map import build_map
+    from pair_vpr_ros.loops.detector import DetectorConfig
+    from pair_vpr_ros.offline.replay.build_map import build_map
 
     images = [(10.0 + i, rgb) for i, rgb in enumerate(synthetic_images(3))]
     poses = [(10.0, (0.0, 2.0, 0.0)), (11.0, (math.nan, 2.0, 0.0)), (12.0, (2.0, 2.0, 0.0))]

@@ -12,7 +12,7 @@ from map_fixtures import make_map
 
 from pair_vpr_ros.errors import ConfigError, MapError, MapFingerprintError
 from pair_vpr_ros.identity import Identity
-from pair_vpr_ros.prior_maps import open_prior_maps
+from pair_vpr_ros.loops.prior_maps import open_prior_maps
 
 LIVE = Identity("r1", "tue")
 

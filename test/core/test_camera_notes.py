@@ -13,8 +13,8 @@ from pair_vpr_ros.geometry.camera_notes import (
     demo_weights_id,
     fallback_intrinsics_note,
 )
-from pair_vpr_ros.offline.replay_notes import exclusion_notes
-from pair_vpr_ros.params import defaults
+from pair_vpr_ros.offline.replay.notes import exclusion_notes
+from pair_vpr_ros.params.configs import defaults
 
 
 def test_fallback_intrinsics_without_distortion_are_named():

@@ -8,14 +8,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from pair_vpr_ros.detector import (
+from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.loops.detector import (
     Candidate,
     DetectorConfig,
     LoopDetector,
     preset,
     rank_by_pair_score,
 )
-from pair_vpr_ros.errors import ConfigError
 
 
 def cands(*sims):

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 from exact_match import EXACT_MATCH
 
-from pair_vpr_ros.detector import Candidate, DetectorConfig, LoopDetector
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
+from pair_vpr_ros.loops.detector import Candidate, DetectorConfig, LoopDetector
+from pair_vpr_ros.loops.frames import Frame
+from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 
 
 class FakeClock:

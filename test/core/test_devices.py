@@ -1,12 +1,12 @@
-"""devices: the one parser of device names (node, replay, evaluation, training)."""
+"""model.devices: the one parser of device names (node, replay, evaluation, training)."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from pair_vpr_ros.devices import check_device
 from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.model.devices import check_device
 
 
 def test_cpu_and_auto():

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import yaml
 
-from pair_vpr_ros.params import PARAMS
-from pair_vpr_ros.posegraph.params import PARAMS as POSEGRAPH_PARAMS
+from pair_vpr_ros.params.posegraph import PARAMS as POSEGRAPH_PARAMS
+from pair_vpr_ros.params.table import PARAMS
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = ROOT / "docs"

@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 from exact_match import EXACT_MATCH
 
-from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.fleet import Faults, FleetConfig, FleetExchange, LocalBus
 from pair_vpr_ros.identity import Identity
-from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
-from pair_vpr_ros.scoring import map_pair_scores
+from pair_vpr_ros.loops.detector import DetectorConfig
+from pair_vpr_ros.loops.frames import Frame
+from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
+from pair_vpr_ros.loops.scoring import map_pair_scores
 
 SESSION = "20261125T160000Z"
 

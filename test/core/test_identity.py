@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 from exact_match import EXACT_MATCH
 
-from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.identity import Identity, resolve_identity, robot_from_namespace
-from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
+from pair_vpr_ros.loops.detector import DetectorConfig
+from pair_vpr_ros.loops.frames import Frame
+from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
+from pair_vpr_ros.loops.recency import GroupedRecency, eligible_keyframes
 from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
 from pair_vpr_ros.place_map.manifest import MANIFEST_NAME
-from pair_vpr_ros.recency import GroupedRecency, eligible_keyframes
 
 
 @pytest.mark.parametrize(

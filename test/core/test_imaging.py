@@ -1,4 +1,4 @@
-"""Tests for pair_vpr_ros.imaging: encodings vs a reference, padding, byte order, errors."""
+"""Tests for pair_vpr_ros.images.convert: encodings vs a reference, padding, byte order, errors."""
 
 from __future__ import annotations
 
@@ -11,13 +11,10 @@ import numpy as np
 import pytest
 
 from pair_vpr_ros.errors import ImageConversionError
-from pair_vpr_ros.imaging import (
-    SUPPORTED_ENCODINGS,
-    compressed_to_rgb,
-    image_to_rgb,
-    msg_to_rgb,
-    scale_to_uint8,
-)
+from pair_vpr_ros.images.convert import msg_to_rgb
+from pair_vpr_ros.images.encoded import compressed_to_rgb
+from pair_vpr_ros.images.pixels import scale_to_uint8
+from pair_vpr_ros.images.raw import SUPPORTED_ENCODINGS, image_to_rgb
 
 pytestmark = pytest.mark.filterwarnings("error")  # e.g. NaN cast to uint8 would only warn
 

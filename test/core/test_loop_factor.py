@@ -1,4 +1,4 @@
-"""loop_factor: a loop's between-factor and its nav_msgs/Odometry encoding, round trips."""
+"""messages.factor: a loop's between-factor and its nav_msgs/Odometry encoding, round trips."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
-from pair_vpr_ros import loop_factor as lf
-from pair_vpr_ros.detector import LoopRecord
+from pair_vpr_ros.loops.detector import LoopRecord
+from pair_vpr_ros.messages import factor as lf
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 COV = tuple(float(v) for v in np.diag([0.01, 0.02, 0.03, 1e-4, 2e-4, 3e-4]).ravel())
@@ -41,7 +41,7 @@ def test_factor_from_record_needs_an_accepted_loop_with_a_pose():
 
 
 def test_factor_from_a_json_dict_equals_the_one_from_the_record():
-    from pair_vpr_ros.loop_messages import record_dict
+    from pair_vpr_ros.messages.loop import record_dict
 
     record = posed_record()
     assert lf.factor_from_record(record_dict(record)) == lf.factor_from_record(record)
@@ -51,7 +51,7 @@ WHO = dict(query_robot="r1", query_session="s2", match_robot="r0", match_session
 
 
 def test_factor_carries_both_sides_identity_and_old_records_read_as_empty():
-    from pair_vpr_ros.loop_messages import record_dict
+    from pair_vpr_ros.messages.loop import record_dict
 
     factor = lf.factor_from_record(posed_record(**WHO))
     assert {k: getattr(factor, k) for k in WHO} == WHO

@@ -1,4 +1,4 @@
-"""loop_messages: the plain-data content of the node's loop-closure messages."""
+"""messages.loop: the plain-data content of the node's loop-closure messages."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from pair_vpr_ros import loop_messages as lm
+from pair_vpr_ros.messages import loop as lm
 
 
 def _record(**over):
@@ -137,7 +137,7 @@ def test_loop_messages_bundle():
 
 
 def test_field_order_matches_loop_record():
-    from pair_vpr_ros.detector import LoopRecord
+    from pair_vpr_ros.loops.detector import LoopRecord
 
     assert list(lm.LOOP_RECORD_FIELDS) == LoopRecord.field_names()
 

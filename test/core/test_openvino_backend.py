@@ -8,10 +8,10 @@ import pytest
 import torch
 
 from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.loops.scoring import encode_for_map
 from pair_vpr_ros.model import ModelConfig, PairVPRModel, build_pairvpr
 from pair_vpr_ros.model.calibration import synthetic_calibration, synthetic_scene
 from pair_vpr_ros.model.export import example_inputs, export_graphs
-from pair_vpr_ros.pipeline import encode_for_map
 from pair_vpr_ros.weights import load_model
 
 pytest.importorskip("openvino")

@@ -18,7 +18,7 @@ from pair_vpr_ros.weights import load_model
 pytest.importorskip("openvino")
 from pair_vpr_ros.model import openvino_backend, openvino_cache  # noqa: E402
 from pair_vpr_ros.model.openvino_backend import OpenVINOModel  # noqa: E402
-from pair_vpr_ros.model.openvino_cache import (  # noqa: E402
+from pair_vpr_ros.model.openvino_cache import (
     CacheEntry,
     entry_parts,
     resolve_cache_dir,

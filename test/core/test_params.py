@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from pair_vpr_ros import params
-from pair_vpr_ros.detector import DetectorConfig
+from pair_vpr_ros.loops.detector import DetectorConfig
 
 CONFIG = Path(__file__).resolve().parents[2] / "config" / "vpr_node.yaml"
 
@@ -78,7 +78,8 @@ def test_changes_check_read_only_and_the_combined_config():
 
 def test_read_params_file_fills_defaults_and_checks(tmp_path):
     from pair_vpr_ros.errors import ConfigError
-    from pair_vpr_ros.params import detector_config, read_params_file
+    from pair_vpr_ros.params.configs import detector_config
+    from pair_vpr_ros.params.file import read_params_file
 
     good = tmp_path / "p.yaml"
     good.write_text("vpr_node:\n  ros__parameters:\n    top_k: 3\n    exclude_recent_s: 12\n")

@@ -8,11 +8,12 @@ import pytest
 import torch
 from exact_match import EXACT_MATCH
 
-from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.errors import ConfigError, MapFingerprintError
-from pair_vpr_ros.loop_messages import loop_messages
+from pair_vpr_ros.loops.detector import DetectorConfig
+from pair_vpr_ros.loops.frames import Frame, PipelineCounts
+from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
+from pair_vpr_ros.messages.loop import loop_messages
 from pair_vpr_ros.model import ModelConfig, PairVPRModel, build_pairvpr
-from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline, PipelineCounts
 
 EXACT = EXACT_MATCH  # only exact repeats of images are loops (see exact_match.py)
 

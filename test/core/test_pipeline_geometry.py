@@ -13,12 +13,13 @@ import pytest
 from bag_fixtures import textured
 from exact_match import EXACT_MATCH
 
-from pair_vpr_ros.detector import Candidate, DetectorConfig
 from pair_vpr_ros.geometry.camera import CameraModel
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
 from pair_vpr_ros.geometry.relpose import PoseConfig
 from pair_vpr_ros.hashing import sha256_file
-from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
+from pair_vpr_ros.loops.detector import Candidate, DetectorConfig
+from pair_vpr_ros.loops.frames import Frame
+from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.place_map.manifest import MANIFEST_NAME
 
 H, W = 120, 160

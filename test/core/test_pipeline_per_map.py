@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 from exact_match import EXACT_MATCH
 
-from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.identity import Identity
-from pair_vpr_ros.loop_messages import pair_data
-from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
+from pair_vpr_ros.loops.detector import DetectorConfig
+from pair_vpr_ros.loops.frames import Frame
+from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
+from pair_vpr_ros.messages.loop import pair_data
 from pair_vpr_ros.place_map import PlaceMap
 
 PER_MAP = DetectorConfig(**EXACT_MATCH)  # loop_per_map: the default

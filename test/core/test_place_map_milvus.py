@@ -16,12 +16,13 @@ from bad_input import make_flaky
 from exact_match import EXACT_MATCH
 from test_place_map_persist import DIM, SHAPE, add_range, dense_for, desc_for, meta_for
 
-from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.errors import MapError, MapUnavailableError
-from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
+from pair_vpr_ros.loops.detector import DetectorConfig
+from pair_vpr_ros.loops.frames import Frame
+from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
+from pair_vpr_ros.loops.recency import eligible_keyframes
 from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
 from pair_vpr_ros.place_map.milvus_expr import Exclusion, exclusion_expr, ids_expr, mask_runs
-from pair_vpr_ros.recency import eligible_keyframes
 
 pytest_plugins = ["milvus_fixtures"]  # fixtures lite_db, milvus
 N = 40
@@ -279,7 +280,7 @@ def test_map_search_gives_milvus_the_identity_rules(milvus):
     """Issue 22 through the pipeline's MapSearch: the Milvus filter returns what the FAISS
     masks return (own recent keyframes out; another robot or session at once)."""
     from pair_vpr_ros.identity import Identity
-    from pair_vpr_ros.map_search import MapSearch
+    from pair_vpr_ros.loops.map_search import MapSearch
 
     rows = [("b", "s1", 100.0), ("a", "s1", 101.0), ("a", "s2", 50.0), ("a", "s2", 99.0)]
     with PlaceMap(DIM, SHAPE, "fp", index=milvus) as live, PlaceMap(DIM, SHAPE, "fp") as flat:

@@ -12,8 +12,9 @@ import pytest
 from drives import CAMERA
 
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.loop_factor import LoopFactor
-from pair_vpr_ros.posegraph.graph import MAX_PENDING, PoseGraph, PoseGraphConfig
+from pair_vpr_ros.messages.factor import LoopFactor
+from pair_vpr_ros.posegraph.config import MAX_PENDING, PoseGraphConfig
+from pair_vpr_ros.posegraph.graph import PoseGraph
 from pair_vpr_ros.posegraph.simulate import (
     false_loops,
     ground_truth_loops,

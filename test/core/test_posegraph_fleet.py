@@ -12,7 +12,8 @@ import pytest
 from drives import CAMERA
 
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.posegraph.graph import PoseGraph, PoseGraphConfig
+from pair_vpr_ros.posegraph.config import PoseGraphConfig
+from pair_vpr_ros.posegraph.graph import PoseGraph
 from pair_vpr_ros.posegraph.simulate import loop_covariance, make_factor
 from pair_vpr_ros.posegraph.transforms import pose3
 

@@ -9,9 +9,10 @@ from pathlib import Path
 import pytest
 
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.params import check_value, read_params_file
-from pair_vpr_ros.posegraph import params
-from pair_vpr_ros.posegraph.graph import PoseGraphConfig
+from pair_vpr_ros.params import posegraph as params
+from pair_vpr_ros.params.check import check_value
+from pair_vpr_ros.params.file import read_params_file
+from pair_vpr_ros.posegraph.config import PoseGraphConfig
 
 CONFIG = Path(__file__).parents[2] / "config" / "posegraph_node.yaml"
 

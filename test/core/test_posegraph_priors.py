@@ -9,7 +9,8 @@ import pytest
 from map_fixtures import prior_drive_map, save_keyframes
 
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.posegraph.graph import PoseGraph, PoseGraphConfig
+from pair_vpr_ros.posegraph.config import PoseGraphConfig
+from pair_vpr_ros.posegraph.graph import PoseGraph
 from pair_vpr_ros.posegraph.priors import graph_with_priors, read_prior_sessions
 from pair_vpr_ros.posegraph.transforms import pose3
 

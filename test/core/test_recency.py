@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pair_vpr_ros.recency import ClockWatch, StampBuffer, eligible_keyframes
+from pair_vpr_ros.loops.recency import ClockWatch, StampBuffer, eligible_keyframes
 
 
 def eligible(stamps, query, exclude_s=30.0, exclude_n=0):

@@ -16,7 +16,7 @@ from pair_vpr_ros.demo.views import camera_model, pose_errors, render_keyframe, 
 from pair_vpr_ros.geometry import extract_features, relative_pose
 from pair_vpr_ros.geometry.keyframes import KeyframeGeometry
 from pair_vpr_ros.geometry.stereo import stereo_baseline, stereo_depth, stereo_noise_b
-from pair_vpr_ros.pipeline import PipelineCounts
+from pair_vpr_ros.loops.frames import PipelineCounts
 
 CAM = Camera()
 MODEL = camera_model(CAM)

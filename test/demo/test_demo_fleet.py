@@ -10,8 +10,8 @@ import pytest
 
 from pair_vpr_ros.demo.fleet import DAY_NS, FLEET, fleet_worlds, write_fleet_bags
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.offline import bag_io
-from pair_vpr_ros.offline.posegraph import PoseGraphSummary, read_track
+from pair_vpr_ros.offline.bags.opening import open_bag
+from pair_vpr_ros.offline.posegraph.single import PoseGraphSummary, read_track
 
 
 def test_drives_overlap_in_place_and_time():
@@ -37,7 +37,7 @@ def test_bags_have_the_robot_topics_and_local_odometry(tmp_path):
     drives = json.loads(manifest.read_text())["drives"]
     assert [d["bag"] for d in drives] == ["a_day1.mcap", "b_day1.mcap", "c_day1.mcap",
                                           "a_day2.mcap"]  # fmt: skip
-    with bag_io.open_bag(tmp_path / "b_day1.mcap") as reader:
+    with open_bag(tmp_path / "b_day1.mcap") as reader:
         assert {"/camera/image_raw", "/camera/camera_info", "/camera/depth/image_raw", "/odom",
                 "/ground_truth"} <= set(reader.topics)  # fmt: skip
         odom = read_track(reader, "/odom", "odometry", PoseGraphSummary())

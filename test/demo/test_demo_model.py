@@ -17,8 +17,10 @@ import pair_vpr_ros
 from pair_vpr_ros.demo import write_demo_bag
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
 from pair_vpr_ros.model import load_pairvpr
-from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
-from pair_vpr_ros.params import detector_config, read_params_file
+from pair_vpr_ros.offline.replay.options import ReplayOptions
+from pair_vpr_ros.offline.replay.run import replay_bag
+from pair_vpr_ros.params.configs import detector_config
+from pair_vpr_ros.params.file import read_params_file
 
 ROOT = Path(pair_vpr_ros.__file__).resolve().parent
 ASSET = ROOT / "demo" / "assets" / "demo-small.pth"

@@ -22,7 +22,8 @@ import torch
 import pair_vpr_ros
 from pair_vpr_ros.demo import generate_world, render_frame
 from pair_vpr_ros.model import load_pairvpr, preprocess_batch
-from pair_vpr_ros.params import detector_config, read_params_file
+from pair_vpr_ros.params.configs import detector_config
+from pair_vpr_ros.params.file import read_params_file
 
 ASSET = Path(pair_vpr_ros.__file__).resolve().parent / "demo" / "assets" / "demo-small.pth"
 

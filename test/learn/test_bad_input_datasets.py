@@ -16,7 +16,8 @@ from synthetic_data import place_image, write_rgb
 from test_datasets import README_ROW, _gsv_city
 
 from pair_vpr_ros.errors import DatasetError
-from pair_vpr_ros.learn.datasets import GT_CONVERT, load_eval_set, load_gldv2, load_gsv_cities
+from pair_vpr_ros.learn.eval_sets import GT_CONVERT, load_eval_set
+from pair_vpr_ros.learn.places import load_gldv2, load_gsv_cities
 
 DB, QUERIES = 3, 2
 

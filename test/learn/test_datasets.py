@@ -12,19 +12,16 @@ import torch
 from synthetic_data import make_place_folders, make_utm_eval_set, place_image, write_rgb
 
 from pair_vpr_ros.errors import DatasetError
-from pair_vpr_ros.learn.datasets import (
-    ImageFiles,
+from pair_vpr_ros.learn.eval_sets import load_eval_set, positives_within
+from pair_vpr_ros.learn.image_files import ImageFiles, parse_utm_name, read_rgb
+from pair_vpr_ros.learn.places import (
     concat_collections,
     gsv_image_name,
-    load_eval_set,
     load_gldv2,
     load_gsv_cities,
     load_place_folders,
     load_places,
     load_sfxl,
-    parse_utm_name,
-    positives_within,
-    read_rgb,
 )
 from pair_vpr_ros.model import preprocess
 
@@ -44,7 +41,7 @@ def test_place_folders_groups_sorted_images_and_drops_small_places(tmp_path: Pat
     make_place_folders(tmp_path, places=3, per_place=2)
     write_rgb(tmp_path / "lonely" / "only.jpg", place_image(9, 0))
     (tmp_path / "place_00" / "notes.txt").write_text("not an image")
-    for suffix in (".BMP", ".tif", ".tiff", ".webp", ".JPEG"):  # every imaging.IMAGE_SUFFIXES
+    for suffix in (".BMP", ".tif", ".tiff", ".webp", ".JPEG"):  # every images.IMAGE_SUFFIXES
         write_rgb(tmp_path / "place_01" / f"more{suffix}", place_image(1, 2))
     found = load_place_folders(tmp_path)
     assert len(found) == 3 and found.num_images == 11

@@ -11,24 +11,25 @@ import pytest
 import torch
 from synthetic_data import make_utm_eval_set
 
-from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.learn import recall
-from pair_vpr_ros.learn.datasets import load_eval_set, read_rgb
-from pair_vpr_ros.learn.evaluate import (
+from pair_vpr_ros.learn.eval_sets import load_eval_set
+from pair_vpr_ros.learn.evaluate import format_table, main
+from pair_vpr_ros.learn.image_files import read_rgb
+from pair_vpr_ros.learn.recall import (
     EvalConfig,
     EvalResult,
     StageSeconds,
     evaluate_set,
     fill_map,
-    format_table,
-    main,
     rank_queries,
     recall_at_n,
     rerank,
 )
+from pair_vpr_ros.loops.detector import DetectorConfig
+from pair_vpr_ros.loops.frames import Frame
+from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.model import preprocess
-from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
 from pair_vpr_ros.place_map import PlaceMap
 
 

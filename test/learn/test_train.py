@@ -16,7 +16,7 @@ import torch
 from synthetic_data import make_place_folders, make_utm_eval_set
 
 from pair_vpr_ros.errors import ConfigError, DatasetError, TrainingError
-from pair_vpr_ros.learn.datasets import load_place_folders
+from pair_vpr_ros.learn.places import load_place_folders
 from pair_vpr_ros.learn.train import driver, stage1, stage2
 from pair_vpr_ros.learn.train.common import (
     DistContext,

@@ -12,13 +12,7 @@ import torch
 import torch.nn.functional as F
 from synthetic_data import place_image, write_rgb
 
-from pair_vpr_ros.learn.heldout import (
-    HeldoutViews,
-    auc,
-    average_precision,
-    encode_views,
-    measure,
-)
+from pair_vpr_ros.learn.heldout import HeldoutViews, auc, average_precision, encode_views, measure
 from pair_vpr_ros.learn.image_files import read_rgb
 from pair_vpr_ros.learn.train.common import DistContext, set_trainable
 from pair_vpr_ros.learn.train.curves import GREY_KEYS, draw_curves, heldout_hook, read_records
@@ -49,7 +43,7 @@ def _place_views(root: Path, places: int = 4, views: int = 6, size: int = 64) ->
 
 def test_heldout_grey_is_what_a_mono8_camera_gives(tmp_path) -> None:
     """measure(grey=True) on colour files equals measure on the files made grey beforehand
-    (BT.601 luma in all three channels, as `imaging` turns a mono8 frame into RGB)."""
+    (BT.601 luma in all three channels, as `images.convert` turns a mono8 frame into RGB)."""
     root = _place_views(tmp_path / "colour", places=4)
     for path in sorted(root.rglob("*.png")):
         luma = cv2.cvtColor(read_rgb(path), cv2.COLOR_RGB2GRAY)

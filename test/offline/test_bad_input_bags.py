@@ -26,14 +26,14 @@ from bag_fixtures import (
 )
 
 from pair_vpr_ros.errors import BagError
-from pair_vpr_ros.offline.bag_io import (
+from pair_vpr_ros.offline.bags.opening import open_bag
+from pair_vpr_ros.offline.bags.reader import (
     bad_poses_warning,
     choose_image_topic,
     iter_frames,
-    open_bag,
     read_poses,
 )
-from pair_vpr_ros.offline.sources import FrameCounts, bag_frames
+from pair_vpr_ros.offline.bags.sources import FrameCounts, bag_frames
 
 IMAGES = [(100.0 + i, rgb) for i, rgb in enumerate(synthetic_images(6, size=16))]
 
@@ -206,7 +206,7 @@ def test_undecodable_messages_are_counted_skips(tmp_path: Path) -> None:
     """Garbage CDR under an Image connection: each message is a counted skip, never a crash."""
     from rosbags.rosbag2 import Writer
 
-    from pair_vpr_ros.offline.bag_io import jazzy_typestore
+    from pair_vpr_ros.offline.bags.opening import jazzy_typestore
 
     path = tmp_path / "bag"
     with Writer(path, version=9) as writer:
@@ -279,7 +279,7 @@ def test_pixel_limit_reaches_bag_and_folder_sources(tmp_path: Path) -> None:
     """The node's map build reads bags and image folders with its max_image_pixels."""
     from synthetic_data import write_rgb
 
-    from pair_vpr_ros.offline.sources import source_frames
+    from pair_vpr_ros.offline.bags.sources import source_frames
 
     bag = write_rosbag2(tmp_path / "bag", IMAGES[:2])
     for i, (_, rgb) in enumerate(IMAGES[:2]):

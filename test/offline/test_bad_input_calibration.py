@@ -25,8 +25,8 @@ from bag_fixtures import (
 
 from pair_vpr_ros.errors import BagError, ConfigError
 from pair_vpr_ros.model import preprocess_batch
-from pair_vpr_ros.offline.calibration_images import calibration_images, calibration_loader
-from pair_vpr_ros.offline.sources import FrameCounts
+from pair_vpr_ros.offline.bags.calibration import calibration_images, calibration_loader
+from pair_vpr_ros.offline.bags.sources import FrameCounts
 
 SIZE = 28
 KINDS = (
@@ -209,7 +209,7 @@ def test_bad_messages_are_skipped_and_counted(tmp_path):
 
 
 def replay(tmp_path, *extra: str) -> int:
-    from pair_vpr_ros.offline.replay_cli import main
+    from pair_vpr_ros.offline.replay.cli import main
 
     bag = tmp_path / "bag"
     if not bag.exists():

@@ -1,4 +1,4 @@
-"""Bad-input matrix, the demo fleet's exchange loops (`python -m pair_vpr_ros.offline.fleet_loops`)
+"""Bad-input matrix, the demo fleet's exchange loops (`python -m pair_vpr_ros.offline.fleet.loops`)
 FLEET: each case a clear error with exact words; nothing written, no input changed."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import json
 import pytest
 from bad_input import tree_digest
 
-from pair_vpr_ros.offline.fleet_loops import main
+from pair_vpr_ros.offline.fleet.loops import main
 
 LOOP = {"query_robot": "b", "query_session": "s1", "query_stamp": 1.0, "match_robot": "a",
         "match_session": "s1", "match_stamp": 1.0, "accepted": True}  # fmt: skip

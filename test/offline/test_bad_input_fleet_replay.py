@@ -8,7 +8,7 @@ import pytest
 from bad_input import tree_digest
 from synthetic_data import write_rgb
 
-from pair_vpr_ros.offline.fleet_replay_cli import main
+from pair_vpr_ros.offline.fleet.cli import main
 
 
 @pytest.fixture(scope="module")

@@ -15,9 +15,9 @@ from test_posegraph_cli import write_odometry_bag
 from test_posegraph_fleet_cli import write_loops
 
 from pair_vpr_ros.errors import ConfigError, MapError
-from pair_vpr_ros.offline.posegraph import main
-from pair_vpr_ros.posegraph.graph import PoseGraphConfig
-from pair_vpr_ros.posegraph.params import parse_trajectories
+from pair_vpr_ros.offline.posegraph.cli import main
+from pair_vpr_ros.params.posegraph import parse_trajectories
+from pair_vpr_ros.posegraph.config import PoseGraphConfig
 from pair_vpr_ros.posegraph.priors import graph_with_priors, read_prior_sessions
 
 IDENTITY7 = (0, 0, 0, 0, 0, 0, 1)

@@ -19,8 +19,8 @@ from bad_input import tree_digest
 from bag_fixtures import TS2, image_msg, synthetic_images, write_rosbag2
 
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, save_pairvpr
-from pair_vpr_ros.offline import replay
-from pair_vpr_ros.offline.replay_cli import main
+from pair_vpr_ros.offline.replay import run as replay
+from pair_vpr_ros.offline.replay.cli import main
 from pair_vpr_ros.place_map import PlaceMap
 
 FRAMES, KEYFRAMES = 4, 1

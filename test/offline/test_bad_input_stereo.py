@@ -14,7 +14,8 @@ from test_replay_geometry import CONFIG, INFO, INFO_TOPIC, info_msg
 
 from pair_vpr_ros.errors import BagError
 from pair_vpr_ros.geometry.stereo import StereoInputError, check_pair, stereo_baseline
-from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
+from pair_vpr_ros.offline.replay.options import ReplayOptions
+from pair_vpr_ros.offline.replay.run import replay_bag
 
 RIGHT, RIGHT_INFO = "/cam/right/image", "/cam/right/camera_info"
 SHIFT = 5

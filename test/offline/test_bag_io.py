@@ -1,4 +1,4 @@
-"""bag_io: reading frames and poses from bags of every writer; every bad input's message."""
+"""offline.bags.reader: reading frames and poses from bags of every writer; every bad input's message."""
 
 from __future__ import annotations
 
@@ -24,15 +24,16 @@ from bag_fixtures import (
 )
 from rosbags.highlevel import AnyReader
 
-from pair_vpr_ros import loop_messages
-from pair_vpr_ros.detector import LoopRecord
 from pair_vpr_ros.errors import BagError
-from pair_vpr_ros.offline.bag_io import (
-    LoopBagWriter,
+from pair_vpr_ros.loops.detector import LoopRecord
+from pair_vpr_ros.messages import loop as loop_messages
+from pair_vpr_ros.messages.factor import factor_from_msg, factor_from_record
+from pair_vpr_ros.offline.bags.loop_writer import LoopBagWriter
+from pair_vpr_ros.offline.bags.opening import open_bag
+from pair_vpr_ros.offline.bags.reader import (
     choose_image_topic,
     choose_pose_topic,
     iter_frames,
-    open_bag,
     read_poses,
 )
 
@@ -314,7 +315,7 @@ def test_loop_bag_writer_round_trip(tmp_path):
     assert values["pose_status"] == 1.0 and values["cov_33"] == 0.01
     factor_type, _, factor = got["/loop_closure/factor"]
     assert factor_type == "nav_msgs/msg/Odometry"
-    assert loop_messages.factor_from_msg(factor) == loop_messages.factor_from_record(record)
+    assert factor_from_msg(factor) == factor_from_record(record)
     assert got["/loop_closure/json"][0] == "std_msgs/msg/String"
     assert got["/loop_closure/json"][2].data == loop_messages.record_json(record)
     assert got["/cam"][2].header.stamp.sec == 120

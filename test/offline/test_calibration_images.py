@@ -1,4 +1,4 @@
-"""int8 calibration images from a bag or an image folder (offline/calibration_images.py): the
+"""int8 calibration images from a bag or an image folder (offline/bags/calibration.py): the
 picks, the tensor, the wiring into load_model and the OpenVINO cache key."""
 
 from __future__ import annotations
@@ -14,13 +14,13 @@ from bag_fixtures import COMPRESSED, TS2, image_msg, synthetic_images, write_ros
 from pair_vpr_ros import weights as weights_module
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, preprocess_batch
 from pair_vpr_ros.model.calibration import CALIBRATION_IMAGES
-from pair_vpr_ros.offline.calibration_images import (
+from pair_vpr_ros.offline.bags.calibration import (
     calibration_images,
     calibration_loader,
     evenly_spaced,
     skipped_note,
 )
-from pair_vpr_ros.offline.sources import FrameCounts
+from pair_vpr_ros.offline.bags.sources import FrameCounts
 
 SIZE = 28
 HAS_OPENVINO = all(importlib.util.find_spec(m) for m in ("openvino", "nncf"))
@@ -201,8 +201,8 @@ def test_int8_model_calibrated_from_a_folder_runs(tmp_path):
 def test_replay_calibrates_from_the_given_source(tmp_path, monkeypatch, capsys, tiny_model, how):
     """--openvino-calibration[-topic] (else the parameter file's) reach the model loader as
     the images of that source; skipped images become replay warnings."""
-    from pair_vpr_ros.offline import replay
-    from pair_vpr_ros.offline.replay_cli import main
+    from pair_vpr_ros.offline.replay import run as replay
+    from pair_vpr_ros.offline.replay.cli import main
 
     seen = {}
 

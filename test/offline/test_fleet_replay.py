@@ -10,11 +10,11 @@ import pytest
 from exact_match import EXACT_MATCH
 from synthetic_data import write_rgb
 
-from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.fleet import Faults
-from pair_vpr_ros.offline.fleet_replay import FleetRobot, run_fleet, write_fleet_run
-from pair_vpr_ros.offline.fleet_replay_cli import main
-from pair_vpr_ros.pipeline import Frame
+from pair_vpr_ros.loops.detector import DetectorConfig
+from pair_vpr_ros.loops.frames import Frame
+from pair_vpr_ros.offline.fleet.cli import main
+from pair_vpr_ros.offline.fleet.replay import FleetRobot, run_fleet, write_fleet_run
 
 CONFIG = dict(EXACT_MATCH, keyframe_max_similarity=0.99999)
 

@@ -10,8 +10,8 @@ import pytest
 from test_posegraph_cli import write_odometry_bag
 
 from pair_vpr_ros.errors import PoseGraphError
-from pair_vpr_ros.offline import fleet_loops
-from pair_vpr_ros.offline.fleet_report import fleet_summary, main
+from pair_vpr_ros.offline.fleet import loops as fleet_loops
+from pair_vpr_ros.offline.fleet.report import fleet_summary, main
 from pair_vpr_ros.posegraph.transforms import planar_pose7
 
 STAMPS = 100.0 + np.arange(40) / 10.0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from pair_vpr_ros.errors import BagError
-from pair_vpr_ros.offline.pose_topics import PoseTopics, choose_pose_topics
+from pair_vpr_ros.offline.bags.pose_topics import PoseTopics, choose_pose_topics
 
 ODOM = "nav_msgs/msg/Odometry"
 POSE = "geometry_msgs/msg/PoseStamped"

@@ -11,13 +11,15 @@ import numpy as np
 import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 
-from pair_vpr_ros.detector import LoopRecord
-from pair_vpr_ros.offline.bag_io import LoopBagWriter, jazzy_typestore
-from pair_vpr_ros.offline.loop_io import read_loops
-from pair_vpr_ros.offline.posegraph import main, run_posegraph
-from pair_vpr_ros.offline.report import write_loops_csv, write_loops_json
-from pair_vpr_ros.offline.trajectories import read_tum
-from pair_vpr_ros.posegraph.graph import PoseGraphConfig
+from pair_vpr_ros.loops.detector import LoopRecord
+from pair_vpr_ros.offline.bags.loop_writer import LoopBagWriter
+from pair_vpr_ros.offline.bags.opening import jazzy_typestore
+from pair_vpr_ros.offline.posegraph.cli import main
+from pair_vpr_ros.offline.posegraph.single import run_posegraph
+from pair_vpr_ros.offline.report.folder import write_loops_csv, write_loops_json
+from pair_vpr_ros.offline.report.loop_io import read_loops
+from pair_vpr_ros.offline.report.trajectories import read_tum
+from pair_vpr_ros.posegraph.config import PoseGraphConfig
 from pair_vpr_ros.posegraph.simulate import ground_truth_loops
 
 CAMERA = " ".join(str(v) for v in drives.CAMERA)
@@ -207,7 +209,7 @@ def test_cli_errors(world, tmp_path, capsys, args, code, message):
 def test_a_params_file_with_prior_maps_warns_that_they_are_not_read(tmp_path, capsys):
     from argparse import Namespace
 
-    from pair_vpr_ros.offline.posegraph import _config
+    from pair_vpr_ros.offline.posegraph.cli import _config
 
     path = tmp_path / "p.yaml"
     path.write_text("/**:\n  ros__parameters:\n    prior_map_dirs: ['/maps/a']\n")

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from test_posegraph_cli import CAMERA, loop_record, write_odometry_bag
 
-from pair_vpr_ros.loop_factor import IDENTITY
-from pair_vpr_ros.loop_messages import record_dict
-from pair_vpr_ros.offline.posegraph import main
-from pair_vpr_ros.offline.trajectories import read_tum
+from pair_vpr_ros.messages.factor import IDENTITY
+from pair_vpr_ros.messages.loop import record_dict
+from pair_vpr_ros.offline.posegraph.cli import main
+from pair_vpr_ros.offline.report.trajectories import read_tum
 
 SHIFT = 60
 

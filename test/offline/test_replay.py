@@ -27,13 +27,15 @@ from bag_fixtures import (
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from pair_vpr_ros import loop_messages
-from pair_vpr_ros.detector import DetectorConfig
+from pair_vpr_ros.loops.detector import DetectorConfig
+from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
+from pair_vpr_ros.messages import loop as loop_messages
 from pair_vpr_ros.model import save_pairvpr
-from pair_vpr_ros.offline import loop_bag, replay
-from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
-from pair_vpr_ros.offline.replay_cli import main
-from pair_vpr_ros.pipeline import LoopClosurePipeline
+from pair_vpr_ros.offline.bags import loop_writer as loop_bag
+from pair_vpr_ros.offline.replay import run as replay
+from pair_vpr_ros.offline.replay.cli import main
+from pair_vpr_ros.offline.replay.options import ReplayOptions
+from pair_vpr_ros.offline.replay.run import replay_bag
 from pair_vpr_ros.place_map import PlaceMap
 
 CONFIG = DetectorConfig(
@@ -358,10 +360,10 @@ def test_cli_openvino_cache_dir(tmp_path, monkeypatch, tiny_model, flags, in_par
 
 
 def test_replay_cli_runs_as_a_module(tmp_path) -> None:
-    """`python -m pair_vpr_ros.offline.replay_cli` is the console script (the recipe uses it)."""
+    """`python -m pair_vpr_ros.offline.replay.cli` is the console script (the recipe uses it)."""
     bag = tmp_path / "none.mcap"
     run = subprocess.run(
-        [sys.executable, "-m", "pair_vpr_ros.offline.replay_cli", str(bag)],
+        [sys.executable, "-m", "pair_vpr_ros.offline.replay.cli", str(bag)],
         capture_output=True,
         text=True,
         timeout=120,

@@ -10,10 +10,11 @@ import pytest
 from bag_fixtures import TS2, _header, textured, write_rosbag2
 from rosbags.highlevel import AnyReader
 
-from pair_vpr_ros import loop_messages
-from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.errors import BagError
-from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
+from pair_vpr_ros.loops.detector import DetectorConfig
+from pair_vpr_ros.messages.factor import FACTOR_TOPIC, factor_from_msg
+from pair_vpr_ros.offline.replay.options import ReplayOptions
+from pair_vpr_ros.offline.replay.run import replay_bag
 
 CONFIG = DetectorConfig(
     top_k=1, score_threshold=-1e9, keyframe_max_similarity=1.0, exclude_recent_s=3.5,
@@ -88,9 +89,9 @@ def test_depth_and_camera_info_give_metric_poses_in_every_output(tmp_path, model
     assert all(abs(r["tx"]) < 1e-3 and len(r["covariance"]) == 36 for r in loops)
     with AnyReader([tmp_path / "out" / "bag"]) as reader:
         factors = [
-            loop_messages.factor_from_msg(reader.deserialize(raw, c.msgtype))
+            factor_from_msg(reader.deserialize(raw, c.msgtype))
             for c, _, raw in reader.messages()
-            if c.topic == "/" + loop_messages.FACTOR_TOPIC
+            if c.topic == "/" + FACTOR_TOPIC
         ]
     assert [(f.query_stamp, f.match_stamp, f.metric) for f in factors] == [
         (4.0, 0.0, True), (5.0, 1.0, True),

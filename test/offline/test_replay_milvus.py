@@ -10,9 +10,10 @@ from bag_fixtures import revisit_world, write_rosbag2
 from test_replay import CONFIG
 
 from pair_vpr_ros.model import save_pairvpr
-from pair_vpr_ros.offline import replay_cli
-from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
-from pair_vpr_ros.offline.replay_cli import main
+from pair_vpr_ros.offline.replay import cli as replay_cli
+from pair_vpr_ros.offline.replay.cli import main
+from pair_vpr_ros.offline.replay.options import ReplayOptions
+from pair_vpr_ros.offline.replay.run import replay_bag
 from pair_vpr_ros.place_map import IndexConfig, PlaceMap
 
 pytest_plugins = ["milvus_fixtures"]  # fixtures lite_db, milvus

@@ -13,11 +13,12 @@ import json
 import pytest
 from bag_fixtures import ODOMETRY, POSE_STAMPED, TS2, pose_msg, revisit_world, write_rosbag2
 
-from pair_vpr_ros.detector import DetectorConfig
 from pair_vpr_ros.errors import BagError
+from pair_vpr_ros.loops.detector import DetectorConfig
 from pair_vpr_ros.model import save_pairvpr
-from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
-from pair_vpr_ros.offline.replay_cli import main
+from pair_vpr_ros.offline.replay.cli import main
+from pair_vpr_ros.offline.replay.options import ReplayOptions
+from pair_vpr_ros.offline.replay.run import replay_bag
 from pair_vpr_ros.place_map import PlaceMap
 
 CONFIG = DetectorConfig(

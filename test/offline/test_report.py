@@ -10,19 +10,17 @@ import numpy as np
 import pytest
 
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.offline.report import (
+from pair_vpr_ros.offline.report.folder import write_loops_csv, write_loops_json, write_report
+from pair_vpr_ros.offline.report.loop_truth import (
     KeyframeInfo,
     evaluate_loops,
     is_true_loop,
     pr_curve,
     queries_with_true_match,
-    write_loops_csv,
-    write_loops_json,
-    write_report,
 )
 
 try:
-    from pair_vpr_ros.detector import LoopRecord
+    from pair_vpr_ros.loops.detector import LoopRecord
 except ImportError:  # pragma: no cover - detector.py is written in parallel
     LoopRecord = None
 

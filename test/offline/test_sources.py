@@ -10,9 +10,10 @@ import pytest
 from bag_fixtures import IMAGE, TS2, corrupt_foxglove, image_msg, synthetic_images, write_rosbag2
 
 from pair_vpr_ros.errors import BagError, ConfigError
-from pair_vpr_ros.imaging import IMAGE_SUFFIXES
-from pair_vpr_ros.offline import bag_io
-from pair_vpr_ros.offline.sources import FrameCounts, bag_frames, folder_images, source_frames
+from pair_vpr_ros.images.encoded import IMAGE_SUFFIXES
+from pair_vpr_ros.offline.bags import reader as bag_io
+from pair_vpr_ros.offline.bags.opening import open_bag
+from pair_vpr_ros.offline.bags.sources import FrameCounts, bag_frames, folder_images, source_frames
 
 
 def _write(path: Path, rgb: np.ndarray) -> Path:
@@ -55,7 +56,7 @@ def test_bag_frames_skip_and_count_bad_messages(tmp_path):
     ]
     bag = write_rosbag2(tmp_path / "bag", [], extra=extra)
     counts = FrameCounts()
-    with bag_io.open_bag(bag) as reader:
+    with open_bag(bag) as reader:
         got = list(bag_frames(bag_io.iter_frames(reader, "/cam"), counts, "b"))
     assert [(f.stamp, f.source, bf.index) for f, bf in got] == [(6.0, "b#1", 1)]
     assert (counts.frames, counts.skipped, counts.error) == (3, 2, None)
@@ -67,7 +68,7 @@ def test_a_bag_failing_part_way(tmp_path):
     images = [(float(i), rgb) for i, rgb in enumerate(synthetic_images(12, size=32))]
     bag = corrupt_foxglove(tmp_path / "c.mcap", images)
     counts = FrameCounts()
-    with bag_io.open_bag(bag) as reader:
+    with open_bag(bag) as reader:
         topic = bag_io.choose_image_topic(reader)
         got = list(bag_frames(bag_io.iter_frames(reader, topic), counts, "c"))
     assert 0 < len(got) == counts.frames < 12 and counts.skipped == 0

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from pair_vpr_ros.errors import PoseGraphError
-from pair_vpr_ros.offline.trajectories import (
+from pair_vpr_ros.offline.report.trajectories import (
     Trajectory,
     plot_trajectories,
     read_tum,

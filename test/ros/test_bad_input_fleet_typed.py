@@ -12,7 +12,7 @@ from rclpy.serialization import serialize_message
 from pair_vpr_ros.errors import FleetMessageError
 from pair_vpr_ros.fleet import KeyframeDescriptor, ScoreRequest, ScoreResponse, encode, model_tag
 from pair_vpr_ros.fleet.typed import from_typed, to_typed
-from pair_vpr_ros.loop_messages import POSE_STATUS_CODES
+from pair_vpr_ros.messages.loop import POSE_STATUS_CODES
 
 msgs = pytest.importorskip("pair_vpr_ros_interfaces.msg")
 CLASSES = {n: getattr(msgs, n) for n in ("KeyframeDescriptor", "ScoreRequest", "ScoreResponse")}

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 from bag_fixtures import TS2, image_msg, textured
 
-from pair_vpr_ros.params import defaults
+from pair_vpr_ros.params.configs import defaults
 from pair_vpr_ros.ros.geometry_inputs import GeometryInputs
 
 

@@ -18,7 +18,7 @@ from ament_index_python.packages import get_package_share_directory
 from package_layout import PACKAGE, ROOT, console_scripts, install_prefix
 from ros_cli import Graph, wait_for
 
-from pair_vpr_ros.params import RANDOM_TINY, SPECS
+from pair_vpr_ros.params.table import RANDOM_TINY, SPECS
 from pair_vpr_ros.ros.node import VprNode
 
 LAUNCH = "vpr_node.launch.py"

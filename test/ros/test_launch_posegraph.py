@@ -17,7 +17,7 @@ from ament_index_python.packages import get_package_share_directory
 from package_layout import PACKAGE, console_scripts, install_prefix
 from ros_cli import Graph, wait_for
 
-from pair_vpr_ros.params import RANDOM_TINY
+from pair_vpr_ros.params.table import RANDOM_TINY
 from pair_vpr_ros.ros.node import VprNode
 from pair_vpr_ros.ros.posegraph_node import PoseGraphNode
 

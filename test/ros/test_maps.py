@@ -12,9 +12,10 @@ import pytest
 from bag_fixtures import synthetic_images, write_rosbag2
 from exact_match import EXACT_MATCH
 
-from pair_vpr_ros.detector import DetectorConfig
-from pair_vpr_ros.offline.build_map import build_map
-from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline, PipelineCounts
+from pair_vpr_ros.loops.detector import DetectorConfig
+from pair_vpr_ros.loops.frames import Frame, PipelineCounts
+from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
+from pair_vpr_ros.offline.replay.build_map import build_map
 from pair_vpr_ros.ros.maps import LiveState, MapControl
 
 EXACT = DetectorConfig(**EXACT_MATCH)

@@ -22,14 +22,9 @@ from sensor_msgs.msg import CompressedImage
 from std_srvs.srv import SetBool, Trigger
 
 from pair_vpr_ros.errors import MapError
-from pair_vpr_ros.loop_messages import (
-    DETAIL_LABELS,
-    LoopFactor,
-    detail_to_dict,
-    factor_from_msg,
-    factor_msg,
-)
-from pair_vpr_ros.params import PARAMS
+from pair_vpr_ros.messages.factor import LoopFactor, factor_from_msg, factor_msg
+from pair_vpr_ros.messages.loop import DETAIL_LABELS, detail_to_dict
+from pair_vpr_ros.params.table import PARAMS
 from pair_vpr_ros.place_map import PlaceMap
 from pair_vpr_ros.ros.node import VprNode
 from pair_vpr_ros.ros.outputs import message_classes as _message_classes

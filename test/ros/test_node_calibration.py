@@ -11,7 +11,7 @@ import torch
 from bag_fixtures import synthetic_images
 
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.offline.calibration_images import calibration_images
+from pair_vpr_ros.offline.bags.calibration import calibration_images
 from pair_vpr_ros.ros import node as node_module
 
 HAS_OPENVINO = all(importlib.util.find_spec(m) for m in ("openvino", "nncf"))

@@ -15,7 +15,7 @@ from ros_cli import wait_for
 from std_srvs.srv import Trigger
 
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.loop_messages import detail_text
+from pair_vpr_ros.messages.loop import detail_text
 from pair_vpr_ros.ros.node import VprNode
 
 

@@ -15,7 +15,8 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.loop_messages import FACTOR_TOPIC, JSON_TOPIC, factor_from_msg
+from pair_vpr_ros.messages.factor import FACTOR_TOPIC, factor_from_msg
+from pair_vpr_ros.messages.loop import JSON_TOPIC
 
 H, W = 120, 160
 

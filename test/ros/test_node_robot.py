@@ -14,7 +14,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from node_harness import diagnostics, wait_for
 from std_srvs.srv import Trigger
 
-from pair_vpr_ros.pipeline import Frame
+from pair_vpr_ros.loops.frames import Frame
 from pair_vpr_ros.ros.outputs import publish_while_up
 
 

@@ -24,7 +24,7 @@ from rclpy.qos import QoSProfile
 from ros_cli import wait_for
 
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.loop_factor import FACTOR_MSG_TYPES, factor_msg
+from pair_vpr_ros.messages.factor import FACTOR_MSG_TYPES, factor_msg
 from pair_vpr_ros.posegraph.simulate import ground_truth_loops
 from pair_vpr_ros.posegraph.transforms import pose3
 from pair_vpr_ros.ros import posegraph_node
@@ -194,7 +194,7 @@ def test_several_robots_one_graph_outputs_per_robot(ros):
     the robots in the factor message; b's outputs appear once it has joined a's frame."""
     import fleet_drives as fd
 
-    from pair_vpr_ros.loop_factor import factor_from_msg
+    from pair_vpr_ros.messages.factor import factor_from_msg
 
     a, b = fd.robot(0, seed=1), fd.robot(60, seed=2)
     rng = np.random.default_rng(0)
@@ -245,7 +245,7 @@ def test_prior_map_sessions_are_the_map_frame_a_live_robot_relocalises_into(ros,
     import fleet_drives as fd
     from map_fixtures import prior_drive_map
 
-    from pair_vpr_ros.loop_factor import factor_from_msg
+    from pair_vpr_ros.messages.factor import factor_from_msg
 
     a, b = fd.robot(0, seed=1, laps=1), fd.robot(60, seed=2, laps=1)
     A, B = ("a", "day1"), ("b", "s1")

@@ -22,14 +22,16 @@ from bag_fixtures import synthetic_images, write_rosbag2
 from package_layout import PACKAGE, ROOT, console_scripts, install_prefix
 from ros_cli import Graph, commands, parameter_value, wait_for
 
-from pair_vpr_ros import loop_messages as lm
-from pair_vpr_ros.params import PARAMS, RANDOM_TINY, SPECS
-from pair_vpr_ros.ros.node import MARKER_TOPIC, VprNode
+from pair_vpr_ros.messages import loop as lm
+from pair_vpr_ros.messages.factor import FACTOR_TOPIC
+from pair_vpr_ros.params.table import PARAMS, RANDOM_TINY, SPECS
+from pair_vpr_ros.ros.node import VprNode
+from pair_vpr_ros.ros.outputs import MARKER_TOPIC
 
 HEADING = "# The ROS 2 node `vpr_node`"
 PAGE = ROOT / "docs" / "node.md"
 NODE = "/vpr_node"
-OUTPUT_TOPICS = (lm.PAIR_TOPIC, lm.DETAIL_TOPIC, lm.JSON_TOPIC, lm.FACTOR_TOPIC, MARKER_TOPIC)
+OUTPUT_TOPICS = (lm.PAIR_TOPIC, lm.DETAIL_TOPIC, lm.JSON_TOPIC, FACTOR_TOPIC, MARKER_TOPIC)
 
 
 def ros_section() -> str:

@@ -7,11 +7,7 @@ import threading
 import pytest
 import torch
 
-from pair_vpr_ros.ros.runtime import (
-    FrameQueue,
-    NodeStats,
-    precision_context,
-)
+from pair_vpr_ros.ros.runtime import FrameQueue, NodeStats, precision_context
 
 
 def test_bf16_autocasts_in_the_thread_that_enters_it():

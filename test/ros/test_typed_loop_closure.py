@@ -22,12 +22,8 @@ from node_harness import wait_for
 from std_msgs.msg import String
 from test_node_geometry import GEOMETRY, run
 
-from pair_vpr_ros.loop_messages import (
-    JSON_TOPIC,
-    POSE_STATUS_CODES,
-    TYPED_TOPIC,
-    factor_from_msg,
-)
+from pair_vpr_ros.messages.factor import factor_from_msg
+from pair_vpr_ros.messages.loop import JSON_TOPIC, POSE_STATUS_CODES, TYPED_TOPIC
 
 ROOT = Path(__file__).resolve().parents[2]
 

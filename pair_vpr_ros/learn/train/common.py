@@ -21,9 +21,9 @@ import torch
 import torch.distributed as dist
 from torch import Tensor, nn
 
-from pair_vpr_ros.devices import check_device
 from pair_vpr_ros.errors import CheckpointError, ConfigError, TrainingError
 from pair_vpr_ros.model import save_pairvpr
+from pair_vpr_ros.model.devices import check_device
 
 _BLOCK = re.compile(r"encoder\.model\.blocks\.(\d+)\.")
 _DEC_BLOCK = re.compile(r"dec_blocks\.(\d+)\.")

@@ -37,8 +37,8 @@ class AugmentConfig:
     """Light photometric/geometric jitter; ``None`` in the datasets means no augmentation.
 
     ``grey`` and ``exposure`` make a model that also works on mono8 cameras and under other
-    exposure: a grey image is what `imaging` makes of a mono8 frame (the grey value in all three
-    channels)."""
+    exposure: a grey image is what `images.convert` makes of a mono8 frame (the grey value in all
+    three channels)."""
 
     crop_scale: tuple[float, float] = (0.7, 1.0)  # area fraction of a random crop (aspect kept)
     brightness: float = 0.2  # +- fraction of the pixel range

@@ -20,11 +20,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pair_vpr_ros.detector import rerank_score
 from pair_vpr_ros.errors import DatasetError
 from pair_vpr_ros.learn.heldout import average_precision, pair_scores
+from pair_vpr_ros.loops.detector import rerank_score
+from pair_vpr_ros.loops.recency import eligible_keyframes
 from pair_vpr_ros.place_map import PlaceMap
-from pair_vpr_ros.recency import eligible_keyframes
 
 RERANK_WEIGHTS = (0, 10, 20, 40)  # global weights w of score = pair + w * global similarity
 

@@ -30,7 +30,6 @@ from torch import Tensor
 from tqdm import tqdm
 
 from pair_vpr_ros.cli import run_cli
-from pair_vpr_ros.devices import check_device
 from pair_vpr_ros.errors import ConfigError, DatasetError, TrainingError, UsageError
 from pair_vpr_ros.learn.train.common import (
     JsonlLog,
@@ -49,6 +48,7 @@ from pair_vpr_ros.learn.train.drive_pairs import (
 from pair_vpr_ros.learn.train.losses import pair_bce
 from pair_vpr_ros.learn.train.options import add_options, config_from_args, option
 from pair_vpr_ros.model import PairVPR, load_pairvpr, save_pairvpr
+from pair_vpr_ros.model.devices import check_device
 
 PAIR_CLASSIFIER = ("decoder_embed", "dec_blocks", "dec_norm", "decoder_clstoken", "classvprmodule")
 STAGE = "pair_tune"

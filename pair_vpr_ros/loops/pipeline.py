@@ -1,0 +1,305 @@
+"""`LoopClosurePipeline`: the one object that turns camera frames into loop-closure records.
+
+The ROS node (`ros/node.py`) feeds it frame by frame; the bag replay and the map builder feed it
+batches (`process_many`). Both give the same records for the same frames: frame-rate limiting
+depends only on stamps, so batching the encoder changes nothing but speed.
+
+Concurrency: a pipeline is NOT thread-safe and has no lock. One thread at a time drives it: the
+replay, `build_map` and evaluation use their caller's thread; the node hands every frame and
+every map service (save, load, clear, mode and parameter changes) to the one map thread of
+`ros.maps.MapControl`, so a map operation falls between two frames, never inside one, and other
+threads read only what that thread copied out (`MapControl.state`). A pipeline may move to
+another thread between calls (the place map's SQLite connection is opened for that). The model
+is only read, so two pipelines on two threads may share one (the node's background map build).
+
+Its inputs and outputs (`Frame`, `FrameOutcome`, `PipelineCounts`) are in frames.py, its map's
+life cycle (new, checked, saved, loaded, cleared) in pipeline_maps.py (`PipelineMaps`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from pair_vpr_ros.errors import ConfigError, MapUnavailableError
+from pair_vpr_ros.geometry.features import Features
+from pair_vpr_ros.geometry.keyframes import GeometryConfig, KeyframeGeometry
+from pair_vpr_ros.geometry.odometry_scale import Neighbour
+from pair_vpr_ros.identity import Identity
+from pair_vpr_ros.loops.detector import (
+    Candidate,
+    DetectorConfig,
+    LoopDetector,
+    LoopRecord,
+    rerank_score,
+)
+from pair_vpr_ros.loops.frames import (
+    Frame,
+    FrameOutcome,
+    PipelineCounts,
+    frame_due,
+    match_candidate,
+)
+from pair_vpr_ros.loops.map_search import MapSearch
+from pair_vpr_ros.loops.pipeline_maps import PipelineMaps
+from pair_vpr_ros.loops.recency import ClockWatch
+from pair_vpr_ros.loops.scoring import dense_pair_scores, encode_for_map, map_pair_scores
+from pair_vpr_ros.model import PairVPRModel, preprocess_batch
+from pair_vpr_ros.model.decoder import default_chunk
+from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
+
+
+class LoopClosurePipeline(PipelineMaps):
+    """Frames -> encoder -> keyframe selection -> map query -> pair re-ranking -> LoopRecords.
+
+    Not thread-safe: one thread at a time (see the module docstring).
+    """
+
+    def __init__(
+        self,
+        model: PairVPRModel,
+        config: DetectorConfig | None = None,
+        place_map: PlaceMap | None = None,
+        index: str | IndexConfig = "flat",
+        rerank_chunk: int | None = None,
+        geometry: GeometryConfig | None = None,
+        *,
+        identity: Identity | None = None,
+        prior_maps: list[PlaceMap] | None = None,
+    ) -> None:
+        """identity: the robot and session of every frame (default `Identity()`). prior_maps:
+        read-only maps searched with the live one (`map_search`); the pipeline closes them."""
+        self.model = model
+        self.detector = LoopDetector(config or DetectorConfig())
+        self.index_kind = index
+        self.rerank_chunk = rerank_chunk
+        self.identity = identity or Identity()
+        self._place_map = place_map if place_map is not None else self._new_map()
+        for checked in (self._place_map, *(prior_maps or ())):
+            self._check_fingerprint(checked)
+        # every map's stamps by robot-session, for recent-frame exclusion
+        self.maps = MapSearch(self._place_map, prior_maps or ())
+        self._clock = ClockWatch()
+        self._jump_s = 0.0  # a clock jump not yet reported in an outcome
+        self._last_encoded: float | None = None
+        self._last_desc: np.ndarray | None = None
+        self._reset_tracking()
+        self.counts = PipelineCounts()
+        self.geometry = KeyframeGeometry(geometry, self.counts)
+
+    # ---- state -----------------------------------------------------------------------------
+    @property
+    def config(self) -> DetectorConfig:
+        return self.detector.config
+
+    @property
+    def place_map(self) -> PlaceMap:
+        return self._place_map
+
+    def set_config(self, config: DetectorConfig) -> None:
+        self.detector.set_config(config)
+
+    def set_mode(self, mode: str) -> None:
+        """ "mapping" (query, then add each keyframe) or "localization" (query only)."""
+        self.set_config(self.config.updated(mode=mode))
+
+    def _reset_tracking(self) -> None:
+        self.maps.reset(self._place_map)
+        self._clock.reset()
+        self._new_session()
+
+    def _new_session(self) -> None:
+        """Forget the stream so far (frame-rate limit, last keyframe, temporal consistency); the
+        map keeps its keyframes, matched by stamp distance like a loaded map's."""
+        self._last_encoded = None
+        self._last_desc = None
+        self.detector.reset()
+
+    # ---- processing ------------------------------------------------------------------------
+    def due(self, stamp: float) -> bool:
+        """Frame-rate limit: is a frame at `stamp` far enough from the last encoded one?"""
+        return frame_due(stamp, self._last_encoded, self.config.min_frame_interval)
+
+    def process(self, frame: Frame) -> FrameOutcome:
+        """Run one frame through the whole pipeline."""
+        return next(self.process_many([frame], batch_size=1))
+
+    def process_many(self, frames: Iterable[Frame], batch_size: int = 8) -> Iterator[FrameOutcome]:
+        """Frames in time order -> one outcome each, in the same order; the encoder runs on
+        batches of up to `batch_size` due frames. A rate-limited frame that follows frames still
+        waiting for the encoder waits with them, so outcome i always belongs to frame i."""
+        if batch_size < 1:
+            raise ConfigError(f"batch size must be >= 1, got {batch_size}")
+        queue: list[Frame | FrameOutcome] = []  # frame order; a Frame waits for the encoder
+        waiting = 0
+        for frame in frames:
+            jump = self._clock.check(frame.stamp)
+            if jump:  # the frames before it finish in their session; this one starts a new one
+                if queue:
+                    yield from self._run_batch(queue)
+                    queue, waiting = [], 0
+                self.counts.clock_jumps += 1
+                self._jump_s = jump
+                self._new_session()
+            if self.due(frame.stamp):
+                self._last_encoded = frame.stamp
+                queue.append(frame)
+                waiting += 1
+            else:
+                self.counts.rate_limited += 1
+                queue.append(FrameOutcome(frame.stamp, skipped="rate limited"))
+            if waiting >= batch_size or waiting == 0:
+                yield from self._run_batch(queue)
+                queue, waiting = [], 0
+        if queue:
+            yield from self._run_batch(queue)
+
+    def encode(self, images: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """RGB uint8 images -> dense float16 [B,N,D], descriptors float32 [B,desc_dim]."""
+        return encode_for_map(self.model, preprocess_batch(images, self.model.config.image_size))
+
+    def _run_batch(self, queue: list[Frame | FrameOutcome]) -> Iterator[FrameOutcome]:
+        """Encode the frames of `queue` in one batch; yield every entry's outcome in order."""
+        batch = [f for f in queue if isinstance(f, Frame)]
+        if batch:
+            t0 = time.perf_counter()
+            dense, desc = self.encode([f.rgb for f in batch])
+            encode_ms = (time.perf_counter() - t0) * 1e3 / len(batch)
+        i = 0
+        for entry in queue:
+            if isinstance(entry, FrameOutcome):  # decided already (rate limited)
+                outcome = entry
+            else:
+                outcome = self._decide(entry, dense[i], desc[i])
+                i += 1
+                outcome.timings_ms["encode"] = encode_ms
+                self.counts.encoded += 1
+            # a jump flushes the queue first, so the frame after it is the first entry here
+            outcome.clock_jump_s, self._jump_s = self._jump_s, 0.0
+            yield outcome
+
+    def _decide(self, frame: Frame, dense: np.ndarray, desc: np.ndarray) -> FrameOutcome:
+        outcome = FrameOutcome(frame.stamp)
+        last = self._last_desc
+        if not self.detector.is_new_keyframe(None if last is None else float(desc @ last)):
+            self.counts.similar_to_keyframe += 1
+            outcome.skipped = "similar to previous keyframe"
+            return outcome
+        features = None
+        if self.geometry.wanted(self.config.geometric_verification):
+            t0 = time.perf_counter()
+            features = self.geometry.extract(frame.rgb, frame.depth, frame.camera,
+                                             frame.right, frame.baseline)  # fmt: skip
+            outcome.timings_ms["features"] = (time.perf_counter() - t0) * 1e3
+        self._query(frame, dense, desc, outcome, features)
+        decisions = outcome.decisions()
+        accepted = [r for r in decisions if r.accepted]
+        if accepted and self.geometry.config.relative_pose:
+            outcome.timings_ms["pose"] = 0.0
+            for loop in accepted:  # each with its own match's features, from its own map
+                best = match_candidate(outcome, loop)
+                match = self._stored_features(best)
+                near = self._scale_neighbours(best)
+                outcome.timings_ms["pose"] += self.geometry.pose(loop, features, match, near)
+        if self.config.mode == "mapping":
+            who = self.identity
+            meta = KeyframeMeta(
+                stamp=frame.stamp, frame_id=frame.frame_id, pose=frame.pose, source=frame.source,
+                robot=who.robot, session=who.session,
+            )  # fmt: skip
+            packed = self.geometry.pack(features)
+            outcome.keyframe_id = self._place_map.add(desc, dense, meta, packed)
+            self.maps.added(replace(meta, id=outcome.keyframe_id))
+            pending = self._place_map.index_diagnostics.get("map_keyframes_pending", 0)
+            self.counts.map_keyframes_pending = pending
+            for loop in decisions:
+                loop.query_id = outcome.keyframe_id
+        self._last_desc = desc
+        self.counts.keyframes += 1
+        self.counts.loops += len(accepted)
+        self.counts.rejected += int(bool(decisions) and not accepted)
+        return outcome
+
+    def _query(
+        self, frame: Frame, dense, desc, outcome: FrameOutcome, features: Features | None
+    ) -> None:
+        """Search, re-rank and decide: `outcome.loop` (and, with `loop_per_map` and prior
+        maps, `outcome.loops`: one decision per map), `outcome.candidates` (all maps')."""
+        timings = outcome.timings_ms
+        t0 = time.perf_counter()
+        per_map, who = self.config.loop_per_map, self.identity
+        try:
+            if per_map:
+                groups = self.maps.search_each(desc, frame.stamp, who, self.config)
+            else:
+                found = self.maps.search(desc, frame.stamp, who, self.config)
+                groups = None if found is None else [found]
+        except MapUnavailableError:  # logged by the map once per outage; nothing is lost
+            self.counts.map_searches_skipped += 1
+            return
+        if groups is None:
+            return
+        timings["search"] = (time.perf_counter() - t0) * 1e3
+        outcome.candidates = sorted((c for g in groups for c in g), key=lambda c: c.rank_before)
+
+        def rerank(cands: list[Candidate]) -> np.ndarray:  # called once per step with a budget
+            t1 = time.perf_counter()
+            if all(c.prior < 0 for c in cands):  # the live map only: as before prior maps
+                scores = self.pair_scores(dense, [c.id for c in cands])
+            else:  # each candidate scored with its own map's dense tokens
+                stored = self.maps.dense(cands)
+                scores = dense_pair_scores(self.model, dense, stored, self.rerank_chunk)
+            timings["rerank"] = timings.get("rerank", 0.0) + (time.perf_counter() - t1) * 1e3
+            return scores
+
+        def verify(match: Candidate) -> tuple[int, float]:
+            return self.geometry.verify(features, self._stored_features(match))
+
+        # A back end compiled for a fixed chunk (OpenVINO) pads shorter calls: whole chunks.
+        fixed = getattr(self.model, "chunk_size", None)
+        step = fixed or self.rerank_chunk or default_chunk(torch.device(self.model.device))
+        records = []
+        for candidates in groups:  # one group (all maps together) unless loop_per_map
+            record = self.detector.decide(
+                frame.stamp, frame.frame_id, candidates, rerank, verify, step=step,
+                first=fixed or 1, query_identity=(who.robot, who.session),
+                track=candidates[0].prior if per_map else None,
+            )  # fmt: skip
+            if record is not None:
+                self.counts.candidates_scored += record.scored
+                self.counts.rerank_budget_cut += int(0 < record.scored < record.candidates)
+                records.append(record)
+        weight = self.config.global_weight
+
+        def order(r: LoopRecord) -> tuple:  # accepted first, then the best re-rank score
+            score = rerank_score(r.pair_score, r.global_similarity, weight)
+            return not r.accepted, -score if math.isfinite(score) else math.inf, r.rank_before
+
+        outcome.loop = min(records, key=order) if records else None
+        outcome.loops = records if len(records) > 1 else []
+
+    def _stored_features(self, match: Candidate) -> Features | None:
+        return self.geometry.unpack(self.maps.map_of(match).features(match.id))
+
+    def _scale_neighbours(self, match: Candidate) -> list[Neighbour]:
+        """Keyframes recorded next to the match, with an odometry baseline, for the scale of a
+        monocular loop (`MapSearch.near`)."""
+        meta, near = self.maps.near(match, self.geometry.config.pose.scale_neighbours)
+        load = lambda i: self._stored_features(replace(match, id=i))  # noqa: E731
+        return self.geometry.neighbours(meta, near, load)
+
+    def match_meta(
+        self, outcome: FrameOutcome, loop: LoopRecord | None = None
+    ) -> KeyframeMeta | None:
+        """The metadata of the match of `loop` (default `outcome.loop`), from its own map."""
+        best = match_candidate(outcome, loop)
+        return None if best is None else self.maps.map_of(best).meta(best.id)
+
+    def pair_scores(self, dense: np.ndarray, ids: list[int]) -> np.ndarray:
+        """Query dense [N,D] against map keyframes `ids` -> bidirectional scores [K]."""
+        return map_pair_scores(self.model, self._place_map, dense, ids, self.rerank_chunk)

@@ -1,0 +1,86 @@
+"""The pipeline's place map: made for the model, checked against it, saved, loaded, cleared
+(`PipelineMaps`, which `pipeline.LoopClosurePipeline` inherits; it works on the pipeline's state:
+`model`, `index_kind`, `identity`, `maps`, `_place_map`, `_reset_tracking`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pair_vpr_ros.errors import MapFingerprintError
+from pair_vpr_ros.identity import LEGACY_SESSION
+from pair_vpr_ros.loops.prior_maps import refuse_prior_target
+from pair_vpr_ros.place_map import PlaceMap
+
+
+class PipelineMaps:
+    """Map life cycle of LoopClosurePipeline (pipeline.py holds the state it works on)."""
+
+    def _new_map(self) -> PlaceMap:
+        desc_dim, dense_shape = self._new_map_shapes()
+        return PlaceMap(
+            desc_dim=desc_dim,
+            dense_shape=dense_shape,
+            fingerprint=self.model.fingerprint,
+            index=self.index_kind,
+        )
+
+    def _check_fingerprint(self, place_map: PlaceMap) -> None:
+        if place_map.fingerprint != self.model.fingerprint:
+            raise MapFingerprintError(
+                f"the map was built with model {place_map.fingerprint!r} but this pipeline runs "
+                f"{self.model.fingerprint!r}: use the same weights and image size, or rebuild it"
+            )
+        want = self._new_map_shapes()
+        if (place_map.desc_dim, place_map.dense_shape) != want:
+            raise MapFingerprintError(
+                f"the map holds descriptors of {place_map.desc_dim} and dense tokens of "
+                f"{list(place_map.dense_shape)}, this model makes {want[0]} and {list(want[1])} "
+                "(its manifest was edited?): rebuild the map with this model"
+            )
+
+    def _new_map_shapes(self) -> tuple[int, tuple[int, int]]:
+        cfg = self.model.config
+        return cfg.desc_dim, (self.model.num_patches, cfg.embed_dim)
+
+    def save_map(self, directory: str | Path, overwrite: bool = False) -> Path:
+        refuse_prior_target(directory, self.maps.priors)  # a prior map is never written
+        return self._place_map.save(directory, overwrite=overwrite)
+
+    def load_map(self, directory: str | Path) -> int:
+        """Replace the map by a saved one (same model required); returns its keyframe count.
+
+        Reloading the folder the current map was saved to discards its unsaved keyframes (the
+        folder is locked by the current map, so that one is closed first)."""
+        refuse_prior_target(directory, self.maps.priors)  # it is searched already, read-only
+        current = self._place_map
+        same = current.directory is not None and current.directory == Path(directory).resolve()
+        if same:
+            current.close()
+        loaded = None
+        try:
+            loaded = PlaceMap.load(
+                directory, expected_fingerprint=self.model.fingerprint,
+                legacy_identity=(self.identity.robot, LEGACY_SESSION),
+            )  # fmt: skip
+            self._check_fingerprint(loaded)
+        except Exception:
+            if loaded is not None:
+                loaded.close()
+            if same:  # the old map is gone: continue on an empty one rather than none
+                self._place_map = self._new_map()
+                self._reset_tracking()
+            raise
+        self._place_map = loaded
+        self._reset_tracking()
+        if not same:
+            current.close()
+        return len(loaded)
+
+    def clear_map(self) -> None:
+        self._place_map.clear()
+        self._reset_tracking()
+
+    def close(self) -> None:
+        self._place_map.close()
+        self.maps.close_priors()

@@ -1,0 +1,1 @@
+"""`pairvpr-fleet-replay`: several robots' bags replayed with the fleet exchange."""

@@ -1,0 +1,1 @@
+"""`pairvpr-posegraph`: recorded odometry and replay loops through the reference pose graph."""

@@ -1,0 +1,92 @@
+"""The replay's loop: bag frames through the pipeline, outcomes into records, counts and the
+output bag (`ReplayRun`, `drive`); ``offline.replay.replay_bag`` sets it up and writes the results.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Iterator
+from dataclasses import dataclass, field, replace
+
+from tqdm import tqdm
+
+from pair_vpr_ros.errors import PairVPRError
+from pair_vpr_ros.loops.detector import Candidate, LoopRecord
+from pair_vpr_ros.loops.frames import Frame
+from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
+from pair_vpr_ros.offline.bags.loop_writer import LoopBagWriter
+from pair_vpr_ros.offline.bags.reader import BagFrame
+from pair_vpr_ros.offline.bags.sources import FrameCounts, bag_frames
+from pair_vpr_ros.offline.replay.options import ReplaySummary
+
+
+@dataclass
+class ReplayRun:
+    """State of one replay loop (frames in flight between the reader and the pipeline)."""
+
+    summary: ReplaySummary
+    counts: FrameCounts = field(default_factory=FrameCounts)
+    pending: deque[BagFrame] = field(default_factory=deque)
+    records: list[LoopRecord] = field(default_factory=list)
+    global_top1: list[LoopRecord] = field(default_factory=list)  # global-only baseline
+    stamps: list[float] = field(default_factory=list)  # of every image read: the plotted path
+
+    def frames(self, read: Iterator[BagFrame], source: str) -> Iterator[Frame]:
+        """Usable frames for the pipeline, each kept in ``pending`` until its outcome comes;
+        the stamp of every frame read is noted (its ground-truth position is the path)."""
+
+        def noting_stamps() -> Iterator[BagFrame]:
+            for bf in read:
+                self.stamps.append(bf.stamp)
+                yield bf
+
+        for frame, bf in bag_frames(noting_stamps(), self.counts, source):
+            self.pending.append(bf)
+            yield frame
+
+
+def global_top1_record(record: LoopRecord, best: Candidate) -> LoopRecord:
+    """The record ranking by global similarity alone would give: the top FAISS candidate."""
+    return replace(
+        record, match_id=best.id, match_stamp=best.stamp, match_frame_id=best.frame_id,
+        match_robot=best.robot, match_session=best.session,
+        global_similarity=best.global_similarity, pair_score=float("nan"), rank_before=1,
+        rank_after=1, accepted=False, reason="global top-1",
+    )  # fmt: skip
+
+
+def drive(
+    run: ReplayRun,
+    pipe: LoopClosurePipeline,
+    frames: Iterator[Frame],
+    batch_size: int,
+    writer: LoopBagWriter | None,
+    bar: tqdm,
+) -> None:
+    """Pipeline outcomes -> records, counts, output bag; Ctrl-C stops like a read error."""
+    summary = run.summary
+    try:
+        for outcome in pipe.process_many(frames, batch_size=batch_size):
+            bf = run.pending.popleft()
+            assert abs(bf.stamp - outcome.stamp) < 1e-9, "outcomes must come in frame order"
+            if outcome.keyframe_id is not None:
+                summary.keyframes += 1
+            if writer is not None and bf.cdr is not None:
+                writer.write_image(bf.cdr, bf.log_time_ns)
+            if outcome.loop is not None and outcome.loop.query_id >= 0:
+                run.global_top1.append(global_top1_record(outcome.loop, outcome.candidates[0]))
+            for loop in outcome.reported():  # each accepted loop (one per map), or the best
+                run.records.append(loop)
+                if loop.accepted:
+                    summary.loops += 1
+                    key = f"{loop.match_robot}/{loop.match_session}"
+                    summary.loops_by_match[key] = summary.loops_by_match.get(key, 0) + 1
+                    if writer is not None:
+                        writer.write_loop(loop, bf.log_time_ns)
+            bar.update(run.counts.frames - bar.n)
+            bar.set_postfix(keyframes=summary.keyframes, loops=summary.loops, refresh=False)
+    except KeyboardInterrupt:
+        summary.error = f"interrupted after {run.counts.frames} image messages"
+        summary.interrupted = True
+    except PairVPRError as err:  # the output bag or the map could not be written (disk full)
+        summary.error = f"stopped after {run.counts.frames} image messages: {err}"

@@ -1,0 +1,1 @@
+"""A replay's report: loops against ground truth, CSV / JSON, TUM files, ATE, plots."""

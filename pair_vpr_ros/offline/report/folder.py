@@ -1,0 +1,71 @@
+"""Loop-closure report: loops CSV / JSON, ground-truth precision / recall, PR and trajectory plots.
+
+``write_report`` writes a replay's report folder. The ground-truth rules (true match, true loop,
+positives, precision, recall, PR curves) live in ``loop_truth`` and the plots in ``plots``.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pair_vpr_ros.messages.loop import LOOP_RECORD_FIELDS, csv_row, record_dict
+from pair_vpr_ros.offline.report.loop_truth import KeyframeInfo, LoopEvaluation, evaluate_loops
+from pair_vpr_ros.offline.report.plots import plot_pr_curves, plot_trajectory
+
+
+def write_loops_csv(records: Sequence[Any], path: str | Path) -> None:
+    """One row per ``LoopRecord`` (accepted or not); the header row is the field names; the
+    covariance is one cell of 36 space-separated numbers."""
+    with open(path, "w", newline="", encoding="utf-8") as stream:
+        writer = csv.writer(stream)
+        writer.writerow(LOOP_RECORD_FIELDS)
+        for record in records:
+            writer.writerow(csv_row(record))
+
+
+def write_loops_json(records: Sequence[Any], path: str | Path) -> None:
+    """A JSON list of records, each an object with every field (``loop_messages.record_dict``)."""
+    Path(path).write_text(
+        json.dumps([record_dict(r) for r in records], indent=1, allow_nan=False) + "\n",
+        encoding="utf-8",
+    )
+
+
+def write_report(
+    out_dir: str | Path,
+    records: Sequence[Any],
+    keyframes: Sequence[KeyframeInfo],
+    positions: np.ndarray | None = None,
+    gt_radius: float = 10.0,
+    exclusion_s: float = 0.0,
+    global_records: Sequence[Any] | None = None,
+    source: str = "",
+    global_weight: float = 0.0,
+) -> LoopEvaluation | None:
+    """Write ``loops.csv`` and ``loops.json``; with keyframe poses also evaluate and write
+    ``pr_curve.png`` and ``trajectory.png`` (``positions [F, 3]``: every posed frame, in order;
+    ``source``: where the poses come from, named in the plots' titles; ``global_weight``: the
+    detector's, for the re-ranked curve's score).
+    Returns the evaluation, or None without poses."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    write_loops_csv(records, out / "loops.csv")
+    write_loops_json(records, out / "loops.json")
+    if not any(k.pose is not None for k in keyframes):
+        return None
+    evaluation = evaluate_loops(
+        records, keyframes, gt_radius, exclusion_s, global_records, global_weight
+    )
+    plot_pr_curves(evaluation, out / "pr_curve.png", source)
+    if positions is None:
+        positions = np.array([k.pose[:3] for k in keyframes if k.pose is not None])
+    plot_trajectory(
+        positions, keyframes, records, evaluation.labels, out / "trajectory.png", source
+    )
+    return evaluation
