@@ -5,8 +5,12 @@ keyframes are excluded (and temporal consistency is checked) only within one rob
 session: two sessions or two robots never share a clock, so a keyframe of another robot or
 session is a candidate at once, whatever its stamp.
 
-Names are 1-64 characters of letters, digits, ``_``, ``.`` and ``-``: they name files (one
-trajectory per robot-session) and pose-graph keys, so nothing else is allowed.
+One rule for both names, checked at every entry (parameters, flags, fleet messages, map files,
+factor frame ids): 1-64 ASCII letters, digits or ``_``, a robot id starting with a letter. So a
+name is a safe path component (no ``/``, never ``.`` or ``..``, and without a ``.`` it cannot
+equal an output file's name such as ``loops.json``), a ROS topic token (a robot's score
+requests go to ``<fleet_request_topic>/<robot_id>``) and a key in every output (no ``@``, which
+tags factor frame ids, no ``,`` or spaces).
 """
 
 from __future__ import annotations
@@ -21,18 +25,29 @@ DEFAULT_ROBOT = "robot"  # robot_id when the node has no namespace
 DEFAULT_SESSION = "default"  # session of a pipeline made without one (tests, library use)
 LEGACY_SESSION = "legacy"  # session of the keyframes of a map saved before identities existed
 SESSION_FORMAT = "%Y%m%dT%H%M%SZ"  # the default session_id: the start time, UTC
-_NAME = re.compile(r"[A-Za-z0-9_.\-]{1,64}")
-RULE = "1-64 characters of letters, digits, '_', '.' or '-'"
+_SESSION = re.compile(r"[A-Za-z0-9_]{1,64}")
+_ROBOT = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,63}")
+RULE = "1-64 characters of ASCII letters, digits or '_' (a robot id starts with a letter)"
 
 
 def name_problem(kind: str, value: object) -> str | None:
-    """Why `value` is no valid robot / session name (`kind`: "robot_id", ...); None if it is."""
-    if not isinstance(value, str) or not _NAME.fullmatch(value):
+    """Why `value` is no valid robot / session name (`kind`: "robot_id", "session of
+    --robot", ...: a kind naming a robot is held to the robot rule); None if it is."""
+    robot = "robot" in kind
+    if not isinstance(value, str) or not (_ROBOT if robot else _SESSION).fullmatch(value):
         return (
-            f"{kind} {value!r} must be {RULE} (it names files and pose-graph keys), e.g. "
-            f"{'robot1' if 'robot' in kind else '20261125T093000Z'}"
+            f"{kind} {value!r} must be {RULE}: it names folders, a ROS topic and pose-graph "
+            f"keys, e.g. {'robot1' if robot else '20261125T093000Z'}"
         )
     return None
+
+
+def check_name(kind: str, value: object) -> str:
+    """`value` when it is a valid robot / session name, else ConfigError saying why."""
+    problem = name_problem(kind, value)
+    if problem:
+        raise ConfigError(problem)
+    return value  # type: ignore[return-value]
 
 
 def robot_from_namespace(namespace: str) -> str:
@@ -56,10 +71,8 @@ class Identity:
     session: str = DEFAULT_SESSION
 
     def __post_init__(self) -> None:
-        for kind, value in (("robot_id", self.robot), ("session_id", self.session)):
-            problem = name_problem(kind, value)
-            if problem:
-                raise ConfigError(problem)
+        check_name("robot_id", self.robot)
+        check_name("session_id", self.session)
 
     def __str__(self) -> str:
         return f"{self.robot}/{self.session}"

@@ -32,7 +32,8 @@ from pair_vpr_ros.fleet.messages import (
 from pair_vpr_ros.fleet.messages import encode as encode_message
 from pair_vpr_ros.fleet.owner import InterRobotLoop, score_request
 from pair_vpr_ros.fleet.peers import SELECTIONS, PeerStore, Proposal, RequestBudget
-from pair_vpr_ros.fleet.wire import check_name, model_tag
+from pair_vpr_ros.fleet.wire import model_tag
+from pair_vpr_ros.identity import name_problem
 from pair_vpr_ros.loops.frames import FrameOutcome
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 
@@ -60,11 +61,11 @@ class FleetConfig:
     select: str = "best"
 
     def __post_init__(self) -> None:
-        try:
-            check_name("robot", self.robot)
-            check_name("session", self.session)
-        except FleetMessageError as err:
-            raise ConfigError(f"fleet {err.args[0].split(': ', 1)[1]}") from err
+        names = [("fleet robot", self.robot), ("fleet session", self.session)]
+        for what, name in names + [("fleet_peers robot", p) for p in self.peers]:
+            problem = name_problem(what, name)
+            if problem:
+                raise ConfigError(problem)
         checks = {
             "budget": self.budget >= 0,
             "top_k": 1 <= self.top_k <= 64,
@@ -76,7 +77,10 @@ class FleetConfig:
             if not ok:
                 raise ConfigError(f"fleet {name}={getattr(self, name)!r} is out of range")
         if self.robot in self.peers:
-            raise ConfigError(f"fleet peers {list(self.peers)} name this robot {self.robot!r}")
+            raise ConfigError(
+                f"fleet_peers {list(self.peers)} name this robot {self.robot!r}: list the other "
+                "robots it listens to ('' = any robot)"
+            )
 
 
 @dataclass(frozen=True)
@@ -191,7 +195,11 @@ class FleetExchange:
                            p.query_id, p.query_stamp, [h.keyframe_id for h in found],
                            [h.similarity for h in found], pm.get_dense([p.query_id])[0],
                            features)  # fmt: skip
-        self._send("request", robot, req)
+        try:
+            self._send("request", robot, req)
+        except FleetMessageError as err:  # the transport cannot reach that owner: counted
+            self.counts.skipped[err.reason] += 1
+            return 0
         self._pending[self._next_id] = self.clock()
         self._next_id = (self._next_id + 1) % (1 << 32)
         return 1

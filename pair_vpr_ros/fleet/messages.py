@@ -182,7 +182,19 @@ def check(msg: Message) -> Message:
         _finite("request", msg.query_stamp, np.asarray(msg.similarities), msg.dense)
     else:
         _finite("response", msg.match_stamp, np.float32(msg.pair_score))
+    for what, name in _names(msg):  # ids that cannot name a topic, a folder or a key
+        check_name(what, name)
     return msg
+
+
+def _names(msg: Message) -> list[tuple[str, str]]:
+    out = [("robot", msg.robot), ("session", msg.session)]
+    if isinstance(msg, ScoreRequest):
+        out += [("owner robot", msg.owner_robot), ("owner session", msg.owner_session)]
+    elif isinstance(msg, ScoreResponse):
+        out += [("requester robot", msg.requester_robot),
+                ("requester session", msg.requester_session)]  # fmt: skip
+    return out
 
 
 def _finite(what: str, stamp: float, *arrays: np.ndarray) -> None:

@@ -13,12 +13,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from pair_vpr_ros.errors import FleetMessageError
 from pair_vpr_ros.fleet.messages import ScoreRequest, ScoreResponse
+from pair_vpr_ros.geometry.features import Features
 from pair_vpr_ros.loops.detector import Candidate, LoopRecord, rank_by_pair_score
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.loops.scoring import map_pair_scores
 
+MAX_PIXEL = 1e5  # keypoints further out than this (px) are no image's
 IDENTITY = ("query_robot", "query_session", "match_robot", "match_session")
 
 
@@ -59,6 +63,7 @@ def score_request(
     when the best re-rank score reaches the detector's score_threshold and, with geometric
     verification on, the pair verifies) and the response for the requester."""
     check_request(pipe, req, robot, session)
+    query = _request_features(pipe, req.features)  # checked before the scoring work
     pm = pipe.place_map
     cands = []
     pairs = zip(req.candidate_ids, req.similarities, strict=True)
@@ -76,7 +81,6 @@ def score_request(
     )  # fmt: skip
     below = best.rerank_score(c.global_weight) < c.score_threshold
     record.reason = "score below threshold" if below else ""
-    query = pipe.geometry.unpack(req.features)
     if not record.reason and c.geometric_verification:
         record.inliers, record.inlier_ratio = pipe.geometry.verify(query, _features(pipe, best.id))
         if record.inliers < c.min_inliers:
@@ -93,6 +97,25 @@ def score_request(
                              req.query_id, best.id, best.stamp, best.pair_score, len(cands),
                              record.accepted, record.pose_status)  # fmt: skip
     return loop, response
+
+
+def check_features(features: Features | None) -> Features | None:
+    """The query's keyframe features of a request, checked: FleetMessageError("bad features")
+    for keypoints that are not finite, beyond MAX_PIXEL px, or mostly at one spot."""
+    if features is None or not len(features):
+        return features
+    kp = np.asarray(features.keypoints, np.float64)
+    if kp.ndim != 2 or kp.shape[1] != 2 or not np.isfinite(kp).all():
+        raise FleetMessageError("bad features", "keypoints are not finite [M, 2] pixels")
+    if np.abs(kp).max() > MAX_PIXEL:
+        raise FleetMessageError("bad features", f"keypoints beyond {MAX_PIXEL:.0e} px")
+    if len(kp) >= 8 and len(np.unique(kp, axis=0)) * 2 < len(kp):
+        raise FleetMessageError("bad features", "most keypoints repeat one position")
+    return features
+
+
+def _request_features(pipe: LoopClosurePipeline, data: bytes) -> Features | None:
+    return check_features(pipe.geometry.unpack(data))
 
 
 def _features(pipe: LoopClosurePipeline, kf_id: int):

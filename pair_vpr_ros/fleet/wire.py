@@ -18,12 +18,13 @@ import zlib
 import numpy as np
 
 from pair_vpr_ros.errors import FleetMessageError
+from pair_vpr_ros.identity import name_problem
 
 MAGIC = b"PVF"
 VERSION = 1
 KINDS = {b"D": "descriptor", b"Q": "score request", b"R": "score response"}
 TAG_BYTES = 8
-MAX_NAME = 64  # robot and session ids: at most this many UTF-8 bytes
+MAX_NAME = 64  # robot and session ids: at most this many bytes (identity.py's rule)
 
 
 def model_tag(fingerprint: str) -> bytes:
@@ -32,12 +33,11 @@ def model_tag(fingerprint: str) -> bytes:
 
 
 def check_name(what: str, name: str) -> str:
-    """A robot or session id fit for the wire (non-empty, <= MAX_NAME UTF-8 bytes)."""
-    size = len(name.encode("utf-8"))
-    if not name or size > MAX_NAME:
-        raise FleetMessageError(
-            "bad name", f"{what} {name!r} must be 1..{MAX_NAME} UTF-8 bytes, got {size}"
-        )
+    """A robot or session id fit for the wire and for every output: the identity rule
+    (identity.py; `what` names a robot or a session); FleetMessageError("bad name") if not."""
+    problem = name_problem(what, name)
+    if problem:
+        raise FleetMessageError("bad name", problem)
     return name
 
 

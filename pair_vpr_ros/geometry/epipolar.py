@@ -26,8 +26,13 @@ def verify_pair(
     if len(pairs) < 8:
         return 0, 0.0
     pa, pb = a.keypoints[pairs[:, 0]], b.keypoints[pairs[:, 1]]
-    _, mask = cv2.findFundamentalMat(pa, pb, cv2.FM_RANSAC, ransac_px, 0.999)
-    inliers = int(mask.sum()) if mask is not None else 0
+    if not (np.isfinite(pa).all() and np.isfinite(pb).all()):
+        return 0, 0.0  # damaged keypoints verify nothing
+    f, mask = cv2.findFundamentalMat(pa, pb, cv2.FM_RANSAC, ransac_px, 0.999)
+    # no F fitted: OpenCV may hand back a mask of an earlier call, which counts nothing here
+    if f is None or f.shape != (3, 3) or mask is None or len(mask) != len(pairs):
+        return 0, 0.0
+    inliers = int(np.count_nonzero(mask))
     return inliers, inliers / len(pairs)
 
 

@@ -47,6 +47,7 @@ import numpy as np
 
 from pair_vpr_ros.geometry.covariance import SCALE_FREE_VARIANCE  # noqa: F401 (consumers)
 from pair_vpr_ros.geometry.rotations import quaternion_matrix
+from pair_vpr_ros.identity import name_problem
 from pair_vpr_ros.types import split_stamp
 
 FACTOR_TOPIC = "loop_closure/factor"
@@ -157,18 +158,30 @@ def tag_frame(frame_id: str, robot: str, session: str) -> str:
 
 
 def untag_frame(text: str) -> tuple[str, str, str]:
-    """``tag_frame``'s inverse: (frame_id, robot, session); ("", "") for an untagged id."""
+    """``tag_frame``'s inverse: (frame_id, robot, session); (text, "", "") for an untagged id.
+    A tag is two names by the identity rule (or two empty ones), so a camera frame id holding
+    ``@`` that was not tagged stays whole."""
     parts = text.rsplit("@", 2)
-    return (parts[0], parts[1], parts[2]) if len(parts) == 3 else (text, "", "")
+    if len(parts) == 3 and (parts[1:] == ["", ""] or _names_ok(parts[1], parts[2])):
+        return parts[0], parts[1], parts[2]
+    return text, "", ""
+
+
+def _names_ok(robot: str, session: str) -> bool:
+    return name_problem("robot", robot) is None and name_problem("session", session) is None
 
 
 def _frame_ids(factor: LoopFactor) -> tuple[str, str]:
-    """(query, match) frame ids of the message: tagged only for a loop between two
-    robot-sessions."""
+    """(query, match) frame ids of the message: tagged for a loop between two robot-sessions;
+    within one, a frame id holding ``@`` is tagged with two empty names ("cam@x" ->
+    "cam@x@@"), so that ``untag_frame`` gives it back whole and the loop stays in its own
+    robot-session."""
     query = (factor.query_robot, factor.query_session)
     match = (factor.match_robot, factor.match_session)
     if query == match:
-        return factor.query_frame_id, factor.match_frame_id
+        if "@" not in factor.query_frame_id + factor.match_frame_id:
+            return factor.query_frame_id, factor.match_frame_id
+        query = match = ("", "")
     return tag_frame(factor.query_frame_id, *query), tag_frame(factor.match_frame_id, *match)
 
 

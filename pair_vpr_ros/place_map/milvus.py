@@ -274,6 +274,7 @@ class MilvusIndex:
         missing ones are inserted again, ones past `count` (no dense tokens) are named, and
         removed unless `read_only` (a live writer of this map may be adding them)."""
         record, arrays = read_record(path, dim, count)
+        mc.check_lite_exists(config.milvus_uri, Path(path).parent, read_only)
         obj = cls(dim, config, fingerprint, writer=record["writer"])
         obj._desc = np.concatenate([arrays["desc"], np.zeros((1024, obj.dim), np.float32)])
         obj._rows = list(zip(arrays["robots"].tolist(), arrays["sessions"].tolist(),

@@ -56,6 +56,16 @@ def is_lite_folder(path: Path) -> bool:
     return (path / "LOCK").is_file() and (path / "collections").is_dir()
 
 
+def check_lite_exists(uri: str, folder: Path, read_only: bool) -> None:
+    """MapError when `uri` is a milvus-lite file that is gone and the map in `folder` is opened
+    `read_only` (connecting would create the file)."""
+    if read_only and is_lite(uri) and not Path(uri).exists():
+        raise MapError(
+            f"cannot open {where(uri)} of the map in {folder} read-only: it is gone; restore "
+            "it, or open the map writable to insert its keyframes again"
+        )
+
+
 def connect(uri: str, token_env: str) -> Any:
     """A MilvusClient for `uri` (a milvus-lite file is created if missing); the token, if any,
     comes from the environment variable `token_env` and is never logged or stored."""
@@ -71,10 +81,27 @@ def connect(uri: str, token_env: str) -> Any:
             "folder of that name; set milvus_uri to the path the maps were made with or to a new "
             "one"
         )
+    if (
+        is_lite(uri)
+        and Path(uri).is_dir()
+        and not is_lite_folder(Path(uri))
+        and any(Path(uri).iterdir())
+    ):
+        raise MapError(
+            f"cannot open {where(uri)}: it is a folder of other files, not milvus-lite's data; "
+            "set milvus_uri to the path the maps were made with or to a new one"
+        )
     token = os.environ.get(token_env, "") if token_env else ""
+    lite = _LiteReason()  # milvus-lite logs its own traceback: its reason goes in our message
     try:
-        return milvus.MilvusClient(uri, token=token, timeout=CONNECT_TIMEOUT_S)
+        with lite:
+            return milvus.MilvusClient(uri, token=token, timeout=CONNECT_TIMEOUT_S)
     except Exception as err:  # pymilvus raises MilvusException and its subclasses
+        if lite.reason:
+            raise MapError(
+                f"cannot open {where(uri)}: milvus-lite cannot start on it ({lite.reason}); "
+                "set milvus_uri to a path in a writable folder"
+            ) from err
         hint = (
             f"check milvus_uri, that the server runs and can be reached, and the token in "
             f"${token_env}"
@@ -86,6 +113,30 @@ def connect(uri: str, token_env: str) -> Any:
                 "writers"
             )
         raise MapError(f"cannot connect to {where(uri)} ({_reason(err)}): {hint}") from err
+
+
+class _LiteReason(logging.Handler):
+    """While entered: milvus-lite's server manager logs to this handler only (not stderr);
+    `reason` is the error of the traceback it logged, e.g. "PermissionError: ..."."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.ERROR)
+        self.reason = ""
+        self._log = logging.getLogger("milvus_lite.server_manager")
+
+    def emit(self, record: logging.LogRecord) -> None:
+        err = record.exc_info[1] if record.exc_info else None
+        self.reason = f"{type(err).__name__}: {err}" if err else record.getMessage()
+
+    def __enter__(self) -> _LiteReason:
+        self._was = self._log.propagate
+        self._log.propagate = False
+        self._log.addHandler(self)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._log.removeHandler(self)
+        self._log.propagate = self._was
 
 
 def _reason(err: BaseException) -> str:

@@ -113,10 +113,17 @@ class PlaceMap(MapSaving):
             self._meta.add(replace(meta, id=kf_id), bytes(features))
             self._index.add(query[None], [(*self.identity(meta), meta.stamp)])
         except BaseException as err:
-            self._meta.delete_from(kf_id)
+            undo = ""
+            try:
+                self._meta.delete_from(kf_id)
+            except sqlite3.Error as again:  # a full disk fails the clean-up too: say both
+                undo = f"; undoing it failed too ({again})"
             self._dense.drop_last()
-            if isinstance(err, sqlite3.Error):
-                raise MapError(f"storing metadata of keyframe {kf_id} failed: {err}") from err
+            if isinstance(err, sqlite3.Error) or undo:
+                raise MapError(
+                    f"storing metadata of keyframe {kf_id} failed: {err}{undo}; free disk "
+                    "space (or load the map's last save) and go on"
+                ) from err
             raise
         return kf_id
 

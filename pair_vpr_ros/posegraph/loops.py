@@ -13,8 +13,11 @@ from dataclasses import dataclass, replace
 import gtsam
 import numpy as np
 
-from pair_vpr_ros.messages.factor import LoopFactor
+from pair_vpr_ros.identity import name_problem
+from pair_vpr_ros.messages.factor import IDENTITY, LoopFactor
 from pair_vpr_ros.posegraph.transforms import valid_pose7
+
+MAX_TRANSLATION_M = 1e5  # a loop's translation beyond this (100 km) is damage, not a loop
 
 
 @dataclass(eq=False)
@@ -41,6 +44,13 @@ def loop_problem(factor: LoopFactor) -> str | None:
     reason = valid_pose7((*factor.translation, *factor.rotation))
     if reason is not None:
         return f"transform: {reason}"
+    length = float(np.linalg.norm(np.asarray(factor.translation, dtype=np.float64)))
+    if length > MAX_TRANSLATION_M:  # finite, but no camera moved that far: GTSAM fails on it
+        return f"transform: translation beyond {MAX_TRANSLATION_M:.0e} m ({length:.3g} m)"
+    for name in IDENTITY:
+        value = getattr(factor, name)
+        if value and name_problem(name, value):
+            return f"{name} is no valid robot or session id ({value!r})"
     cov = np.asarray(factor.covariance, dtype=np.float64)
     if cov.size != 36:
         return f"covariance needs 36 values (got {cov.size})"

@@ -16,10 +16,12 @@ from __future__ import annotations
 import re
 from array import array
 from collections.abc import Callable
+from concurrent.futures import Future
 from functools import partial
 from typing import Any
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.exceptions import InvalidTopicNameException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
@@ -98,7 +100,7 @@ class FleetLink:
         ):
             node.create_subscription(self._type(channel), topic, partial(self._heard, channel),
                                      self._qos[channel], callback_group=group)  # fmt: skip
-        node.create_timer(1.0, lambda: maps.submit(self._on_map_thread, self.exchange.tick))
+        node.create_timer(1.0, self._tick)
         kind = "typed" if self.typed else "bytes"
         self.summary = f"fleet exchange on as robot {robot!r}, session {session!r} ({kind})"
 
@@ -110,6 +112,18 @@ class FleetLink:
     def state(self) -> dict:
         """The exchange's counts and bytes (copied on the map thread)."""
         return self._maps.call(self.exchange.summary)
+
+    def _tick(self) -> None:
+        future = self._maps.submit(self._on_map_thread, self.exchange.tick)
+        future.add_done_callback(self._tick_done)
+
+    def _tick_done(self, future: Future) -> None:
+        """A timer tick's error is logged and counted (it would vanish in the Future); this
+        runs on the map thread, which completed the Future."""
+        err = future.exception()
+        if err is not None:
+            self.exchange.counts.skipped["tick failed"] += 1
+            self._node.get_logger().error(f"fleet exchange tick failed: {err}")
 
     def _type(self, channel: str) -> type:
         return self._classes[TYPED[channel]] if self.typed else UInt8MultiArray
@@ -145,7 +159,11 @@ class FleetLink:
             pub = self._owners.get(out.target)
             if pub is None:
                 topic = f"{self._request_topic}/{out.target}"
-                pub = self._owners[out.target] = self._publisher(topic, "request")
+                try:
+                    pub = self._publisher(topic, "request")
+                except InvalidTopicNameException as err:  # counted by the exchange
+                    raise FleetMessageError("bad name", f"owner {out.target!r}: {err}") from err
+                self._owners[out.target] = pub
         else:
             pub = self._pubs[out.channel]
         if self.typed:

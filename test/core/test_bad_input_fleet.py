@@ -209,13 +209,25 @@ def test_a_late_response_is_counted_late(owner):
 @pytest.mark.parametrize(
     "changes, message",
     [
-        (dict(robot=""), "fleet robot '' must be 1..64 UTF-8 bytes, got 0"),
+        (
+            dict(robot=""),
+            "fleet robot '' must be 1-64 characters of ASCII letters, digits or "
+            "'_' (a robot id starts with a letter): it names folders, a ROS topic and pose-graph "
+            "keys, e.g. robot1",
+        ),
+        (dict(robot=".."), "fleet robot '..' must be 1-64 characters"),
+        (dict(robot="x.y"), "fleet robot 'x.y' must be 1-64 characters"),
         (dict(session="s" * 65), "fleet session 'sss"),
+        (dict(peers=("b", "../c")), "fleet_peers robot '../c' must be 1-64 characters"),
         (dict(budget=-1), "fleet budget=-1 is out of range"),
         (dict(top_k=0), "fleet top_k=0 is out of range"),
         (dict(period_s=float("nan")), "fleet period_s=nan is out of range"),
         (dict(timeout_s=0.0), "fleet timeout_s=0.0 is out of range"),
-        (dict(peers=("a", "b")), "fleet peers ['a', 'b'] name this robot 'a'"),
+        (
+            dict(peers=("a", "b")),
+            "fleet_peers ['a', 'b'] name this robot 'a': list the other "
+            "robots it listens to ('' = any robot)",
+        ),
     ],
 )
 def test_bad_fleet_config_is_a_clear_error(changes, message):

@@ -34,10 +34,31 @@ def test_session_id_defaults_to_the_start_time_utc():
     assert resolve_identity("a", "b", "/r2", now=when) == Identity("a", "b")
 
 
-@pytest.mark.parametrize("robot", ["my robot", "a/b", "", "x" * 65, "é"])
+BAD_NAMES = ["my robot", "a/b", "", "x" * 65, "é", ".", "..", "a.b", "a@b", "a-b", "a,b",
+             "loops.json", "fleet_summary.json", "x\n"]  # fmt: skip
+
+
+@pytest.mark.parametrize("robot", [*BAD_NAMES, "1robot", "_r"])
 def test_bad_robot_names_are_refused_with_the_rule(robot):
-    with pytest.raises(ConfigError, match=r"robot_id .* must be 1-64 characters of letters"):
+    """One rule (issue 38): a path component, a ROS topic token and a key everywhere."""
+    with pytest.raises(ConfigError) as err:
         Identity(robot, "s1")
+    assert str(err.value) == (
+        f"robot_id {robot!r} must be 1-64 characters of ASCII letters, digits or '_' (a robot "
+        "id starts with a letter): it names folders, a ROS topic and pose-graph keys, e.g. robot1"
+    )
+
+
+@pytest.mark.parametrize("session", BAD_NAMES)
+def test_bad_session_names_are_refused_with_the_rule(session):
+    with pytest.raises(ConfigError, match=r"^session_id .* e\.g\. 20261125T093000Z$"):
+        Identity("r1", session)
+
+
+@pytest.mark.parametrize("robot,session", [("r", "1"), ("R_2", "20261125T093000Z"),
+                                           ("x" * 64, "_" * 64)])  # fmt: skip
+def test_good_names_pass(robot, session):
+    assert str(Identity(robot, session)) == f"{robot}/{session}"
 
 
 # ---------------------------------------------------------------- recency per robot-session

@@ -12,6 +12,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import TypesysError, get_types_from_msg
 
 from pair_vpr_ros.errors import BagError, OutputError
+from pair_vpr_ros.loops.detector import LoopRecord
 from pair_vpr_ros.messages import loop as loop_messages
 from pair_vpr_ros.messages.factor import FACTOR_TOPIC, FACTOR_TYPE, factor_msg
 from pair_vpr_ros.offline.bags.opening import jazzy_typestore
@@ -152,4 +153,15 @@ def register_typed(ts: Any) -> str | None:
         ts.register(get_types_from_msg(path.read_text("utf-8"), loop_messages.TYPED_TYPE))
     except (OSError, UnicodeDecodeError, TypesysError) as err:
         return f"/{loop_messages.TYPED_TOPIC} is not written: cannot read {path}: {err}"
+    try:  # another build's definition (fields missing or extra) fails here, not at a loop
+        sample = LoopRecord(0, 0.0, "", 0, 0.0, "", pair_score=0.0, global_similarity=0.0,
+                            rank_before=1, rank_after=1)  # fmt: skip
+        ts.serialize_cdr(loop_messages.typed_msg(sample, ts.types), loop_messages.TYPED_TYPE)
+    except Exception as err:  # noqa: BLE001 - any failure means the definition does not fit
+        return (
+            f"/{loop_messages.TYPED_TOPIC} is not written: the definition {path} does not fit "
+            f"this version ({type(err).__name__}: {err}); rebuild pair_vpr_ros_interfaces "
+            "(docs/interfaces.md) or put this build first on AMENT_PREFIX_PATH; the other "
+            "loop-closure topics are written"
+        )
     return None

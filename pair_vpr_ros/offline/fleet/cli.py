@@ -9,12 +9,15 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from pair_vpr_ros.cli import run_cli
-from pair_vpr_ros.errors import UsageError
+from pair_vpr_ros.errors import ConfigError, UsageError
+from pair_vpr_ros.identity import name_problem
 from pair_vpr_ros.offline.fleet.replay import (
     FleetRobot,
     check_fleet_out,
+    robot_fleet,
     run_fleet,
     write_fleet_run,
 )
@@ -56,16 +59,46 @@ def main(argv: list[str] | None = None) -> int:
     return run_cli(build_parser(), _run, argv)
 
 
+def check_robots(robots: list[FleetRobot]) -> None:
+    """Every --robot checked before the work: ids by the identity rule, a source that exists."""
+    for r in robots:
+        flag = f"--robot {r.robot} {r.session} {r.source}"
+        for what, value in (("robot id", r.robot), ("session id", r.session)):
+            problem = name_problem(what, value)
+            if problem:
+                raise UsageError(f"{flag}: {problem}")
+        if not Path(r.source).exists():
+            raise UsageError(f"{flag}: no bag or image folder at {r.source}")
+
+
+def fleet_peers(text: str, robots: list[FleetRobot]) -> tuple[str, ...]:
+    """fleet_peers of a fleet run: ConfigError for a name that is no --robot of the run."""
+    peers = tuple(p.strip() for p in text.split(",") if p.strip())
+    names = [r.robot for r in robots]
+    for peer in peers:
+        if peer not in names:
+            raise ConfigError(
+                f"fleet_peers names robot {peer!r}, which is no --robot of this run ({names}): "
+                "list robots of the run, or '' for every robot"
+            )
+    for r in robots:  # one listed robot alone would listen to no robot: refused now
+        robot_fleet({"peers": peers}, r.robot)
+    return peers
+
+
 def _run(args: argparse.Namespace) -> int:
     values = read_params_file(args.params_file) if args.params_file else defaults()
     robots = [FleetRobot(r, s, src, args.topic, args.pose_topic) for r, s, src in args.robot]
     if len(robots) < 2:
         raise UsageError("--robot: give at least two robots (the exchange is between robots)")
-    # the fleet options of the parameter file, checked once with the first robot's identity
-    options = fleet_config(values, robots[0].robot, robots[0].session)
+    check_robots(robots)
+    # the fleet options of the parameter file, checked once with the first robot's identity;
+    # fleet_peers: each robot listens to those of them other than itself (run_fleet)
+    options = fleet_config({**values, "fleet_peers": ""}, robots[0].robot, robots[0].session)
     fleet = dict(budget=options.budget, period_s=options.period_s, top_k=options.top_k,
                  timeout_s=options.timeout_s, send_features=options.send_features,
-                 select=options.select)  # fmt: skip
+                 select=options.select,
+                 peers=fleet_peers(values["fleet_peers"], robots))  # fmt: skip
     out = check_fleet_out(args.out, args.overwrite)
     model = load_model(args.weights, device=args.device)
     run = run_fleet(robots, model, detector_config(values), fleet, geometry_config(values),

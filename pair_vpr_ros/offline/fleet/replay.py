@@ -22,12 +22,13 @@ from pair_vpr_ros.errors import ConfigError, OutputError
 from pair_vpr_ros.fleet import Faults, FleetConfig, FleetExchange, InterRobotLoop, LocalBus
 from pair_vpr_ros.fleet.exchange import CHANNELS
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
-from pair_vpr_ros.identity import Identity
+from pair_vpr_ros.identity import Identity, check_name
 from pair_vpr_ros.loops.detector import DetectorConfig
 from pair_vpr_ros.loops.frames import Frame, FrameOutcome
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.model import PairVPRModel
 from pair_vpr_ros.offline.bags.sources import FrameCounts, source_frames
+from pair_vpr_ros.offline.report.folder import check_writable
 
 SUMMARY = "fleet_summary.json"
 
@@ -90,7 +91,7 @@ def run_fleet(
     bus, run, streams = LocalBus(faults), FleetRun(), []
     clock = [float("-inf")]
     for r in robots:
-        config = FleetConfig(robot=r.robot, session=r.session, **(fleet or {}))
+        config = FleetConfig(robot=r.robot, session=r.session, **robot_fleet(fleet or {}, r.robot))
         who = Identity(r.robot, r.session)
         pipe = LoopClosurePipeline(model, detector, geometry=geometry, identity=who)
         ex = FleetExchange(pipe, config, bus.sender(r.robot), clock=lambda: clock[0],
@@ -117,6 +118,19 @@ def run_fleet(
     return run
 
 
+def robot_fleet(fleet: dict[str, Any], robot: str) -> dict[str, Any]:
+    """`fleet` for one robot: its peers are the listed ones other than itself (ConfigError
+    when the list names only itself: it would listen to no robot)."""
+    peers = tuple(fleet.get("peers", ()))
+    own = tuple(p for p in peers if p != robot)
+    if peers and not own:
+        raise ConfigError(
+            f"fleet_peers {list(peers)} name only robot {robot!r} itself: list the robots it "
+            "listens to, or '' for every robot"
+        )
+    return {**fleet, "peers": own}
+
+
 def _frames(robot: FleetRobot) -> Iterable[Frame]:
     if isinstance(robot.source, (str, Path)):
         return source_frames(robot.source, FrameCounts(), robot.topic, pose_topic=robot.pose_topic)
@@ -134,6 +148,7 @@ def check_fleet_out(out: str | Path, overwrite: bool = False) -> Path:
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise OutputError(f"--out {out} is a file: give a folder for the fleet run's outputs")
+    check_writable(out, "--out")
     if (out / SUMMARY).exists() and not overwrite:
         raise OutputError(
             f"--out {out} holds a fleet run already ({SUMMARY}): give another folder or pass "
@@ -146,12 +161,19 @@ def write_fleet_run(run: FleetRun, out: str | Path) -> Path:
     """OUT/inter_robot_loops.json (every decision, `accepted` marks the loops), OUT/<robot>/
     loops.json (each robot's own decisions) and OUT/fleet_summary.json (totals, per robot)."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    _write_json(out / "inter_robot_loops.json", [loop.to_dict() for loop in run.loops])
-    for robot, records in run.robot_loops.items():
-        (out / robot).mkdir(exist_ok=True)
-        _write_json(out / robot / "loops.json", records)
-    _write_json(out / SUMMARY, {"totals": run.totals(), "robots": run.exchanges})
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        _write_json(out / "inter_robot_loops.json", [loop.to_dict() for loop in run.loops])
+        for robot, records in run.robot_loops.items():
+            folder = out / check_name("robot_id", robot)  # a name: never outside `out`
+            folder.mkdir(exist_ok=True)
+            _write_json(folder / "loops.json", records)
+        _write_json(out / SUMMARY, {"totals": run.totals(), "robots": run.exchanges})
+    except OSError as err:
+        raise OutputError(
+            f"cannot write the fleet run's outputs into {out}: {err.strerror or err} "
+            f"({err.filename}); free space or pick another --out"
+        ) from err
     return out
 
 

@@ -24,6 +24,7 @@ from pair_vpr_ros.cli import float_flag, nonnegative_int, positive_float, run_cl
 from pair_vpr_ros.errors import UsageError
 from pair_vpr_ros.offline.posegraph.fleet import fleet_main
 from pair_vpr_ros.offline.posegraph.single import run_posegraph
+from pair_vpr_ros.offline.report.folder import check_writable
 from pair_vpr_ros.params.file import read_params_file
 from pair_vpr_ros.params.posegraph import NODE_NAME, PARAMS, posegraph_config
 from pair_vpr_ros.posegraph.config import KERNELS, PoseGraphConfig
@@ -118,6 +119,7 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> None:
     if (args.bag is None) == (args.trajectory is None):
         raise UsageError("give one robot's BAG or several --trajectory ROBOT SESSION BAG")
+    check_writable(Path(args.out), "--out")  # before the work, which a bad --out would lose
     if args.trajectory is not None:
         return fleet_main(args, _config(args))
     if args.loops is None or args.loops_of is not None:

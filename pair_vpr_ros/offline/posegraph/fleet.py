@@ -19,7 +19,6 @@ join it once their loops agree on where they are (``posegraph.joining``). Writes
 from __future__ import annotations
 
 import json
-import re
 import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -28,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from pair_vpr_ros.errors import ConfigError, PairVPRError, UsageError
+from pair_vpr_ros.identity import name_problem
 from pair_vpr_ros.messages.factor import LoopFactor
 from pair_vpr_ros.offline.bags.opening import open_bag
 from pair_vpr_ros.offline.posegraph.single import PoseGraphSummary, read_track
@@ -43,8 +43,6 @@ from pair_vpr_ros.posegraph.config import PoseGraphConfig
 from pair_vpr_ros.posegraph.graph import PoseGraph
 from pair_vpr_ros.posegraph.loops import own
 from pair_vpr_ros.posegraph.tracks import TrajectoryId, label
-
-SAFE_ID = re.compile(r"[A-Za-z0-9_.-]+")
 
 
 @dataclass(frozen=True)
@@ -91,11 +89,9 @@ def check_inputs(inputs: list[TrajectoryInput]) -> None:
     seen: dict[TrajectoryId, int] = {}
     for number, item in enumerate(inputs, start=1):
         for what, value in (("robot", item.robot), ("session", item.session)):
-            if not SAFE_ID.fullmatch(value) or value in (".", ".."):
-                raise ConfigError(
-                    f"--trajectory {number}: {what} id {value!r} may hold only letters, digits, "
-                    "'_', '-' and '.' (it names the output folder)"
-                )
+            problem = name_problem(f"{what} id", value)
+            if problem:
+                raise ConfigError(f"--trajectory {number}: {problem}")
         if item.id in seen:
             raise ConfigError(
                 f"--trajectory {seen[item.id]} and {number} are both robot {item.robot} session "
@@ -240,6 +236,11 @@ def fleet_main(args: Any, config: PoseGraphConfig) -> None:
         raise ConfigError("--inject-false-loops takes one robot's BAG, not --trajectory")
     if not args.loops and not args.loops_of:
         raise UsageError("--trajectory needs loops: --loops PATH or --loops-of ROBOT SESSION PATH")
+    for robot, session, _ in args.loops_of or ():
+        for what, value in (("robot id", robot), ("session id", session)):
+            problem = name_problem(what, value)
+            if problem:
+                raise UsageError(f"--loops-of: {problem}")
     inputs = [TrajectoryInput(r, s, Path(b)) for r, s, b in args.trajectory]
     owned = [((r, s), p) for r, s, p in args.loops_of or ()]
     summary = run_fleet_posegraph(inputs, args.loops or [], args.out, args.odom_topic,

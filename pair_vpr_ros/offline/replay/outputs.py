@@ -7,30 +7,11 @@ filled with a map, and a folder that cannot be written is found before the first
 from __future__ import annotations
 
 import shutil
-import tempfile
 from pathlib import Path
 
 from pair_vpr_ros.errors import ConfigError, MapError, OutputError
 from pair_vpr_ros.place_map.files import LOCK_NAME, DirLock
 from pair_vpr_ros.place_map.manifest import MANIFEST_NAME, read_manifest
-
-
-def check_writable(path: Path, what: str) -> None:
-    """`path` (a folder, created later if missing) can be written: OutputError otherwise."""
-    existing = path
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
-    if not existing.is_dir():
-        where = "" if existing == path else f" ({existing} is a file)"
-        raise OutputError(f"{what} {path} is not a folder{where}: give a folder")
-    try:
-        with tempfile.TemporaryFile(dir=existing):
-            pass
-    except OSError as err:
-        raise OutputError(
-            f"cannot write {what} {path}: {existing} is not writable ({err.strerror}); pick a "
-            "writable folder"
-        ) from err
 
 
 def check_map_dir(path: Path, overwrite: bool) -> None:

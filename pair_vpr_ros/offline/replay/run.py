@@ -39,8 +39,8 @@ from pair_vpr_ros.offline.bags.stereo import with_right
 from pair_vpr_ros.offline.replay import notes as replay_notes
 from pair_vpr_ros.offline.replay.drive import ReplayRun, drive
 from pair_vpr_ros.offline.replay.options import ReplayOptions, ReplaySummary
-from pair_vpr_ros.offline.replay.outputs import check_map_dir, check_writable, prepare_out
-from pair_vpr_ros.offline.report.folder import write_report
+from pair_vpr_ros.offline.replay.outputs import check_map_dir, prepare_out
+from pair_vpr_ros.offline.report.folder import check_writable, write_report
 from pair_vpr_ros.offline.report.loop_truth import KeyframeInfo
 from pair_vpr_ros.types import PoseTrack
 from pair_vpr_ros.weights import Weights, check_runtime, load_model

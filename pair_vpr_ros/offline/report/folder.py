@@ -8,15 +8,35 @@ from __future__ import annotations
 
 import csv
 import json
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from pair_vpr_ros.errors import OutputError
 from pair_vpr_ros.messages.loop import LOOP_RECORD_FIELDS, csv_row, record_dict
 from pair_vpr_ros.offline.report.loop_truth import KeyframeInfo, LoopEvaluation, evaluate_loops
 from pair_vpr_ros.offline.report.plots import plot_pr_curves, plot_trajectory
+
+
+def check_writable(path: Path, what: str) -> None:
+    """`path` (a folder, created later if missing) can be written: OutputError otherwise."""
+    existing = path
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        where = "" if existing == path else f" ({existing} is a file)"
+        raise OutputError(f"{what} {path} is not a folder{where}: give a folder")
+    try:
+        with tempfile.TemporaryFile(dir=existing):
+            pass
+    except OSError as err:
+        raise OutputError(
+            f"cannot write {what} {path}: {existing} is not writable ({err.strerror}); pick a "
+            "writable folder"
+        ) from err
 
 
 def write_loops_csv(records: Sequence[Any], path: str | Path) -> None:

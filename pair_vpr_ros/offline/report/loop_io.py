@@ -19,6 +19,7 @@ from pair_vpr_ros.errors import BagError, PoseGraphError
 from pair_vpr_ros.messages.factor import (
     FACTOR_TOPIC,
     FACTOR_TYPE,
+    STATUS_CODES,
     LoopFactor,
     factor_from_msg,
     factor_from_record,
@@ -108,11 +109,19 @@ def _from_records(path: Path, records: list[dict[str, Any]]) -> LoopSource:
                 "(written by an older replay? rerun pairvpr-bag-replay)"
             ) from err
         if factor is None:
-            reason = record.get("pose_reason") or "no relative pose"
+            reason = record.get("pose_reason") or _no_pose(record)
             source.left_out[str(reason).split(" (")[0]] += 1
         else:
             source.factors.append(factor)
     return source
+
+
+def _no_pose(record: dict[str, Any]) -> str:
+    """Why an accepted record gave no factor: a damaged covariance, else no relative pose."""
+    cov = record.get("covariance") or ()
+    if record.get("pose_status") in STATUS_CODES and len(cov) != 36:
+        return f"covariance of {len(cov)} values, not 36"
+    return "no relative pose"
 
 
 def _from_bag(path: Path) -> LoopSource:
