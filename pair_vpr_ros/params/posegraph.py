@@ -11,6 +11,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.identity import name_problem
 from pair_vpr_ros.params.file import yaml_text
 from pair_vpr_ros.params.table import RO, ParamSpec, _p
 from pair_vpr_ros.posegraph.config import KERNELS, PoseGraphConfig
@@ -105,6 +106,10 @@ def parse_trajectories(text: str, odom_topic: str) -> list[tuple[str, str, str]]
             raise ConfigError(
                 f"trajectories: {entry!r} is not ROBOT/SESSION=ODOM_TOPIC (e.g. 'a/day1=/a/odom')"
             )
+        for what, name in (("robot", robot), ("session", session)):
+            problem = name_problem(f"trajectories: {what} id", name) if name else None
+            if problem:
+                raise ConfigError(problem)
         if any((robot, session) == (r, s) for r, s, _ in out):
             raise ConfigError(f"trajectories: robot-session {robot}/{session} is given twice")
         if any(topic == t for _, _, t in out):

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from pair_vpr_ros.errors import ConfigError, MapError
-from pair_vpr_ros.identity import DEFAULT_ROBOT, LEGACY_SESSION
+from pair_vpr_ros.identity import DEFAULT_ROBOT, LEGACY_SESSION, name_problem
 from pair_vpr_ros.loops.prior_maps import prior_folder
 from pair_vpr_ros.place_map import PlaceMap
 from pair_vpr_ros.posegraph.config import PoseGraphConfig
@@ -99,6 +99,8 @@ def _keyframes(path: Path, given: str | Path, what: str) -> list:
 def _problem(robot: str, session: str, pose) -> str | None:
     if not robot or not session:
         return "no robot or session (a loop cannot name it)"
+    if name_problem("robot", robot) or name_problem("session", session):
+        return "robot or session id breaks the identity rule (identity.py)"
     if pose is None:
         return "no pose"
     return valid_pose7(pose)

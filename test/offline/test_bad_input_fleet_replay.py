@@ -3,6 +3,8 @@ fleet parameters, an output folder that holds a run (left unchanged) or is a fil
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from bad_input import tree_digest
@@ -45,23 +47,101 @@ CASES = {
     ),  # fmt: skip
     "missing source": (
         lambda root, tmp: argv(root) + ["--robot", "c", "s1", str(tmp / "none")],
-        1,
-        "does not exist",
+        2,
+        "error: --robot c s1 {tmp}/none: no bag or image folder at {tmp}/none",
     ),  # fmt: skip
     "negative budget": (
         lambda root, tmp: argv(root, "--params-file", params(tmp / "p.yaml", "fleet_budget: -1")),
         1,
         "fleet_budget=-1 is out of range [0, 1000]",
     ),  # fmt: skip
-    "peers naming the robot": (
+    "peers naming only the robot": (
         lambda root, tmp: argv(root, "--params-file", params(tmp / "p.yaml", 'fleet_peers: "a"')),
         1,
-        "error: fleet peers ['a'] name this robot 'a'",
+        "error: fleet_peers ['a'] name only robot 'a' itself: list the robots it listens to, "
+        "or '' for every robot",
+    ),  # fmt: skip
+    "peers naming no robot of the run": (
+        lambda root, tmp: argv(root, "--params-file", params(tmp / "p.yaml", 'fleet_peers: "z"')),
+        1,
+        "error: fleet_peers names robot 'z', which is no --robot of this run (['a', 'b']): list "
+        "robots of the run, or '' for every robot",
+    ),  # fmt: skip
+    "peers naming a bad id": (
+        lambda root, tmp: argv(root, "--params-file", params(tmp / "p.yaml", 'fleet_peers: "a.b"')),
+        1,
+        "error: fleet_peers robot 'a.b' must be 1-64 characters of ASCII letters, digits or '_'",
     ),  # fmt: skip
     "robot id too long": (
         lambda root, tmp: argv(root).__add__(["--robot", "r" * 65, "s", str(root / "a")]),
+        2,
+        f"error: --robot {'r' * 65} s {{root}}/a: robot id 'rrrr",
+    ),  # fmt: skip
+    "session id '..'": (
+        lambda root, tmp: argv(root).__add__(["--robot", "c", "..", str(root / "a")]),
+        2,
+        "error: --robot c .. {root}/a: session id '..' must be 1-64 characters of ASCII letters, "
+        "digits or '_' (a robot id starts with a letter): it names folders, a ROS topic and "
+        "pose-graph keys, e.g. 20261125T093000Z",
+    ),  # fmt: skip
+    "--out is under a file": (
+        lambda root, tmp: argv(root)[:-2] + ["--out", str(_file(tmp) / "sub")],
         1,
-        "error: fleet robot 'rrrr",
+        "error: --out {tmp}/file/sub is not a folder ({tmp}/file is a file): give a folder",
+    ),  # fmt: skip
+    "--out cannot be written": (
+        lambda root, tmp: argv(root)[:-2] + ["--out", "/proc/fleet_out"],
+        1,
+        "error: cannot write --out /proc/fleet_out: /proc is not writable (",
+    ),  # fmt: skip
+    "robot id '..'": (
+        lambda root, tmp: argv(root).__add__(["--robot", '..', "s1", str(root / "a")]),
+        2,
+        "error: --robot .. s1 {root}/a: robot id '..' must be 1-64 characters of "
+        "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
+        "ROS topic and pose-graph keys, e.g. robot1",
+    ),  # fmt: skip
+    "robot id '.'": (
+        lambda root, tmp: argv(root).__add__(["--robot", '.', "s1", str(root / "a")]),
+        2,
+        "error: --robot . s1 {root}/a: robot id '.' must be 1-64 characters of "
+        "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
+        "ROS topic and pose-graph keys, e.g. robot1",
+    ),  # fmt: skip
+    "robot id 'x.y'": (
+        lambda root, tmp: argv(root).__add__(["--robot", 'x.y', "s1", str(root / "a")]),
+        2,
+        "error: --robot x.y s1 {root}/a: robot id 'x.y' must be 1-64 characters of "
+        "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
+        "ROS topic and pose-graph keys, e.g. robot1",
+    ),  # fmt: skip
+    "robot id 'a@b'": (
+        lambda root, tmp: argv(root).__add__(["--robot", 'a@b', "s1", str(root / "a")]),
+        2,
+        "error: --robot a@b s1 {root}/a: robot id 'a@b' must be 1-64 characters of "
+        "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
+        "ROS topic and pose-graph keys, e.g. robot1",
+    ),  # fmt: skip
+    "robot id 'fleet_summary.json'": (
+        lambda root, tmp: argv(root).__add__(["--robot", 'fleet_summary.json', "s1", str(root / "a")]),
+        2,
+        "error: --robot fleet_summary.json s1 {root}/a: robot id 'fleet_summary.json' must be 1-64 characters of "
+        "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
+        "ROS topic and pose-graph keys, e.g. robot1",
+    ),  # fmt: skip
+    "robot id 'inter_robot_loops.json'": (
+        lambda root, tmp: argv(root).__add__(["--robot", 'inter_robot_loops.json', "s1", str(root / "a")]),
+        2,
+        "error: --robot inter_robot_loops.json s1 {root}/a: robot id 'inter_robot_loops.json' must be 1-64 characters of "
+        "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
+        "ROS topic and pose-graph keys, e.g. robot1",
+    ),  # fmt: skip
+    "robot id 'a/b'": (
+        lambda root, tmp: argv(root).__add__(["--robot", 'a/b', "s1", str(root / "a")]),
+        2,
+        "error: --robot a/b s1 {root}/a: robot id 'a/b' must be 1-64 characters of "
+        "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
+        "ROS topic and pose-graph keys, e.g. robot1",
     ),  # fmt: skip
 }
 
@@ -69,9 +149,16 @@ CASES = {
 @pytest.mark.parametrize("case", CASES)
 def test_bad_fleet_replay_input_is_an_error_line(folders, tmp_path, capsys, case):
     make, code, message = CASES[case]
+    (folders / "loops.json").write_text("[]\n")  # what a robot '..' would have replaced
+    before = tree_digest(folders)
     assert main(make(folders, tmp_path)) == code
-    assert message in capsys.readouterr().err
-    assert not (folders / "out").exists()
+    assert message.format(root=folders, tmp=tmp_path) in capsys.readouterr().err
+    assert not (folders / "out").exists() and tree_digest(folders) == before
+
+
+def _file(tmp):
+    (tmp / "file").write_text("x")
+    return tmp / "file"
 
 
 def test_an_output_folder_holding_a_run_is_not_replaced(folders, tmp_path, capsys):
@@ -94,3 +181,32 @@ def test_an_output_path_that_is_a_file(folders, tmp_path, capsys):
     args[args.index("--out") + 1] = str(tmp_path / "file")
     assert main(args) == 1
     assert "is a file: give a folder" in capsys.readouterr().err
+
+
+def test_fleet_peers_reach_every_robot_but_itself(folders, tmp_path, monkeypatch):
+    """fleet_peers is honoured (issue 38): each robot listens to the listed others."""
+    import pair_vpr_ros.offline.fleet.cli as cli
+    from pair_vpr_ros.offline.fleet.replay import FleetRun, robot_fleet
+
+    seen = {}
+    monkeypatch.setattr(cli, "run_fleet", lambda robots, model, d, fleet, g, progress: (
+        seen.update(fleet=fleet), FleetRun())[1])  # fmt: skip
+    args = argv(folders, "--params-file", params(tmp_path / "p.yaml", 'fleet_peers: "a, b"'))
+    args[args.index("--out") + 1] = str(tmp_path / "out")
+    assert main(args) == 0
+    assert seen["fleet"]["peers"] == ("a", "b")
+    assert robot_fleet(seen["fleet"], "a")["peers"] == ("b",)
+    assert robot_fleet(seen["fleet"], "c")["peers"] == ("a", "b")
+
+
+@pytest.mark.parametrize("robot", ["..", ".", "fleet_summary.json"])
+def test_no_robot_id_can_write_outside_out(tmp_path, robot):
+    """The library refuses what the command line refuses: no folder outside --out."""
+    from pair_vpr_ros.errors import ConfigError
+    from pair_vpr_ros.offline.fleet.replay import FleetRun, write_fleet_run
+
+    (tmp_path / "loops.json").write_text("[]\n")
+    before = tree_digest(tmp_path)
+    with pytest.raises(ConfigError, match=f"^robot_id {re.escape(repr(robot))} must be 1-64"):
+        write_fleet_run(FleetRun(robot_loops={robot: [{"x": 1}]}), tmp_path / "out")
+    assert tree_digest(tmp_path) == before and not (tmp_path / "out").exists()

@@ -46,10 +46,17 @@ CASES = [
      "error: --trajectory 1 and 2 are both robot a session s1: two robots need two robot ids, two "
      "runs of one robot two session ids"),
     ("robot id with a slash", ["a", "s1", "a"], ["b/x", "s1", "b"], 1,
-     "error: --trajectory 2: robot id 'b/x' may hold only letters, digits, '_', '-' and '.' (it "
-     "names the output folder)"),
+     "error: --trajectory 2: robot id 'b/x' must be 1-64 characters of ASCII letters, digits or "
+     "'_' (a robot id starts with a letter): it names folders, a ROS topic and pose-graph keys, "
+     "e.g. robot1"),
     ("session id '..'", ["a", "..", "a"], ["b", "s1", "b"], 1,
-     "error: --trajectory 1: session id '..' may hold only letters"),
+     "error: --trajectory 1: session id '..' must be 1-64 characters of ASCII letters"),
+    ("robot id '.'", ["a", "s1", "a"], [".", "s1", "b"], 1,
+     "error: --trajectory 2: robot id '.' must be 1-64 characters"),
+    ("robot id 'posegraph.json'", ["a", "s1", "a"], ["posegraph.json", "s1", "b"], 1,
+     "error: --trajectory 2: robot id 'posegraph.json' must be 1-64 characters"),
+    ("robot id 'x.y'", ["a", "s1", "a"], ["x.y", "s1", "b"], 1,
+     "error: --trajectory 2: robot id 'x.y' must be 1-64 characters"),
     ("a robot-session with no odometry", ["a", "s1", "a"], ["b", "s1", "empty"], 1,
      "error: trajectory b/s1 ({root}/empty): odometry topic /odom has no messages"),
     ("a robot-session whose bag is missing", ["a", "s1", "a"], ["b", "s1", "missing"], 1,
@@ -68,6 +75,28 @@ def test_bad_trajectories(bags, tmp_path, capsys, case, first, second, code, mes
     assert main(argv) == code
     assert message.format(root=root) in capsys.readouterr().err
     assert not out.exists()  # an error writes nothing
+
+
+@pytest.mark.parametrize(
+    ("out", "message"),
+    [
+        ("{tmp}/file", "error: --out {tmp}/file is not a folder: give a folder"),
+        ("{tmp}/file/sub", "error: --out {tmp}/file/sub is not a folder ({tmp}/file is a file)"),
+        ("/proc/pg_out", "error: cannot write --out /proc/pg_out: /proc is not writable ("),
+    ],
+)  # fmt: skip
+def test_a_bad_out_is_refused_before_the_work(bags, tmp_path, capsys, out, message):
+    """Issue 38: --out checked first (a file, under a file, not writable): nothing is lost."""
+    root, _ = bags
+    (tmp_path / "file").write_text("x")
+    for argv in ([*trajectory(root, "a", "s1", "a"), *trajectory(root, "b", "s1", "b"),
+                  "--loops", str(root / "none")],
+                 [str(root / "a"), "--loops", str(root / "none")]):  # fmt: skip
+        assert main([*argv, "--out", out.format(tmp=tmp_path)]) == 1
+        cap = capsys.readouterr()
+        assert message.format(tmp=tmp_path) in cap.err and "Traceback" not in cap.err
+        assert "loops in the graph" not in cap.out  # refused before the graph was built
+    assert (tmp_path / "file").read_text() == "x"
 
 
 def test_loops_of_an_unknown_robot_are_counted_and_named(bags, tmp_path, capsys):
@@ -102,6 +131,11 @@ def test_loops_of_an_unknown_robot_are_counted_and_named(bags, tmp_path, capsys)
          "error: one robot's BAG needs --loops PATH (--loops-of goes with --trajectory)"),
         (["--trajectory", "a", "s1", "{root}/a", "--loops", "{root}/none", "--inject-false-loops",
           "0.1"], 1, "error: --inject-false-loops takes one robot's BAG, not --trajectory"),
+        (["--trajectory", "a", "s1", "{root}/a", "--loops-of", "..", "s1", "{root}/none"], 2,
+         "error: --loops-of: robot id '..' must be 1-64 characters of ASCII letters, digits or "
+         "'_' (a robot id starts with a letter)"),
+        (["--trajectory", "a", "s1", "{root}/a", "--loops-of", "a", "s@1", "{root}/none"], 2,
+         "error: --loops-of: session id 's@1' must be 1-64 characters"),
     ],
 )  # fmt: skip
 def test_bad_command_lines(bags, tmp_path, capsys, args, code, message):
@@ -120,6 +154,10 @@ def test_bad_command_lines(bags, tmp_path, capsys, args, code, message):
         ("a/s1=", "trajectories: 'a/s1=' is not ROBOT/SESSION=ODOM_TOPIC"),
         ("a/s1=/a/odom, a/s1=/b/odom", "trajectories: robot-session a/s1 is given twice"),
         ("a/s1=/odom, b/s1=/odom", "trajectories: odometry topic /odom is given twice"),
+        ("../s1=/odom", "trajectories: robot id '..' must be 1-64 characters of ASCII letters, "
+         "digits or '_' (a robot id starts with a letter): it names folders, a ROS topic and "
+         "pose-graph keys, e.g. robot1"),
+        ("a/x.y=/odom", "trajectories: session id 'x.y' must be 1-64 characters"),
     ],
 )
 def test_bad_node_trajectories(text, message):

@@ -76,6 +76,9 @@ def fleet_peers(text: str, robots: list[FleetRobot]) -> tuple[str, ...]:
     peers = tuple(p.strip() for p in text.split(",") if p.strip())
     names = [r.robot for r in robots]
     for peer in peers:
+        problem = name_problem("fleet_peers robot", peer)
+        if problem:
+            raise ConfigError(problem)
         if peer not in names:
             raise ConfigError(
                 f"fleet_peers names robot {peer!r}, which is no --robot of this run ({names}): "

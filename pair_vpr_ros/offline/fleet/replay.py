@@ -161,11 +161,13 @@ def write_fleet_run(run: FleetRun, out: str | Path) -> Path:
     """OUT/inter_robot_loops.json (every decision, `accepted` marks the loops), OUT/<robot>/
     loops.json (each robot's own decisions) and OUT/fleet_summary.json (totals, per robot)."""
     out = Path(out)
+    for robot in run.robot_loops:  # names, so no folder is outside `out` or a fixed file
+        check_name("robot_id", robot)
     try:
         out.mkdir(parents=True, exist_ok=True)
         _write_json(out / "inter_robot_loops.json", [loop.to_dict() for loop in run.loops])
         for robot, records in run.robot_loops.items():
-            folder = out / check_name("robot_id", robot)  # a name: never outside `out`
+            folder = out / robot
             folder.mkdir(exist_ok=True)
             _write_json(folder / "loops.json", records)
         _write_json(out / SUMMARY, {"totals": run.totals(), "robots": run.exchanges})
