@@ -68,7 +68,9 @@ CASES = {
         "robots of the run, or '' for every robot",
     ),  # fmt: skip
     "peers naming a bad id": (
-        lambda root, tmp: argv(root, "--params-file", params(tmp / "p.yaml", 'fleet_peers: "a.b"')),
+        lambda root, tmp: argv(
+            root, "--params-file", params(tmp / "p.yaml", 'fleet_peers: "a.b"')
+        ),
         1,
         "error: fleet_peers robot 'a.b' must be 1-64 characters of ASCII letters, digits or '_'",
     ),  # fmt: skip
@@ -95,49 +97,53 @@ CASES = {
         "error: cannot write --out /proc/fleet_out: /proc is not writable (",
     ),  # fmt: skip
     "robot id '..'": (
-        lambda root, tmp: argv(root).__add__(["--robot", '..', "s1", str(root / "a")]),
+        lambda root, tmp: argv(root).__add__(["--robot", "..", "s1", str(root / "a")]),
         2,
         "error: --robot .. s1 {root}/a: robot id '..' must be 1-64 characters of "
         "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
         "ROS topic and pose-graph keys, e.g. robot1",
     ),  # fmt: skip
     "robot id '.'": (
-        lambda root, tmp: argv(root).__add__(["--robot", '.', "s1", str(root / "a")]),
+        lambda root, tmp: argv(root).__add__(["--robot", ".", "s1", str(root / "a")]),
         2,
         "error: --robot . s1 {root}/a: robot id '.' must be 1-64 characters of "
         "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
         "ROS topic and pose-graph keys, e.g. robot1",
     ),  # fmt: skip
     "robot id 'x.y'": (
-        lambda root, tmp: argv(root).__add__(["--robot", 'x.y', "s1", str(root / "a")]),
+        lambda root, tmp: argv(root).__add__(["--robot", "x.y", "s1", str(root / "a")]),
         2,
         "error: --robot x.y s1 {root}/a: robot id 'x.y' must be 1-64 characters of "
         "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
         "ROS topic and pose-graph keys, e.g. robot1",
     ),  # fmt: skip
     "robot id 'a@b'": (
-        lambda root, tmp: argv(root).__add__(["--robot", 'a@b', "s1", str(root / "a")]),
+        lambda root, tmp: argv(root).__add__(["--robot", "a@b", "s1", str(root / "a")]),
         2,
         "error: --robot a@b s1 {root}/a: robot id 'a@b' must be 1-64 characters of "
         "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
         "ROS topic and pose-graph keys, e.g. robot1",
     ),  # fmt: skip
     "robot id 'fleet_summary.json'": (
-        lambda root, tmp: argv(root).__add__(["--robot", 'fleet_summary.json', "s1", str(root / "a")]),
+        lambda root, tmp: argv(root).__add__(
+            ["--robot", "fleet_summary.json", "s1", str(root / "a")]
+        ),
         2,
         "error: --robot fleet_summary.json s1 {root}/a: robot id 'fleet_summary.json' must be 1-64 characters of "
         "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
         "ROS topic and pose-graph keys, e.g. robot1",
     ),  # fmt: skip
     "robot id 'inter_robot_loops.json'": (
-        lambda root, tmp: argv(root).__add__(["--robot", 'inter_robot_loops.json', "s1", str(root / "a")]),
+        lambda root, tmp: argv(root).__add__(
+            ["--robot", "inter_robot_loops.json", "s1", str(root / "a")]
+        ),
         2,
         "error: --robot inter_robot_loops.json s1 {root}/a: robot id 'inter_robot_loops.json' must be 1-64 characters of "
         "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
         "ROS topic and pose-graph keys, e.g. robot1",
     ),  # fmt: skip
     "robot id 'a/b'": (
-        lambda root, tmp: argv(root).__add__(["--robot", 'a/b', "s1", str(root / "a")]),
+        lambda root, tmp: argv(root).__add__(["--robot", "a/b", "s1", str(root / "a")]),
         2,
         "error: --robot a/b s1 {root}/a: robot id 'a/b' must be 1-64 characters of "
         "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "

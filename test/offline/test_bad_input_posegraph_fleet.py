@@ -154,9 +154,12 @@ def test_bad_command_lines(bags, tmp_path, capsys, args, code, message):
         ("a/s1=", "trajectories: 'a/s1=' is not ROBOT/SESSION=ODOM_TOPIC"),
         ("a/s1=/a/odom, a/s1=/b/odom", "trajectories: robot-session a/s1 is given twice"),
         ("a/s1=/odom, b/s1=/odom", "trajectories: odometry topic /odom is given twice"),
-        ("../s1=/odom", "trajectories: robot id '..' must be 1-64 characters of ASCII letters, "
-         "digits or '_' (a robot id starts with a letter): it names folders, a ROS topic and "
-         "pose-graph keys, e.g. robot1"),
+        (
+            "../s1=/odom",
+            "trajectories: robot id '..' must be 1-64 characters of ASCII letters, "
+            "digits or '_' (a robot id starts with a letter): it names folders, a ROS topic and "
+            "pose-graph keys, e.g. robot1",
+        ),
         ("a/x.y=/odom", "trajectories: session id 'x.y' must be 1-64 characters"),
     ],
 )
