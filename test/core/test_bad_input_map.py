@@ -461,3 +461,33 @@ def test_save_over_the_same_models_map_still_replaces_it(saved) -> None:
         same.save(saved)
     with PlaceMap.load(saved) as again:
         assert len(again) == 1
+
+
+# ---- Issue 38 #8: a full disk while a keyframe's metadata is written is a MapError, even
+# when undoing the half-written rows fails too; the map keeps what it held.
+@pytest.mark.parametrize("undo_fails", [False, True])
+def test_a_full_disk_during_add_is_a_map_error(tmp_path, monkeypatch, undo_fails):
+    from test_place_map_persist import dense_for, desc_for, meta_for
+
+    with PlaceMap(DIM, SHAPE, "fp-a", work_dir=tmp_path) as m:
+        add_range(m, 0, 3)
+        meta = m._meta
+
+        def full(*args):
+            raise sqlite3.OperationalError("database or disk is full")
+
+        def malformed(*args):
+            raise sqlite3.DatabaseError("database disk image is malformed")
+
+        monkeypatch.setattr(meta, "add", full)
+        if undo_fails:
+            monkeypatch.setattr(meta, "delete_from", malformed)
+        with pytest.raises(MapError) as err:
+            m.add(desc_for(3), dense_for(3), meta_for(3))
+        undo = "; undoing it failed too (database disk image is malformed)" if undo_fails else ""
+        assert str(err.value) == (
+            f"storing metadata of keyframe 3 failed: database or disk is full{undo}; free disk "
+            "space (or load the map's last save) and go on"
+        )
+        monkeypatch.undo()
+        assert len(m) == 3 and m.add(desc_for(3), dense_for(3), meta_for(3)) == 3

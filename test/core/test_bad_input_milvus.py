@@ -215,3 +215,60 @@ def test_search_with_an_exclusion_needs_milvus() -> None:
         with pytest.raises(MapError) as err:
             m.search(desc_for(0), 1, exclusion=Exclusion(0.0, 1.0, 2, "r", "s"))
     assert str(err.value) == "search(exclusion=...) needs index kind 'milvus'; pass allowed="
+
+
+# ---- issue 38: milvus-lite's own traceback never printed; a user's folder never taken over;
+# a read-only open never re-creates a lite file that is gone.
+@pytest.mark.parametrize(
+    ("uri", "reason"),
+    [
+        ("/proc/maps.db", "FileNotFoundError: [Errno 2] No such file or directory: '/proc/maps.db'"),
+        ("/sys/maps.db", "PermissionError: [Errno 1] Operation not permitted: '/sys/maps.db'"),
+    ],
+)  # fmt: skip
+def test_a_lite_file_milvus_lite_cannot_start_on(capfd, uri, reason) -> None:
+    """A folder milvus-lite cannot write (as root, /proc and /sys stand in for a read-only
+    one): one clear error with milvus-lite's reason, and no traceback of its own."""
+    with pytest.raises(MapError) as err:
+        PlaceMap(DIM, SHAPE, "fp", index=IndexConfig(kind="milvus", milvus_uri=uri))
+    assert str(err.value) == (
+        f"cannot open milvus-lite file {uri}: milvus-lite cannot start on it ({reason}); set "
+        "milvus_uri to a path in a writable folder"
+    )
+    out, errs = capfd.readouterr()
+    assert "Traceback" not in out + errs and "Failed to start" not in out + errs
+
+
+def test_a_lite_path_that_is_a_folder_of_other_files(tmp_path: Path) -> None:
+    uri = tmp_path / "maps.db"
+    uri.mkdir()
+    (uri / "notes.txt").write_text("mine")
+    with pytest.raises(MapError) as err:
+        PlaceMap(DIM, SHAPE, "fp", index=IndexConfig(kind="milvus", milvus_uri=str(uri)))
+    assert str(err.value) == (
+        f"cannot open milvus-lite file {uri}: it is a folder of other files, not milvus-lite's "
+        "data; set milvus_uri to the path the maps were made with or to a new one"
+    )
+    assert [p.name for p in uri.iterdir()] == ["notes.txt"]
+
+
+def test_a_read_only_open_of_a_map_whose_lite_file_is_gone(tmp_path: Path) -> None:
+    import shutil
+
+    from pair_vpr_ros.place_map.info import map_info
+
+    uri = tmp_path / "own.db"
+    config = IndexConfig(kind="milvus", milvus_uri=str(uri), milvus_index="FLAT")
+    with PlaceMap(DIM, SHAPE, "fp", index=config) as m:
+        add_range(m, 0, 3)
+        m.save(tmp_path / "map")
+    shutil.rmtree(uri)
+    before = tree_digest(tmp_path)
+    message = (
+        f"cannot open milvus-lite file {uri} of the map in {tmp_path / 'map'} read-only: it is "
+        "gone; restore it, or open the map writable to insert its keyframes again"
+    )
+    with pytest.raises(MapError) as err:
+        map_info(tmp_path / "map")
+    assert str(err.value).endswith(message)
+    assert not uri.exists() and tree_digest(tmp_path) == before

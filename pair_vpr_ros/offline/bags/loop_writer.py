@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.typesys import TypesysError, get_types_from_msg
+from rosbags.typesys import Stores, TypesysError, get_types_from_msg, get_typestore
 
 from pair_vpr_ros.errors import BagError, OutputError
 from pair_vpr_ros.loops.detector import LoopRecord
@@ -125,7 +125,7 @@ class LoopBagWriter:
 
 MSG_PATH = Path("share", "pair_vpr_ros_interfaces", "msg", "LoopClosure.msg")
 # a source checkout: the interface package lives beside the Python package
-SOURCE_MSG = Path(__file__).resolve().parents[2] / "interfaces" / "pair_vpr_ros_interfaces" / "msg"
+SOURCE_MSG = Path(__file__).resolve().parents[3] / "interfaces" / "pair_vpr_ros_interfaces" / "msg"
 
 
 def typed_definition() -> Path | None:
@@ -150,13 +150,16 @@ def register_typed(ts: Any) -> str | None:
             "docs/interfaces.md); the other loop-closure topics are written"
         )
     try:
-        ts.register(get_types_from_msg(path.read_text("utf-8"), loop_messages.TYPED_TYPE))
+        types = get_types_from_msg(path.read_text("utf-8"), loop_messages.TYPED_TYPE)
     except (OSError, UnicodeDecodeError, TypesysError) as err:
         return f"/{loop_messages.TYPED_TOPIC} is not written: cannot read {path}: {err}"
+    probe = get_typestore(Stores.ROS2_JAZZY)  # tried apart: `ts` is shared, and kept clean
     try:  # another build's definition (fields missing or extra) fails here, not at a loop
+        probe.register(types)
         sample = LoopRecord(0, 0.0, "", 0, 0.0, "", pair_score=0.0, global_similarity=0.0,
                             rank_before=1, rank_after=1)  # fmt: skip
-        ts.serialize_cdr(loop_messages.typed_msg(sample, ts.types), loop_messages.TYPED_TYPE)
+        msg = loop_messages.typed_msg(sample, probe.types)
+        probe.serialize_cdr(msg, loop_messages.TYPED_TYPE)
     except Exception as err:  # noqa: BLE001 - any failure means the definition does not fit
         return (
             f"/{loop_messages.TYPED_TOPIC} is not written: the definition {path} does not fit "
@@ -164,4 +167,5 @@ def register_typed(ts: Any) -> str | None:
             "(docs/interfaces.md) or put this build first on AMENT_PREFIX_PATH; the other "
             "loop-closure topics are written"
         )
+    ts.register(types)
     return None
