@@ -222,7 +222,8 @@ def test_search_with_an_exclusion_needs_milvus() -> None:
 @pytest.mark.parametrize(
     ("uri", "reason"),
     [
-        ("/proc/maps.db", "FileNotFoundError: [Errno 2] No such file or directory: '/proc/maps.db'"),
+        ("/proc/maps.db",
+         "FileNotFoundError: [Errno 2] No such file or directory: '/proc/maps.db'"),
         ("/sys/maps.db", "PermissionError: [Errno 1] Operation not permitted: '/sys/maps.db'"),
     ],
 )  # fmt: skip

@@ -96,60 +96,18 @@ CASES = {
         1,
         "error: cannot write --out /proc/fleet_out: /proc is not writable (",
     ),  # fmt: skip
-    "robot id '..'": (
-        lambda root, tmp: argv(root).__add__(["--robot", "..", "s1", str(root / "a")]),
-        2,
-        "error: --robot .. s1 {root}/a: robot id '..' must be 1-64 characters of "
-        "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
-        "ROS topic and pose-graph keys, e.g. robot1",
-    ),  # fmt: skip
-    "robot id '.'": (
-        lambda root, tmp: argv(root).__add__(["--robot", ".", "s1", str(root / "a")]),
-        2,
-        "error: --robot . s1 {root}/a: robot id '.' must be 1-64 characters of "
-        "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
-        "ROS topic and pose-graph keys, e.g. robot1",
-    ),  # fmt: skip
-    "robot id 'x.y'": (
-        lambda root, tmp: argv(root).__add__(["--robot", "x.y", "s1", str(root / "a")]),
-        2,
-        "error: --robot x.y s1 {root}/a: robot id 'x.y' must be 1-64 characters of "
-        "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
-        "ROS topic and pose-graph keys, e.g. robot1",
-    ),  # fmt: skip
-    "robot id 'a@b'": (
-        lambda root, tmp: argv(root).__add__(["--robot", "a@b", "s1", str(root / "a")]),
-        2,
-        "error: --robot a@b s1 {root}/a: robot id 'a@b' must be 1-64 characters of "
-        "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
-        "ROS topic and pose-graph keys, e.g. robot1",
-    ),  # fmt: skip
-    "robot id 'fleet_summary.json'": (
-        lambda root, tmp: argv(root).__add__(
-            ["--robot", "fleet_summary.json", "s1", str(root / "a")]
-        ),
-        2,
-        "error: --robot fleet_summary.json s1 {root}/a: robot id 'fleet_summary.json' must be 1-64 characters of "
-        "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
-        "ROS topic and pose-graph keys, e.g. robot1",
-    ),  # fmt: skip
-    "robot id 'inter_robot_loops.json'": (
-        lambda root, tmp: argv(root).__add__(
-            ["--robot", "inter_robot_loops.json", "s1", str(root / "a")]
-        ),
-        2,
-        "error: --robot inter_robot_loops.json s1 {root}/a: robot id 'inter_robot_loops.json' must be 1-64 characters of "
-        "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
-        "ROS topic and pose-graph keys, e.g. robot1",
-    ),  # fmt: skip
-    "robot id 'a/b'": (
-        lambda root, tmp: argv(root).__add__(["--robot", "a/b", "s1", str(root / "a")]),
-        2,
-        "error: --robot a/b s1 {root}/a: robot id 'a/b' must be 1-64 characters of "
-        "ASCII letters, digits or '_' (a robot id starts with a letter): it names folders, a "
-        "ROS topic and pose-graph keys, e.g. robot1",
-    ),  # fmt: skip
 }
+
+RULE = (
+    "must be 1-64 characters of ASCII letters, digits or '_' (a robot id starts with a letter): "
+    "it names folders, a ROS topic and pose-graph keys, e.g. robot1"
+)
+for _bad in ["..", ".", "x.y", "a@b", "fleet_summary.json", "inter_robot_loops.json", "a/b"]:
+    CASES[f"robot id {_bad!r}"] = (
+        lambda root, tmp, bad=_bad: argv(root) + ["--robot", bad, "s1", str(root / "a")],
+        2,
+        f"error: --robot {_bad} s1 {{root}}/a: robot id {_bad!r} {RULE}",
+    )
 
 
 @pytest.mark.parametrize("case", CASES)
