@@ -39,6 +39,7 @@ message (issue 22 part 2) as string fields.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -233,6 +234,9 @@ def factor_from_msg(msg: Any) -> LoopFactor:
         )
     query_frame, query_robot, query_session = untag_frame(msg.child_frame_id)
     match_frame, match_robot, match_session = untag_frame(msg.header.frame_id)
+    ints = (twist.angular.x, twist.angular.y, twist.angular.z)
+    if not all(math.isfinite(v) for v in ints):  # inliers and keyframe ids: int() would fail
+        raise ValueError(f"not a loop_closure/factor message: twist.angular {ints} not finite")
     return LoopFactor(
         query_stamp=stamp.sec + stamp.nanosec * 1e-9,
         match_stamp=twist.linear.x + twist.linear.y * 1e-9,

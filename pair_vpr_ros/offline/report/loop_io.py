@@ -103,7 +103,7 @@ def _from_records(path: Path, records: list[dict[str, Any]]) -> LoopSource:
         source.accepted += 1
         try:
             factor = factor_from_record(record)
-        except (KeyError, TypeError, ValueError) as err:
+        except (KeyError, TypeError, ValueError, OverflowError) as err:
             raise PoseGraphError(
                 f"loop record {number} of {path} is not a loop record with a pose: {err!r} "
                 "(written by an older replay? rerun pairvpr-bag-replay)"
