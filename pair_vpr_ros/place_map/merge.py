@@ -70,8 +70,11 @@ def merge_maps(
     target = Path(out).expanduser().resolve()
     dirs = [Path(d).expanduser().resolve() for d in inputs]
     _check_arguments(dirs, target)
+    _remove_stale(target)
+    work = target.parent / f".{target.name}.merging-{os.getpid()}.work"
     maps: list[PlaceMap] = []
     try:
+        work.mkdir(exist_ok=True)
         for d in dirs:
             maps.append(_open(d))
         _check_same_model(maps)
@@ -79,12 +82,32 @@ def merge_maps(
         result = MergeResult(out=str(target))
         result.warnings += [m.load_note for m in maps if m.load_note]
         result.warnings += _shared_sessions(maps)
-        merged = _copy(maps, config, result, target.parent, progress)
+        merged = _copy(maps, config, result, work, progress)
         _publish(merged, target)
     finally:
         for m in maps:
             m.close()
+        shutil.rmtree(work, ignore_errors=True)
     return result
+
+
+def _remove_stale(target: Path) -> None:
+    """The folders beside `target` that a merge into it left when it was killed part-way
+    (SIGKILL, power loss: no clean-up ran); a merge whose process still runs keeps its own."""
+    for path in target.parent.glob(f".{target.name}.merging-*"):
+        pid = path.name.rsplit("-", 1)[1].split(".")[0]
+        if pid.isdigit() and not _running(int(pid)):
+            shutil.rmtree(path, ignore_errors=True)
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process
+        return True
+    return True
 
 
 def _check_arguments(dirs: list[Path], target: Path) -> None:

@@ -3,6 +3,8 @@ non-zero exit, no input map changes, and no --out folder (or temporary) is left 
 
 from __future__ import annotations
 
+import os
+
 import pytest
 from bad_input import saved_map_digest, tree_digest
 from map_fixtures import make_map
@@ -119,3 +121,18 @@ def test_info_of_a_missing_or_damaged_map_is_an_error_line(tmp_path, capsys):
     (a / "meta-1.sqlite").write_bytes(b"x")
     assert main(["info", str(a)]) == 1
     assert "meta-1.sqlite (meta) does not match its checksum" in capsys.readouterr().err
+
+
+def test_folders_of_a_killed_merge_are_removed_by_the_next(tmp_path, capsys):
+    """Issue 38: a merge killed part-way (no clean-up ran) left `.out.merging-PID*` beside
+    --out; the next merge into that --out removes them, not those of a merge still running."""
+    a, b = _maps(tmp_path)
+    dead = 2**22 + 12345  # above Linux's default pid_max: no such process
+    for name in (f".out.merging-{dead}", f".out.merging-{dead}.work/pairvpr-map-x"):
+        (tmp_path / name).mkdir(parents=True)
+        (tmp_path / name / "dense-1.f16").write_bytes(b"half")
+    running = tmp_path / f".out.merging-{os.getppid()}"
+    running.mkdir()
+    assert main(["merge", str(a), str(b), "--out", str(tmp_path / "out")]) == 0
+    left = sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".out"))
+    assert left == [running.name] and (tmp_path / "out" / "manifest.json").is_file()

@@ -174,3 +174,21 @@ def test_no_robot_id_can_write_outside_out(tmp_path, robot):
     with pytest.raises(ConfigError, match=f"^robot_id {re.escape(repr(robot))} must be 1-64"):
         write_fleet_run(FleetRun(robot_loops={robot: [{"x": 1}]}), tmp_path / "out")
     assert tree_digest(tmp_path) == before and not (tmp_path / "out").exists()
+
+
+def test_a_full_disk_while_writing_the_results_is_an_output_error(tmp_path, monkeypatch):
+    import errno
+
+    from pair_vpr_ros.errors import OutputError
+    from pair_vpr_ros.offline.fleet import replay
+
+    def full(path, data):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(replay, "_write_json", full)
+    with pytest.raises(OutputError) as err:
+        replay.write_fleet_run(replay.FleetRun(robot_loops={"a": []}), tmp_path / "out")
+    assert str(err.value) == (
+        f"cannot write the fleet run's outputs into {tmp_path / 'out'}: No space left on device "
+        f"({tmp_path / 'out' / 'inter_robot_loops.json'}); free space or pick another --out"
+    )
