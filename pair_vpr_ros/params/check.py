@@ -41,6 +41,9 @@ def check_value(name: str, value: Any, specs: Mapping[str, ParamSpec] | None = N
         return f"image_size={value} must be 0 or a multiple of {PATCH} (e.g. 224, 322)"
     if name in ("robot_id", "session_id") and value:
         return name_problem(name, value)
+    if name == "fleet_peers":  # robot ids, comma-separated
+        peers = [p.strip() for p in value.split(",") if p.strip()]
+        return next(filter(None, (name_problem("fleet_peers robot", p) for p in peers)), None)
     if name == "camera_distortion":
         try:
             [float(x) for x in value.replace(",", " ").split()]

@@ -97,7 +97,7 @@ def connect(uri: str, token_env: str) -> Any:
         with lite:
             return milvus.MilvusClient(uri, token=token, timeout=CONNECT_TIMEOUT_S)
     except Exception as err:  # pymilvus raises MilvusException and its subclasses
-        if lite.reason:
+        if lite.reason and not lite.reason.startswith("DataDirLockedError"):  # lock: below
             raise MapError(
                 f"cannot open {where(uri)}: milvus-lite cannot start on it ({lite.reason}); "
                 "set milvus_uri to a path in a writable folder"

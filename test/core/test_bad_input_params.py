@@ -101,8 +101,21 @@ CASES = {
     # issue 22: identity and prior maps
     "robot id with a space": (
         section('robot_id: "my robot"').encode(),
-        "robot_id 'my robot' must be 1-64 characters of letters, digits, '_', '.' or '-' (it "
-        "names files and pose-graph keys), e.g. robot1",
+        "robot_id 'my robot' must be 1-64 characters of ASCII letters, digits or '_' (a robot "
+        "id starts with a letter): it names folders, a ROS topic and pose-graph keys, e.g. robot1",
+    ),
+    # issue 38: one identity rule (a folder name, a topic token, a key everywhere)
+    "robot id '..'": (section('robot_id: ".."').encode(), "robot_id '..' must be 1-64 characters"),
+    "robot id 'x.y'": (section('robot_id: "x.y"').encode(), "robot_id 'x.y' must be 1-64"),
+    "robot id starting with a digit": (
+        section('robot_id: "1r"').encode(),
+        "robot_id '1r' must be 1-64 characters",
+    ),
+    "session id '.'": (section('session_id: "."').encode(), "session_id '.' must be 1-64"),
+    "session id with '@'": (section('session_id: "s@1"').encode(), "session_id 's@1' must be"),
+    "fleet_peers naming a bad id": (
+        section('fleet_peers: "b, ../c"').encode(),
+        "fleet_peers robot '../c' must be 1-64 characters",
     ),
     "robot id with a slash": (section('robot_id: "/r1"').encode(), "robot_id '/r1' must be 1-64"),
     "session id too long": (

@@ -85,9 +85,12 @@ FLAG_CASES = {
     "precision typo": (["--precision", "int4"], "argument --precision: invalid choice: 'int4'"),
     "robot id with a space": (
         ["--robot-id", "my robot"],
-        "argument --robot-id: robot_id 'my robot' must be 1-64 characters of letters, digits, "
-        "'_', '.' or '-' (it names files and pose-graph keys), e.g. robot1",
+        "argument --robot-id: robot_id 'my robot' must be 1-64 characters of ASCII letters, "
+        "digits or '_' (a robot id starts with a letter): it names folders, a ROS topic and "
+        "pose-graph keys, e.g. robot1",
     ),
+    "robot id '..'": (["--robot-id", ".."], "argument --robot-id: robot_id '..' must be 1-64"),
+    "session id 'a.b'": (["--session-id", "a.b"], "argument --session-id: session_id 'a.b' must"),
     "session id empty": (["--session-id", ""], "argument --session-id: session_id '' must be"),
     "session id with a colon": (
         ["--session-id", "2026-11-25T09:30"],
