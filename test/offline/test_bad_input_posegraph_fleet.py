@@ -254,3 +254,26 @@ def test_a_prior_map_of_any_model_is_read(tmp_path):
     assert priors.trajectories == [("a", "day1")] and priors.sessions[0].stamps.tolist() == [
         10.0, 11.0, 12.0
     ]  # fmt: skip
+
+
+def test_a_full_disk_while_writing_is_one_error_line(bags, tmp_path, capsys, monkeypatch):
+    """Issue 38 #6: the graph's outputs cannot be written (disk full): an error naming the
+    file, not a bare OSError traceback."""
+    import errno
+
+    from pair_vpr_ros.offline.posegraph import fleet
+
+    def full(path, trajectory):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(fleet, "write_tum", full)
+    root, _ = bags
+    out = tmp_path / "out"
+    argv = [*trajectory(root, "a", "s1", "a"), *trajectory(root, "b", "s1", "b"), "--loops",
+            str(root / "none"), "--out", str(out)]  # fmt: skip
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.endswith(
+        f"error: cannot write the pose graph's outputs into {out}: No space left on device "
+        f"({out / 'a' / 's1' / 'odometry.tum'}); free space or pick another --out\n"
+    )

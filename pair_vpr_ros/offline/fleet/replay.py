@@ -28,7 +28,7 @@ from pair_vpr_ros.loops.frames import Frame, FrameOutcome
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.model import PairVPRModel
 from pair_vpr_ros.offline.bags.sources import FrameCounts, source_frames
-from pair_vpr_ros.offline.report.folder import check_writable
+from pair_vpr_ros.offline.report.folder import check_writable, writing_outputs
 
 SUMMARY = "fleet_summary.json"
 
@@ -163,7 +163,7 @@ def write_fleet_run(run: FleetRun, out: str | Path) -> Path:
     out = Path(out)
     for robot in run.robot_loops:  # names, so no folder is outside `out` or a fixed file
         check_name("robot_id", robot)
-    try:
+    with writing_outputs(out, "fleet run's outputs"):
         out.mkdir(parents=True, exist_ok=True)
         _write_json(out / "inter_robot_loops.json", [loop.to_dict() for loop in run.loops])
         for robot, records in run.robot_loops.items():
@@ -171,11 +171,6 @@ def write_fleet_run(run: FleetRun, out: str | Path) -> Path:
             folder.mkdir(exist_ok=True)
             _write_json(folder / "loops.json", records)
         _write_json(out / SUMMARY, {"totals": run.totals(), "robots": run.exchanges})
-    except OSError as err:
-        raise OutputError(
-            f"cannot write the fleet run's outputs into {out}: {err.strerror or err} "
-            f"({err.filename}); free space or pick another --out"
-        ) from err
     return out
 
 

@@ -31,6 +31,7 @@ from pair_vpr_ros.identity import name_problem
 from pair_vpr_ros.messages.factor import LoopFactor
 from pair_vpr_ros.offline.bags.opening import open_bag
 from pair_vpr_ros.offline.posegraph.single import PoseGraphSummary, read_track
+from pair_vpr_ros.offline.report.folder import writing_outputs
 from pair_vpr_ros.offline.report.loop_io import read_loops
 from pair_vpr_ros.offline.report.trajectories import (
     Trajectory,
@@ -164,7 +165,8 @@ def run_fleet_posegraph(
     summary.loops_read = len(loops)
     graph = optimise_fleet(odometry, loops, config)
     _summarise(summary, graph)
-    _write(Path(out_dir), summary, graph, truth)
+    with writing_outputs(Path(out_dir), "pose graph's outputs"):
+        _write(Path(out_dir), summary, graph, truth)
     return summary
 
 

@@ -18,6 +18,7 @@ from pair_vpr_ros.errors import ConfigError, PoseGraphError
 from pair_vpr_ros.messages.factor import LoopFactor
 from pair_vpr_ros.offline.bags import reader as bag_io
 from pair_vpr_ros.offline.bags.opening import open_bag
+from pair_vpr_ros.offline.report.folder import writing_outputs
 from pair_vpr_ros.offline.report.loop_io import read_loops
 from pair_vpr_ros.offline.report.trajectories import (
     Trajectory,
@@ -150,7 +151,8 @@ def run_posegraph(
                                camera_to_base=config.camera_to_base)  # fmt: skip
     graph, times = optimise(odometry, source.factors + injected, config)
     _summarise(summary, graph, times, injected)
-    _write_outputs(Path(out_dir), summary, graph, truth)
+    with writing_outputs(Path(out_dir), "pose graph's outputs"):
+        _write_outputs(Path(out_dir), summary, graph, truth)
     return summary
 
 

@@ -9,7 +9,8 @@ from __future__ import annotations
 import csv
 import json
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +37,19 @@ def check_writable(path: Path, what: str) -> None:
         raise OutputError(
             f"cannot write {what} {path}: {existing} is not writable ({err.strerror}); pick a "
             "writable folder"
+        ) from err
+
+
+@contextmanager
+def writing_outputs(out: Path, what: str = "outputs") -> Iterator[None]:
+    """An OSError while the block writes into `out` (a full disk, ...) -> OutputError naming
+    the file: the results are not lost to a bare traceback."""
+    try:
+        yield
+    except OSError as err:
+        raise OutputError(
+            f"cannot write the {what} into {out}: {err.strerror or err} ({err.filename}); free "
+            "space or pick another --out"
         ) from err
 
 
