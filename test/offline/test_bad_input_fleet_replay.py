@@ -72,7 +72,8 @@ CASES = {
             root, "--params-file", params(tmp / "p.yaml", 'fleet_peers: "a.b"')
         ),
         1,
-        "error: fleet_peers robot 'a.b' must be 1-64 characters of ASCII letters, digits or '_'",
+        "error: parameter file {tmp}/p.yaml: fleet_peers robot 'a.b' must be 1-64 characters of "
+        "ASCII letters, digits or '_'",
     ),  # fmt: skip
     "robot id too long": (
         lambda root, tmp: argv(root).__add__(["--robot", "r" * 65, "s", str(root / "a")]),
