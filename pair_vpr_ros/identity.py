@@ -31,8 +31,8 @@ RULE = "1-64 characters of ASCII letters, digits or '_' (a robot id starts with 
 
 
 def name_problem(kind: str, value: object) -> str | None:
-    """Why `value` is no valid robot / session name (`kind`: "robot_id", "session of
-    --robot", ...: a kind naming a robot is held to the robot rule); None if it is."""
+    """Why `value` is no valid robot / session name; None if it is. `kind` names the input in
+    the message ("robot_id", "owner session", ...); a kind holding "robot" is a robot id."""
     robot = "robot" in kind
     if not isinstance(value, str) or not (_ROBOT if robot else _SESSION).fullmatch(value):
         return (
