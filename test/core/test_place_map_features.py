@@ -10,21 +10,17 @@ import pytest
 from test_place_map_persist import DIM, SHAPE, add_range, features_for
 
 from pair_vpr_ros.errors import MapError
-from pair_vpr_ros.hashing import sha256_file
 from pair_vpr_ros.place_map import PlaceMap
 from pair_vpr_ros.place_map.manifest import MANIFEST_NAME
 
 
 def edit_meta(map_dir: Path, sql: str, *args) -> None:
-    """Run `sql` on the saved metadata and re-sign it (as if the file came damaged that way)."""
+    """Run `sql` on the saved keyframe store (as if the file came damaged that way)."""
     manifest = json.loads((map_dir / MANIFEST_NAME).read_text())
-    meta = map_dir / manifest["files"]["meta"]["name"]
-    conn = sqlite3.connect(meta)
+    conn = sqlite3.connect(map_dir / manifest["files"]["store"]["name"])
     with conn:
         conn.execute(sql, args)
     conn.close()
-    manifest["files"]["meta"].update(size=meta.stat().st_size, sha256=sha256_file(meta))
-    (map_dir / MANIFEST_NAME).write_text(json.dumps(manifest))
 
 
 @pytest.fixture
