@@ -31,19 +31,21 @@ _SCHEMA = (
     id INTEGER PRIMARY KEY, stamp REAL NOT NULL, frame_id TEXT NOT NULL, source TEXT NOT NULL,
     x REAL, y REAL, z REAL, qx REAL, qy REAL, qz REAL, qw REAL, robot TEXT NOT NULL,
     session TEXT NOT NULL, descriptor BLOB NOT NULL, dense_crc INTEGER NOT NULL,
-    crc INTEGER NOT NULL)""",
+    crc INTEGER NOT NULL, desc_crc INTEGER NOT NULL)""",
     "CREATE TABLE IF NOT EXISTS features (id INTEGER PRIMARY KEY, crc INTEGER NOT NULL, "
     "data BLOB NOT NULL)",
     "CREATE TABLE IF NOT EXISTS state (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
 )
 _META = "id, stamp, frame_id, source, x, y, z, qx, qy, qz, qw, robot, session"
-_COLUMNS = _META + ", descriptor, dense_crc, crc"
+_COLUMNS = _META + ", descriptor, dense_crc, crc, desc_crc"
 _CHUNK = 4096  # rows per fetch when a load scans the table
 
 
 def row_crc(row: tuple) -> int:
     """CRC32 of a keyframe row's values (all columns but `crc`, in _COLUMNS order)."""
     *meta, desc, dense_crc = row
+    # + 0.0: SQLite gives -0.0 back as 0.0 (a REAL of integral value is stored as an integer)
+    meta = [v + 0.0 if isinstance(v, float) else v for v in meta]
     return zlib.crc32(desc + struct.pack("<I", dense_crc), zlib.crc32(repr(meta).encode()))
 
 
@@ -67,7 +69,7 @@ class KeyframeStore:
                     "close that map first, or load this one with read_only=True"
                 ) from err
             raise self.damaged(f"is not a readable SQLite database ({err})") from err
-        except sqlite3.Error as err:
+        except (sqlite3.Error, UnicodeDecodeError) as err:
             raise self.damaged(f"is not a readable SQLite database ({err})") from err
 
     def _connect(self) -> sqlite3.Connection:
@@ -121,8 +123,8 @@ class KeyframeStore:
         values = (meta.id, meta.stamp, meta.frame_id, meta.source, *pose, meta.robot,
                   meta.session, np.asarray(desc, "<f4").tobytes(), int(dense_crc))  # fmt: skip
         self._conn.execute(
-            f"INSERT INTO keyframes ({_COLUMNS}) VALUES ({','.join('?' * 16)})",
-            (*values, row_crc(values)),
+            f"INSERT INTO keyframes ({_COLUMNS}) VALUES ({','.join('?' * 17)})",
+            (*values, row_crc(values), zlib.crc32(values[13])),
         )
         if features:
             self._conn.execute(
@@ -200,46 +202,51 @@ class KeyframeStore:
         return None if row is None else str(row[0])
 
     def scan(self, desc_dim: int) -> tuple[np.ndarray, array]:
-        """Check every row (ids 0..n-1, value types, row CRC32) -> (descriptors [n, desc_dim]
-        float32, dense CRC32s [n]). The one full read a load makes."""
+        """-> (descriptors [n, desc_dim] float32, dense CRC32s [n]), each descriptor checked
+        against its CRC32, ids 0..n-1. The one full read a load makes: two columns, no Python
+        work per row beyond a CRC32 (a row's other values are checked when read: `get`, `all`)."""
+        n, lo, hi = self._one("SELECT COUNT(*), MIN(id), MAX(id) FROM keyframes")
+        if (lo, hi) != ((0, n - 1) if n else (None, None)):
+            raise self.damaged(f"holds {n} keyframe rows with ids {lo}..{hi}: rows are missing")
+        stray = self._one("SELECT COUNT(*) FROM features WHERE id < 0 OR id >= ?", n)[0]
+        if stray:  # a range of the primary key: no feature bytes are read
+            raise self.damaged(f"holds {stray} feature rows of no keyframe")
+        sql = "SELECT descriptor, desc_crc, dense_crc FROM keyframes ORDER BY id"
         try:
-            n = self._conn.execute("SELECT COUNT(*) FROM keyframes").fetchone()[0]
-            descs, crcs = np.empty((n, desc_dim), np.float32), array("I")
-            for kf_id, row in enumerate(
-                self._rows(f"SELECT {_COLUMNS} FROM keyframes ORDER BY id")
-            ):
-                self._check_row(row, kf_id, desc_dim)
-                descs[kf_id] = np.frombuffer(row[13], "<f4")
-                crcs.append(row[14])
-            stray = self._conn.execute(
-                "SELECT COUNT(*) FROM features WHERE id < 0 OR id >= ? OR typeof(data) != 'blob' "
-                "OR typeof(crc) != 'integer'", (n,)
-            ).fetchone()[0]  # fmt: skip
-        except sqlite3.Error as err:
+            rows = self._conn.execute(sql).fetchall()
+            blobs, desc_crcs, dense = zip(*rows, strict=True) if rows else ((), (), ())
+            bad = [
+                i
+                for i, (b, c) in enumerate(zip(blobs, desc_crcs, strict=True))
+                if zlib.crc32(b) != c
+            ]
+            descs = np.frombuffer(b"".join(blobs), "<f4").reshape(n, desc_dim)
+            crcs = array("I", dense)
+        except (sqlite3.Error, TypeError, ValueError, OverflowError) as err:
             raise self.damaged(f"cannot be read ({err})") from err
-        if stray:
-            raise self.damaged(f"holds {stray} feature rows of no keyframe or of the wrong type")
-        return descs, crcs
+        if bad:
+            raise self.damaged(f"holds keyframe {bad[0]} with a wrong CRC32 (a damaged row)")
+        return descs.astype(np.float32), crcs
 
     def _rows(self, sql: str) -> Iterator[tuple]:
         try:
             cursor = self._conn.execute(sql)
             while batch := cursor.fetchmany(_CHUNK):
                 yield from batch
-        except sqlite3.Error as err:
+        except (sqlite3.Error, UnicodeDecodeError) as err:  # a damaged page or text
             raise self.damaged(f"cannot be read ({err})") from err
 
     def _one(self, sql: str, *args) -> tuple | None:
         try:
             return self._conn.execute(sql, args).fetchone()
-        except sqlite3.Error as err:
+        except (sqlite3.Error, UnicodeDecodeError) as err:  # a damaged page or text
             raise self.damaged(f"cannot be read ({err})") from err
 
-    def _check_row(self, row: tuple, kf_id: int, desc_dim: int | None = None) -> None:
+    def _check_row(self, row: tuple, kf_id: int) -> None:
         desc = row[13]
         if row[0] != kf_id or not isinstance(desc, bytes) or not isinstance(row[14], int):
             raise self.damaged(f"has a bad row where keyframe {kf_id} should be")
-        if (desc_dim is not None and len(desc) != 4 * desc_dim) or row_crc(row[:15]) != row[15]:
+        if row_crc(row[:15]) != row[15]:
             raise self.damaged(f"holds keyframe {kf_id} with a wrong CRC32 (a damaged row)")
 
     def get(self, kf_id: int) -> KeyframeMeta | None:

@@ -138,17 +138,17 @@ CORRUPTIONS = {
         _foreign_store,
         r"keyframe store .*map-1.sqlite cannot be read \(no such table: keyframes\)",
     ),
-    "row changed": (
-        lambda d: _sql(d, "UPDATE keyframes SET stamp = stamp + 1 WHERE id = 3"),
+    "descriptor changed": (
+        lambda d: _sql(d, "UPDATE keyframes SET descriptor = zeroblob(32) WHERE id = 3"),
         r"map-1.sqlite holds keyframe 3 with a wrong CRC32 \(a damaged row\)",
     ),
     "row missing": (
         lambda d: _sql(d, "DELETE FROM keyframes WHERE id = 5"),
-        r"map-1.sqlite has a bad row where keyframe 5 should be",
+        r"map-1.sqlite holds 11 keyframe rows with ids 0..11: rows are missing",
     ),
     "stray feature row": (
         lambda d: _sql(d, "INSERT INTO features (id, crc, data) VALUES (99, 0, x'00')"),
-        r"map-1.sqlite holds 1 feature rows of no keyframe or of the wrong type",
+        r"map-1.sqlite holds 1 feature rows of no keyframe",
     ),
     "foreign dense segment": (
         _foreign_dense,
@@ -173,6 +173,17 @@ def test_damaged_map_gives_map_error_and_stays_unchanged(saved: Path, case: str)
     with pytest.raises(MapError, match=message):  # a failed load released the lock
         PlaceMap.load(saved, read_only=True)
     assert tree_digest(saved) == before
+
+
+def test_a_changed_keyframe_row_is_a_map_error_when_read(saved: Path) -> None:
+    """Rows are checked when read (a load reads only descriptors and dense CRC32s)."""
+    _sql(saved, "UPDATE keyframes SET stamp = stamp + 1 WHERE id = 3")
+    with PlaceMap.load(saved) as m:
+        assert m.meta(2) == meta_for(2).__class__(2, *list(meta_for(2).__dict__.values())[1:])
+        with pytest.raises(MapError, match=r"holds keyframe 3 with a wrong CRC32 \(a damaged"):
+            m.meta(3)
+        with pytest.raises(MapError, match=r"holds keyframe 3 with a wrong CRC32"):
+            m.all_meta()
 
 
 def _outcome(d: Path) -> str:
@@ -278,7 +289,7 @@ def _model_map(tiny_model, tmp_path: Path, count: int = 3) -> Path:
     return path
 
 
-@pytest.mark.parametrize("case", ["row changed", "store garbage", "manifest byte changed"])
+@pytest.mark.parametrize("case", ["descriptor changed", "store garbage", "manifest byte changed"])
 def test_pipeline_load_map_gives_map_error_and_keeps_its_map(tiny_model, tmp_path, case) -> None:
     path = _model_map(tiny_model, tmp_path, count=6)
     damage, message = CORRUPTIONS[case]

@@ -11,9 +11,18 @@ from pathlib import Path
 
 import pytest
 from test_bad_input_map import MAPS
-from test_place_map_persist import DIM, N0, SHAPE, add_range, assert_holds, files
+from test_place_map_persist import (
+    DIM,
+    N0,
+    SHAPE,
+    add_range,
+    assert_holds,
+    dense_for,
+    desc_for,
+    files,
+)  # fmt: skip
 
-from pair_vpr_ros.place_map import PlaceMap
+from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
 from pair_vpr_ros.place_map.dense_codec import entry_bytes
 
 
@@ -88,3 +97,13 @@ def saved(tmp_path: Path) -> Path:
         add_range(m, 0, N0)
         m.save(tmp_path / "map")
     return tmp_path / "map"
+
+
+def test_negative_zero_in_a_pose_survives_the_row_crc(tmp_path: Path) -> None:
+    """SQLite gives -0.0 back as 0.0: the row CRC32 must not call that damage."""
+    with PlaceMap(DIM, SHAPE, "fp-a") as m:
+        pose = (-0.0, 1.0, 2.0, -0.0, 0.0, 0.0, 1.0)
+        m.add(desc_for(0), dense_for(0), KeyframeMeta(stamp=-0.0, pose=pose))
+        m.save(tmp_path / "map")
+    with PlaceMap.load(tmp_path / "map") as m:
+        assert m.meta(0).pose == pose and m.all_meta()[0].stamp == 0.0
