@@ -220,12 +220,12 @@ class KeyframeStore:
                 for i, (b, c) in enumerate(zip(blobs, desc_crcs, strict=True))
                 if zlib.crc32(b) != c
             ]
+            if bad:  # before the shape: a damaged row is named as one
+                raise self.damaged(f"holds keyframe {bad[0]} with a wrong CRC32 (a damaged row)")
             descs = np.frombuffer(b"".join(blobs), "<f4").reshape(n, desc_dim)
             crcs = array("I", dense)
         except (sqlite3.Error, TypeError, ValueError, OverflowError) as err:
             raise self.damaged(f"cannot be read ({err})") from err
-        if bad:
-            raise self.damaged(f"holds keyframe {bad[0]} with a wrong CRC32 (a damaged row)")
         return descs.astype(np.float32), crcs
 
     def _rows(self, sql: str) -> Iterator[tuple]:
