@@ -10,6 +10,7 @@ import threading
 from pathlib import Path
 
 import pytest
+import test_place_map_persist as persist_tests
 from test_bad_input_map import MAPS
 from test_place_map_persist import (
     DIM,
@@ -24,6 +25,8 @@ from test_place_map_persist import (
 
 from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
 from pair_vpr_ros.place_map.dense_codec import entry_bytes
+
+saved = persist_tests.saved  # fixture: a format-3 map of N0 keyframes in tmp_path / "map"
 
 
 @pytest.mark.parametrize("version", [1, 2])
@@ -89,14 +92,6 @@ def test_flush_and_checkpoint_run_beside_adds(saved: Path) -> None:
         m.save(saved)
     with PlaceMap.load(saved) as m:
         assert_holds(m, list(range(N0 + 30)))
-
-
-@pytest.fixture
-def saved(tmp_path: Path) -> Path:
-    with PlaceMap(DIM, SHAPE, "fp-a") as m:
-        add_range(m, 0, N0)
-        m.save(tmp_path / "map")
-    return tmp_path / "map"
 
 
 def test_negative_zero_in_a_pose_survives_the_row_crc(tmp_path: Path) -> None:
