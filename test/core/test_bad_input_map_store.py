@@ -197,6 +197,7 @@ def _outcome(d: Path) -> str:
     return "same"
 
 
+@pytest.mark.slow  # 144 copies of a map loaded and read
 @pytest.mark.parametrize("name", ["map-1.sqlite", "dense-1.q4", "manifest.json"])
 def test_a_flipped_byte_anywhere_is_reported_never_used(saved: Path, tmp_path: Path, name: str):
     size = (saved / name).stat().st_size
