@@ -187,10 +187,10 @@ def bytes_per_keyframe(args, dim: int, shape: tuple[int, int]) -> dict[str, floa
                     m.add(descs[i], dense + i, meta)
                 d = Path(tmp) / f"map-{kind}"
                 m.save(d)
-            for f in os.listdir(d):
-                role = f.split("-")[0] + ("_crc" if f.endswith(".crc") else "")
-                if role in ("index", "meta", "dense", "dense_crc"):
-                    key = f"{role}_{kind}" if role == "index" else role
+            for f in os.listdir(d):  # map-g.sqlite: the store (rows with descriptors)
+                role = {"map": "store"}.get(f.split("-")[0], f.split("-")[0])
+                if role in ("index", "store", "dense") and f.split(".")[-1] != "lock":
+                    key = f"{role}_{kind}" if role in ("index", "store") else role
                     out[key] = os.path.getsize(d / f) / n
     return out
 
@@ -280,12 +280,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.extrapolate:
             extrapolate(rows, args.extrapolate)
     mem = bytes_per_keyframe(args, args.dim, shape)
-    print(f"\nBytes per keyframe (saved map of {args.mem_keyframes}, dense {shape} float16):\n")
+    print(f"\nBytes per keyframe (saved map of {args.mem_keyframes}, dense {shape} q4):\n")
     print("| file | bytes/keyframe |\n|---|---|")
-    for key in ("dense", "dense_crc", "index_flat", "index_hnsw", "index_ivf", "meta"):
+    keys = ("dense", "store_flat", "index_hnsw", "index_ivf")  # flat: no index file
+    for key in keys:
         print(f"| {key} | {mem.get(key, 0):,.0f} |")
-    total = mem["dense"] + mem["dense_crc"] + mem["meta"]
-    print(f"| total (flat / hnsw M=32 / ivf) | {total + mem['index_flat']:,.0f} / "
+    total = mem["dense"] + mem["store_flat"]
+    print(f"| total (flat / hnsw M=32 / ivf) | {total:,.0f} / "
           f"{total + mem['index_hnsw']:,.0f} / {total + mem['index_ivf']:,.0f} |")  # fmt: skip
     return 0
 

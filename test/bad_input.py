@@ -6,7 +6,9 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import sqlite3
 from pathlib import Path
+from urllib.parse import quote
 
 LOCK_NAME = "map.lock"  # holds the pid of the last writer: not part of the saved map
 
@@ -26,13 +28,34 @@ def make_fifo(path: Path) -> Path:
     return path
 
 
+def _store_rows(path: Path) -> tuple[int, str]:
+    """(keyframe rows, sha256 of every row) of a format-3 keyframe store, read through SQLite:
+    what a save committed, not the bytes of its file (a writable load opens its WAL)."""
+    immutable = "" if Path(f"{path}-wal").exists() else "&immutable=1"  # else it leaves a -wal
+    conn = sqlite3.connect(f"file:{quote(str(path))}?mode=ro{immutable}", uri=True)
+    digest = hashlib.sha256()
+    for table in ("keyframes", "features", "state"):
+        for row in conn.execute(f"SELECT * FROM {table} ORDER BY 1"):
+            digest.update(repr(row).encode())
+    count = conn.execute("SELECT COUNT(*) FROM keyframes").fetchone()[0]
+    conn.close()
+    return count, digest.hexdigest()
+
+
 def saved_map_digest(directory: Path) -> dict[str, str]:
     """sha256 of what a saved map consists of: its manifest, the files it names, and of the
     dense file only the `count` entries it lists (later bytes are a live map's unsaved appends,
-    which the format allows)."""
+    which the format allows); format 3: the store's rows."""
     directory = Path(directory)
     manifest = json.loads((directory / "manifest.json").read_text())
     out = {"manifest.json": hashlib.sha256((directory / "manifest.json").read_bytes()).hexdigest()}
+    if manifest["format_version"] >= 3:
+        count, out["store"] = _store_rows(directory / manifest["files"]["store"]["name"])
+        n, d = manifest["dense_shape"]
+        size = n * d * 2 if manifest["dense_codec"] == "f16" else (n * d + 1) // 2 + 2 * d
+        data = (directory / manifest["files"]["dense"]["name"]).read_bytes()[: count * size]
+        out["dense"] = hashlib.sha256(data).hexdigest()
+        return out
     for role, entry in manifest["files"].items():
         data = (directory / entry["name"]).read_bytes()
         if role == "dense":

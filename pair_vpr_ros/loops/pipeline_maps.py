@@ -43,9 +43,12 @@ class PipelineMaps:
         cfg = self.model.config
         return cfg.desc_dim, (self.model.num_patches, cfg.embed_dim)
 
-    def save_map(self, directory: str | Path, overwrite: bool = False) -> Path:
+    def save_map(
+        self, directory: str | Path, overwrite: bool = False, checkpoint: bool = True
+    ) -> Path:
+        """checkpoint=False: the caller folds the store's WAL later (PlaceMap.checkpoint)."""
         refuse_prior_target(directory, self.maps.priors)  # a prior map is never written
-        return self._place_map.save(directory, overwrite=overwrite)
+        return self._place_map.save(directory, overwrite=overwrite, checkpoint=checkpoint)
 
     def load_map(self, directory: str | Path) -> int:
         """Replace the map by a saved one (same model required); returns its keyframe count.

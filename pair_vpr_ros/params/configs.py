@@ -45,10 +45,11 @@ def geometry_config(values: Mapping[str, Any]) -> GeometryConfig:
 
 def index_config(values: Mapping[str, Any]) -> IndexConfig:
     """The place map's `IndexConfig` of a full parameter set (kind + the milvus settings)."""
+    codec = values.get("dense_codec", "q4")
     if values["index"] != "milvus":
-        return IndexConfig(kind=values["index"])
+        return IndexConfig(kind=values["index"], dense_codec=codec)
     names = ("milvus_uri", "milvus_collection", "milvus_index", "milvus_token_env")
-    return IndexConfig(kind="milvus", **{name: values[name] for name in names})
+    return IndexConfig(kind="milvus", dense_codec=codec, **{name: values[name] for name in names})
 
 
 def detector_config(values: Mapping[str, Any]) -> DetectorConfig:

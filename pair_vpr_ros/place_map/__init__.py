@@ -8,21 +8,22 @@ m.save("maps/site")                                                 # atomic
 m = PlaceMap.load("maps/site", expected_fingerprint=model.fingerprint)  # continue mapping
 ```
 
-A map directory holds `manifest.json` (format_version, generation, count, dims, index settings,
-model fingerprint, sha256 + size of the small files), `index-<g>.faiss`, `meta-<g>.sqlite`,
-`dense-<g>.crc` (CRC32 per keyframe), the append-only `dense-<h>.f16` ([count, N, D] float16,
-possibly longer: bytes past `count` are an unsaved tail) and `map.lock` (writer lock).
+A map directory (format 3; docs/map-storage.md) holds `manifest.json` (format_version,
+generation, dims, dense codec, index settings, model fingerprint, its own CRC32), the keyframe
+store `map-<g>.sqlite` (SQLite in WAL mode: a row per keyframe with its descriptor, dense CRC32
+and row CRC32; features; an index snapshot's name for non-flat kinds), the append-only
+`dense-<h>.q4` (4-bit tokens, default) or `.f16`, and `map.lock` (writer lock). A save commits
+only the keyframes added since the last one (one SQLite commit); a load reads the store and the
+index, dense tokens and features on demand, and copies nothing. Formats 1 and 2 load (legacy.py)
+and are converted by the next save.
 
-Detected on load (MapError naming the file): missing directory/manifest/files, bad JSON, unknown
-format version, missing or invalid fields, any change to the index/metadata/CRC files (sha256),
-unreadable FAISS index (array sizes beyond the file's are refused before anything is allocated),
-a SQLite file of another schema or with values of the wrong type, counts that disagree, a dense
-file shorter than `count` or whose first/last entry fails its CRC32 (an edited `dense_shape`).
-A load never writes to the saved files (the dense file is never shrunk) and a failed save
-deletes what it wrote (also its `*.tmp` files), so a full disk does not stay full.
-Detected on read: a damaged dense entry (CRC32, unless verify_dense_reads=False); `load(...,
-verify_dense=True)` checks them all up front. Not detected: damage to a dense entry that is only
-read while verification is off or that already sits in the in-memory LRU, and memory errors.
+Detected on load (MapError naming the file): missing files, a changed manifest (CRC32), unknown
+format version, a damaged or foreign store, a keyframe row failing its CRC32, an index snapshot
+failing its CRC32, counts that disagree, a dense file shorter than the rows or whose first/last
+entry fails its CRC32. A load never writes to the saved files and a failed save deletes what it
+wrote. Detected on read: a damaged dense entry (unless verify_dense_reads=False) or features
+row. Not detected: damage to a dense entry only read while verification is off or that already
+sits in the in-memory LRU, and memory errors.
 
 A PlaceMap is not thread-safe: callers serialise add/search/save (the pipeline owns one map).
 """

@@ -1,15 +1,17 @@
-"""Append-only float16 file of per-keyframe dense tokens [N, D], read through a memory map.
+"""Append-only file of per-keyframe dense tokens [N, D], stored with a codec (dense_codec.py).
 
-Entry i lives at byte i * N * D * 2 and is never rewritten, so a saved map can share the file with
-the live map: the manifest records how many entries are valid, later bytes are ignored (and
-overwritten by the next append after a crash). Each entry's CRC32 is kept at add time and checked
-when the entry is read from disk, so a flipped bit gives a MapError instead of wrong tokens.
+Entry i lives at byte i * entry_bytes and is never rewritten, so a saved map can share the file
+with the live map: the saved keyframe rows say how many entries are valid, later bytes are
+ignored (and overwritten by the next append after a crash). Each entry's CRC32 is kept at add
+time (in the keyframe store) and checked when the entry is read from disk, so a flipped bit gives
+a MapError instead of wrong tokens.
+Reads are one `os.pread` per entry, sized to it: a memory map's read-ahead read 4-10x more than a
+top-5 fetch needs on a cold cache (issue 34).
 Not detected: damage to an entry while verification is off, or to entries already in the LRU.
 """
 
 from __future__ import annotations
 
-import mmap
 import os
 import zlib
 from array import array
@@ -20,24 +22,21 @@ import numpy as np
 from tqdm import tqdm
 
 from pair_vpr_ros.errors import MapError
+from pair_vpr_ros.place_map.dense_codec import decode, encode, entry_bytes
 from pair_vpr_ros.place_map.files import copy_prefix
 
 DTYPE = np.float16
 
 
-def entry_bytes(shape: tuple[int, int]) -> int:
-    """Bytes of one keyframe's dense tokens [N, D] as stored."""
-    return int(shape[0]) * int(shape[1]) * np.dtype(DTYPE).itemsize
-
-
 class DenseStore:
-    """Entries [N, D] float16 in one file; `count` of them are valid.
+    """Entries [N, D] (float16 when read) in one file; `count` of them are valid.
 
     path: the file (created when missing if writable).
     crcs: CRC32 of each valid entry (loaded maps), or None for a new, empty store.
     cache_size: hot entries kept in memory (LRU); 0 disables the cache.
     verify_reads: check the CRC32 of every entry read from the file.
     owned: the file belongs to this store alone (no saved manifest names it): may be moved/deleted.
+    codec: how entries are stored ("q4" or "f16", dense_codec.py).
     """
 
     def __init__(
@@ -50,17 +49,18 @@ class DenseStore:
         cache_size: int = 128,
         verify_reads: bool = True,
         owned: bool = False,
+        codec: str = "f16",
     ) -> None:
         self.path = Path(path)
         self.shape = (int(shape[0]), int(shape[1]))
-        self.entry_bytes = entry_bytes(self.shape)
+        self.codec = codec
+        self.entry_bytes = entry_bytes(self.shape, codec)
         self.crcs = crcs if crcs is not None else array("I")
         self.count = len(self.crcs)
         self.writable, self.cache_size, self.verify_reads = writable, cache_size, verify_reads
         self.owned = owned
         self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
-        self._mmap: mmap.mmap | None = None
-        self._mapped = 0  # entries covered by the current mapping
+        self.bytes_read = 0  # from the file (benchmarks: bytes read per query)
         flags = os.O_RDWR | os.O_CREAT if writable else os.O_RDONLY
         try:
             self._fd: int | None = os.open(self.path, flags, 0o644)
@@ -89,14 +89,15 @@ class DenseStore:
                 raise MapError(
                     f"dense token file {self.path} does not match its manifest: keyframe {i} "
                     f"fails its CRC32 check when read as [{self.shape[0]}, {self.shape[1]}] "
-                    "float16 tokens (dense_shape edited, or the file damaged or from another "
-                    "map); nothing was changed: restore the map from a backup or rebuild it"
+                    f"{self.codec} tokens (dense_shape edited, or the file damaged or from "
+                    "another map); nothing was changed: restore the map from a backup or "
+                    "rebuild it"
                 )
 
     def append(self, dense: np.ndarray) -> int:
         """dense [N, D] float16 C-contiguous (validated by the caller) -> its entry index."""
         assert self._fd is not None and self.writable and dense.dtype == DTYPE
-        data = dense.tobytes()
+        data = encode(dense, self.codec)
         offset = self.count * self.entry_bytes
         try:
             written = os.pwrite(self._fd, data, offset)
@@ -114,6 +115,11 @@ class DenseStore:
         self.count -= 1
         self._cache.pop(self.count, None)
 
+    def truncate(self, count: int) -> None:
+        """Forget entries >= count (their bytes become an ignored tail)."""
+        while self.count > count:
+            self.drop_last()
+
     def read(self, ids: np.ndarray) -> np.ndarray:
         """ids [K] valid entry indices -> [K, N, D] float16 (a copy)."""
         out = np.empty((len(ids), *self.shape), DTYPE)
@@ -126,23 +132,16 @@ class DenseStore:
         if hit is not None:
             self._cache.move_to_end(i)
             return hit
-        if i >= self._mapped:
-            self._remap()
-        buf = self._mmap[i * self.entry_bytes : (i + 1) * self.entry_bytes]
-        if self.verify_reads and zlib.crc32(buf) != self.crcs[i]:
+        buf = os.pread(self._fd, self.entry_bytes, i * self.entry_bytes)
+        self.bytes_read += len(buf)
+        if len(buf) != self.entry_bytes or (self.verify_reads and zlib.crc32(buf) != self.crcs[i]):
             raise self._corrupt(i)
-        entry = np.frombuffer(buf, DTYPE).reshape(self.shape)
+        entry = decode(buf, self.shape, self.codec)
         if self.cache_size > 0:
             self._cache[i] = entry
             if len(self._cache) > self.cache_size:
                 self._cache.popitem(last=False)
         return entry
-
-    def _remap(self) -> None:
-        if self._mmap is not None:
-            self._mmap.close()  # slices are bytes copies, so no view can outlive the mapping
-        self._mmap = mmap.mmap(self._fd, self.count * self.entry_bytes, access=mmap.ACCESS_READ)
-        self._mapped = self.count
 
     def _corrupt(self, i: int) -> MapError:
         return MapError(
@@ -176,9 +175,6 @@ class DenseStore:
 
     def close(self) -> None:
         self._cache.clear()
-        if self._mmap is not None:
-            self._mmap.close()
-            self._mmap = None
         if self._fd is not None:
             os.close(self._fd)
             self._fd = None

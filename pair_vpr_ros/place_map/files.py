@@ -9,6 +9,7 @@ from __future__ import annotations
 import errno
 import fcntl
 import os
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 
@@ -79,6 +80,15 @@ def copy_prefix(src_fd: int, dst: Path, nbytes: int) -> None:
             done += n
         out.flush()
         os.fsync(out.fileno())
+
+
+def crc32_file(path: Path) -> int:
+    """CRC32 of a whole file, read in chunks."""
+    crc = 0
+    with open(path, "rb") as fh:
+        while chunk := fh.read(_COPY_CHUNK):
+            crc = zlib.crc32(chunk, crc)
+    return crc
 
 
 def same_device(a: Path, b: Path) -> bool:

@@ -18,6 +18,7 @@ import faiss
 import numpy as np
 
 from pair_vpr_ros.errors import ConfigError, MapError
+from pair_vpr_ros.place_map.dense_codec import check_codec
 from pair_vpr_ros.place_map.ivf import IvfIndex, Training, check_loaded, omp_threads
 
 INDEX_KINDS = ("flat", "hnsw", "ivf", "milvus")
@@ -59,6 +60,9 @@ class IndexConfig:
         ef_construction / ef_search apply to it.
     milvus_token_env: environment variable holding the Milvus token ("" or unset: none); the
         token itself is never stored, logged or taken as a parameter.
+    dense_codec: how the map stores dense tokens (not a search setting, but carried here so the
+        map's settings travel as one): "q4" (4-bit, 200 KiB per ViT-B keyframe) or "f16"
+        (uncompressed, 794 KiB); see dense_codec.py. A loaded map keeps its own.
     """
 
     kind: str = "flat"
@@ -75,8 +79,10 @@ class IndexConfig:
     milvus_collection: str = "pairvpr_keyframes"
     milvus_index: str = "IVF_FLAT"
     milvus_token_env: str = "PAIRVPR_MILVUS_TOKEN"
+    dense_codec: str = "q4"
 
     def __post_init__(self) -> None:
+        check_codec(self.dense_codec)
         if self.kind not in INDEX_KINDS:
             raise ConfigError(f"place map index must be one of {INDEX_KINDS}, got {self.kind!r}")
         for name, low in LOWEST.items():
@@ -177,6 +183,10 @@ class DescriptorIndex:
 
     def reset(self) -> None:
         self._set(self._new_index())
+
+    def truncate(self, count: int) -> None:
+        """Kind "flat": forget ids >= count (a save that lost its unsaved keyframes)."""
+        self._index.remove_ids(faiss.IDSelectorRange(int(count), len(self)))
 
     def search(
         self,

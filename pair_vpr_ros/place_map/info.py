@@ -88,7 +88,10 @@ def map_info(directory: str | os.PathLike) -> MapInfo:
             with_features=m.feature_stats()[0],
             notes=[m.load_note] if m.load_note else [],
         )
-    for name in sorted(manifest.file_names() | {MANIFEST_NAME}):
+    names = manifest.file_names() | {MANIFEST_NAME}
+    if manifest.format_version >= 3:  # and the index snapshot the store names, if any
+        names |= {p.name for p in d.iterdir() if p.name.startswith("index-") and p.is_file()}
+    for name in sorted(names):
         info.files[name] = (d / name).stat().st_size
     return info
 

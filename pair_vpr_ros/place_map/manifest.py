@@ -1,9 +1,16 @@
 """`manifest.json`: the one file that says which generation of map files is the saved map.
 
-Files of generation g are named `index-g.faiss` (kind "milvus": `index-g.milvus`, the record
-of its collection), `meta-g.sqlite`, `dense-g.crc`; the dense file
-keeps the name of the generation that created it (`dense-h.f16`, h <= g) because saves append to
-it. Replacing the manifest (`os.replace`) is the commit point of a save.
+Format 3 (written since issue 34): generation g is `map-g.sqlite` (the keyframe store, store.py:
+metadata, descriptors, features, per-row CRC32s; its own commits are the incremental saves) and
+the append-only `dense-h.q4` / `dense-h.f16`; non-flat index kinds add a snapshot
+`index-g-k.faiss` / `.milvus` that the store names. The manifest is written only when a
+generation starts (first save into a folder, a save after `clear`, a converted old map) and
+carries a CRC32 of its own content.
+
+Formats 1 and 2 (read, converted to 3 by the next save): files of generation g are named
+`index-g.faiss` (kind "milvus": `index-g.milvus`, the record of its collection), `meta-g.sqlite`,
+`dense-g.crc`; the dense file keeps the name of the generation that created it (`dense-h.f16`,
+h <= g) because saves appended to it; replacing the manifest was the commit point of a save.
 """
 
 from __future__ import annotations
@@ -11,6 +18,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import zlib
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -20,11 +28,17 @@ from pair_vpr_ros.place_map.files import TMP_SUFFIX, remove_quietly, write_bytes
 
 MANIFEST_NAME = "manifest.json"
 FORMAT_NAME = "pair_vpr_ros.place_map"
-FORMAT_VERSION = 2  # 2: keyframes carry robot and session (issue 22)
-READABLE_VERSIONS = (1, 2)  # a version-1 map loads with its keyframes named at load
+FORMAT_VERSION = 3  # 2: keyframes carry robot and session (issue 22); 3: incremental (34)
+READABLE_VERSIONS = (1, 2, 3)  # a version-1 map loads with its keyframes named at load
 # Files a save may create; anything else in the directory is left alone.
-MAP_FILE_RE = re.compile(r"^(index-\d+\.(faiss|milvus)|meta-\d+\.sqlite|dense-\d+\.(f16|crc))")
+MAP_FILE_RE = re.compile(
+    r"^(index-\d+(-\d+)?\.(faiss|milvus)|(meta|map)-\d+\.sqlite|dense-\d+\.(f16|crc|q4))"
+)
 _CHECKED = ("index", "meta", "dense_crc")  # small files: size + sha256 in the manifest
+_ROLE_RE_V3 = {
+    "store": re.compile(r"map-\d+\.sqlite"),
+    "dense": re.compile(r"dense-\d+\.(f16|q4)"),
+}
 _ROLE_RE = {
     "index": re.compile(r"index-\d+\.(faiss|milvus)"),  # milvus: the collection's record
     "meta": re.compile(r"meta-\d+\.sqlite"),
@@ -47,6 +61,13 @@ class Manifest:
     format: str = FORMAT_NAME
     format_version: int = FORMAT_VERSION
     dense_dtype: str = "float16"
+    dense_codec: str = "f16"  # how dense entries are stored (dense_codec.py); 1 and 2: f16
+    checksum: int = 0  # format 3: CRC32 of the manifest's other fields
+
+    def content_crc(self) -> int:
+        data = asdict(self)
+        data.pop("checksum")
+        return zlib.crc32(json.dumps(data, sort_keys=True).encode())
 
     def file_names(self) -> set[str]:
         return {f["name"] for f in self.files.values()}
@@ -68,6 +89,7 @@ def write_manifest(directory: Path, manifest: Manifest) -> None:
     the commit, so that a failing fsync cannot hide that the switch happened.
     """
     tmp = directory / (MANIFEST_NAME + TMP_SUFFIX)
+    manifest.checksum = manifest.content_crc()
     data = asdict(manifest)
     data = {"format": data.pop("format"), "format_version": data.pop("format_version"), **data}
     try:
@@ -104,6 +126,11 @@ def read_manifest(directory: Path) -> Manifest:
         _check_fields(manifest)
     except (TypeError, ValueError, KeyError) as err:
         raise MapError(f"{path} has missing or invalid fields ({err}): rebuild the map") from err
+    if version >= 3 and manifest.checksum != manifest.content_crc():
+        raise MapError(
+            f"{path} fails its CRC32 check (a changed or damaged byte): the map is damaged; "
+            "restore it from a backup or rebuild it"
+        )
     return manifest
 
 
@@ -116,9 +143,12 @@ def _check_fields(m: Manifest) -> None:
         raise ValueError("dense_shape entries must be integers > 0")
     if m.dense_dtype != "float16" or not isinstance(m.fingerprint, str):
         raise ValueError("dense_dtype must be float16 and fingerprint a string")
-    if set(m.files) != set(_ROLE_RE):
-        raise ValueError(f"files must list exactly {sorted(_ROLE_RE)}")
-    for role, pattern in _ROLE_RE.items():
+    if m.dense_codec not in ("f16", "q4") or (m.format_version < 3 and m.dense_codec != "f16"):
+        raise ValueError(f"unknown dense_codec {m.dense_codec!r}")
+    roles = _ROLE_RE_V3 if m.format_version >= 3 else _ROLE_RE
+    if set(m.files) != set(roles):
+        raise ValueError(f"files must list exactly {sorted(roles)}")
+    for role, pattern in roles.items():
         name = m.files[role]["name"]
         if not isinstance(name, str) or not pattern.fullmatch(name):
             raise ValueError(f"bad file name for {role}: {name!r}")
@@ -167,7 +197,9 @@ def remove_stale(directory: Path, keep: set[str]) -> None:
 
 def remove_generation(directory: Path, generation: int, keep: set[str]) -> None:
     """Delete the files (and temporaries) a failed save of `generation` left, except `keep`."""
-    pattern = re.compile(rf"^(index|meta|dense)-{generation}\.(faiss|milvus|sqlite|f16|crc)")
+    pattern = re.compile(
+        rf"^(index|meta|dense|map)-{generation}(-\d+)?\.(faiss|milvus|sqlite|f16|crc|q4)"
+    )
     for name in os.listdir(directory):
         if pattern.match(name) and name not in keep:
             remove_quietly(directory / name)

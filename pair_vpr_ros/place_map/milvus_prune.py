@@ -24,9 +24,10 @@ from pathlib import Path
 from pair_vpr_ros.errors import ConfigError, MapError
 from pair_vpr_ros.place_map import milvus_collection as mc
 from pair_vpr_ros.place_map.index import IndexConfig
-from pair_vpr_ros.place_map.manifest import MANIFEST_NAME, check_files, read_manifest
+from pair_vpr_ros.place_map.manifest import MANIFEST_NAME, read_manifest
 from pair_vpr_ros.place_map.milvus import read_record
 from pair_vpr_ros.place_map.milvus_expr import ID_BITS, id_range
+from pair_vpr_ros.place_map.persist import saved_index_file
 
 BATCH = 1000  # rows per query-iterator page
 
@@ -182,16 +183,17 @@ def saved_writers(map_dirs: Sequence[str | os.PathLike], collection: str) -> dic
                 m = read_manifest(d)
                 if m.index.get("kind") != "milvus":
                     continue
-                check_files(d, m)
-                record, _ = read_record(d / m.files["index"]["name"], m.desc_dim, m.count)
+                path, count = saved_index_file(d, m)
+                record, _ = read_record(path, m.desc_dim, count)
             except MapError as err:
                 raise MapError(
                     f"saved map {d} cannot be read ({err}); its rows cannot be told from stale "
                     "ones: repair the map or move it out of the folders given, then prune again"
                 ) from err
             if record["collection"] == collection:
+                saved = count
                 count, dirs = out.get(int(record["writer"]), (0, []))
-                out[int(record["writer"])] = (max(count, m.count), [*dirs, str(d)])
+                out[int(record["writer"])] = (max(count, saved), [*dirs, str(d)])
     return out
 
 

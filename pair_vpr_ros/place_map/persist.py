@@ -1,9 +1,12 @@
-"""Writing one generation of a map directory (the save protocol) and opening a saved map.
+"""Saving a map directory (format 3) and opening a saved one (any format).
 
-Save protocol, crash-safe at every point: write the files of generation g under temporary names,
-fsync, rename, fsync the directory, then `os.replace` the manifest (the commit); older generations
-are deleted only after the commit. Until then the previous manifest and every file it names are
-untouched: the dense file may have grown, but only past the count the old manifest records.
+A save is incremental when the map continues the generation saved in that folder: the dense
+entries appended since are fsynced, a non-flat index writes a new snapshot, and one SQLite commit
+of the keyframe store (store.py) makes the new rows durable: that commit is the save's commit
+point, and it writes only the new rows. Otherwise (first save into a folder, save-as, a save after
+`clear`, an old-format map) it writes a new generation: dense file moved or copied, the store
+copied, fsynced, then `os.replace` of the manifest is the commit point. Until a commit point the
+previous save is untouched: the dense file may have grown, but only past the rows its store holds.
 `_SAVE_HOOK` is called after each step of `SAVE_STEPS` so tests can kill a save midway.
 """
 
@@ -15,22 +18,29 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from pair_vpr_ros.errors import ConfigError, MapError, MapFingerprintError
-from pair_vpr_ros.place_map.dense_store import DenseStore, read_crcs
-from pair_vpr_ros.place_map.files import fsync_path, publish, same_device, write_bytes_durably
+from pair_vpr_ros.place_map.dense_store import DenseStore
+from pair_vpr_ros.place_map.files import (
+    crc32_file,
+    fsync_path,
+    publish,
+    remove_quietly,
+    same_device,
+)
 from pair_vpr_ros.place_map.index import DescriptorIndex, IndexConfig
 from pair_vpr_ros.place_map.manifest import (
     Manifest,
     check_files,
-    describe,
     next_generation,
     read_manifest,
     remove_generation,
     write_manifest,
 )
-from pair_vpr_ros.place_map.metadata import MetadataStore
+from pair_vpr_ros.place_map.store import KeyframeStore
 
-SAVE_STEPS = ("dense", "dense_crc", "index", "meta", "manifest", "committed", "cleaned")
+SAVE_STEPS = ("dense", "index", "store", "manifest", "committed", "cleaned")
 _SAVE_HOOK: Callable[[str], None] | None = None  # tests: called with each SAVE_STEPS name
+INDEX_FILE = "index_file"  # the store's state key naming a non-flat index snapshot
+INDEX_CRC = "index_crc"  # ... and the one holding its CRC32
 
 
 def reached(step: str) -> None:
@@ -40,16 +50,47 @@ def reached(step: str) -> None:
 
 @dataclass
 class MapParts:
-    """The live stores of a map, as `write_generation` saves and `open_saved` returns them."""
+    """The live stores of a map, as a save writes them and `open_saved` returns them."""
 
     index: DescriptorIndex  # or a MilvusIndex (kind "milvus")
-    meta: MetadataStore
+    store: KeyframeStore
     dense: DenseStore
     desc_dim: int
     dense_shape: tuple[int, int]
     fingerprint: str
-    format_version: int = 2  # of the save it was opened from (1: upgraded at load)
-    note: str = ""  # what the loader should log (a version-1 map's keyframes named at load)
+    format_version: int = 3  # of the save it was opened from (1, 2: converted by the next save)
+    note: str = ""  # what the loader should log (an old format, keyframes named at load)
+    generation: int = 0
+
+
+def _snapshot(d: Path, gen: int, parts: MapParts) -> dict[str, str]:
+    """Write the index of a non-flat kind as a new snapshot file -> the store's state rows that
+    name it and its CRC32 (flat: none, the store's descriptors are the index)."""
+    if parts.index.config.kind == "flat":
+        return {}
+    suffix = "milvus" if parts.index.config.kind == "milvus" else "faiss"
+    taken = {n for n in os.listdir(d) if n.startswith(f"index-{gen}-")}
+    k = next(k for k in range(len(taken) + 2) if f"index-{gen}-{k}.{suffix}" not in taken)
+    path = publish(d, f"index-{gen}-{k}.{suffix}", parts.index.write)
+    return {INDEX_FILE: path.name, INDEX_CRC: str(crc32_file(path))}
+
+
+def save_increment(d: Path, parts: MapParts) -> None:
+    """Commit the rows added since the last save of `d` (whose store `parts.store` is)."""
+    parts.dense.sync()  # the entries the new rows name are on disk before the rows
+    reached("dense")
+    state = _snapshot(d, parts.generation, parts)
+    try:
+        for key, value in state.items():
+            parts.store.set_state(key, value)
+        reached("index")
+        reached("store")
+        reached("manifest")
+        parts.store.commit()
+    except BaseException:
+        if state:
+            remove_quietly(d / state[INDEX_FILE])
+        raise
 
 
 def save(d: Path, parts: MapParts, dense_in_place: bool) -> tuple[Manifest, Path | None]:
@@ -61,7 +102,7 @@ def save(d: Path, parts: MapParts, dense_in_place: bool) -> tuple[Manifest, Path
     gen = next_generation(d)
     try:
         manifest, copied = write_generation(d, gen, parts, dense_in_place)
-        commit(d, manifest)
+        write_manifest(d, manifest)  # the commit point
     except BaseException:
         live = parts.dense.path
         remove_generation(d, gen, keep={live.name} if live.parent == d else set())
@@ -72,44 +113,27 @@ def save(d: Path, parts: MapParts, dense_in_place: bool) -> tuple[Manifest, Path
 def write_generation(
     d: Path, gen: int, parts: MapParts, dense_in_place: bool
 ) -> tuple[Manifest, Path | None]:
-    """Write every file of generation `gen` of `d` -> (its manifest, new dense copy or None).
-
-    Nothing is committed: the caller makes the save visible with `commit`.
-
-    dense_in_place: the dense file is already the one `d`'s manifest names (appends since the
-    last save went there), so it is only fsynced.
-    """
+    """Write every file of generation `gen` of `d` -> (its manifest, new dense copy or None)."""
     dense_name, copied = _place_dense(d, gen, parts.dense, dense_in_place)
     reached("dense")
-    suffix = "milvus" if parts.index.config.kind == "milvus" else "faiss"
-    names = {"dense_crc": f"dense-{gen}.crc", "index": f"index-{gen}.{suffix}"}
-    crcs = parts.dense.crc_bytes()
-    publish(d, names["dense_crc"], lambda p: write_bytes_durably(p, crcs))
-    reached("dense_crc")
-    publish(d, names["index"], parts.index.write)
+    state = _snapshot(d, gen, parts)
     reached("index")
-    names["meta"] = f"meta-{gen}.sqlite"
-    publish(d, names["meta"], parts.meta.save_to)
-    reached("meta")
+    store_name = f"map-{gen}.sqlite"
+    publish(d, store_name, lambda p: parts.store.copy_to(p, state))
+    reached("store")
     fsync_path(d)  # the renames above are durable before a manifest names them
-    files = {role: describe(d, role, name) for role, name in names.items()}
-    files["dense"] = {"name": dense_name}
     manifest = Manifest(
         generation=gen,
-        count=len(parts.index),
+        count=len(parts.index),  # informational: the store holds the count
         desc_dim=parts.desc_dim,
         dense_shape=list(parts.dense_shape),
         index=asdict(parts.index.config),
         fingerprint=parts.fingerprint,
-        files=files,
+        files={"store": {"name": store_name}, "dense": {"name": dense_name}},
+        dense_codec=parts.dense.codec,
     )
     reached("manifest")
     return manifest, copied
-
-
-def commit(d: Path, manifest: Manifest) -> None:
-    """Atomically replace `d`'s manifest: from here on a load sees the new generation."""
-    write_manifest(d, manifest)
 
 
 def _place_dense(d: Path, gen: int, store: DenseStore, in_place: bool) -> tuple[str, Path | None]:
@@ -117,7 +141,7 @@ def _place_dense(d: Path, gen: int, store: DenseStore, in_place: bool) -> tuple[
     store.sync()
     if in_place:
         return store.path.name, None
-    target = d / f"dense-{gen}.f16"
+    target = d / f"dense-{gen}.{store.codec}"
     if store.owned and same_device(store.path.parent, d):
         os.replace(store.path, target)  # no saved map names this file: move it, don't copy
         store.path = target
@@ -126,19 +150,9 @@ def _place_dense(d: Path, gen: int, store: DenseStore, in_place: bool) -> tuple[
     return target.name, target
 
 
-def open_saved(
-    d: Path,
-    expected_fingerprint: str | None,
-    work: Path,
-    *,
-    read_only: bool,
-    ef_search: int | None,
-    cache_size: int,
-    verify_reads: bool,
-    legacy: tuple[str, str] = ("", ""),
-) -> MapParts:
-    """Check and open the saved map in `d`; metadata is copied to `work` (a working file).
-    legacy: (robot, session) given to the keyframes of a format-version-1 map."""
+def open_saved(d: Path, expected_fingerprint: str | None, work: Path, **options) -> MapParts:
+    """Check and open the saved map in `d` (options: read_only, ef_search, cache_size,
+    verify_reads, legacy); formats 1 and 2 are opened by legacy.py (a working copy in `work`)."""
     m = read_manifest(d)
     if expected_fingerprint is not None and m.fingerprint != expected_fingerprint:
         raise MapFingerprintError(
@@ -146,58 +160,106 @@ def open_saved(
             f"model's fingerprint is {expected_fingerprint!r}: load it with the same weights and "
             "image size it was built with, or rebuild the map with this model (new directory)"
         )
-    check_files(d, m)
-    index_path = d / m.files["index"]["name"]
-    config = _index_config(m, ef_search)
-    if (config.kind == "milvus") != index_path.name.endswith(".milvus"):
-        raise MapError(f"{index_path} is not the index file of a {config.kind!r} map: rebuild it")
-    if config.kind != "milvus":
-        index = _check_count(DescriptorIndex.read(index_path, m.desc_dim, config), m, index_path)
-    crcs = read_crcs(d / m.files["dense_crc"]["name"], m.count)
-    old = legacy if m.format_version == 1 else None
-    meta = MetadataStore.from_saved(d / m.files["meta"]["name"], work, m.count, old)
+    if m.format_version < 3:
+        from pair_vpr_ros.place_map.legacy import open_legacy
+
+        return open_legacy(d, m, work, **options)
+    return _open_v3(d, m, **options)
+
+
+def _open_v3(
+    d: Path, m: Manifest, *, read_only: bool, ef_search: int | None, cache_size: int,
+    verify_reads: bool, legacy: tuple[str, str] = ("", ""),
+) -> MapParts:  # fmt: skip
+    for entry in m.files.values():
+        if not (d / entry["name"]).is_file():
+            raise MapError(
+                f"map file {d / entry['name']} listed in {d / 'manifest.json'} is missing: the "
+                "map directory is incomplete; restore it from a backup or rebuild it"
+            )
+    config = index_config(m, ef_search)
+    path = d / m.files["store"]["name"]
+    store = KeyframeStore(path, saved=True, read_only=True)  # checked before it is written
     dense = None
     try:
+        descs, crcs = store.scan(m.desc_dim)
+        if not read_only:
+            store.close()
+            store = KeyframeStore(path, saved=True)
+        shape = (m.dense_shape[0], m.dense_shape[1])
         dense = DenseStore(
-            d / m.files["dense"]["name"],
-            (m.dense_shape[0], m.dense_shape[1]),
-            crcs,
-            writable=not read_only,
-            cache_size=cache_size,
-            verify_reads=verify_reads,
-        )
-        if config.kind == "milvus":  # last: the local files are checked before any row changes
-            from pair_vpr_ros.place_map.milvus import MilvusIndex  # pymilvus only when used
-
-            index = MilvusIndex.read(
-                index_path, m.desc_dim, config, m.fingerprint, m.count, read_only
-            )
+            d / m.files["dense"]["name"], shape, crcs, writable=not read_only,
+            cache_size=cache_size, verify_reads=verify_reads, codec=m.dense_codec,
+        )  # fmt: skip
+        index = _open_index(d, store, config, m, len(descs), read_only)
+        if config.kind == "flat":
+            index.add(descs)
     except BaseException:
-        meta.close()
+        store.close()
         if dense is not None:
             dense.close()
         raise
-    shape = (m.dense_shape[0], m.dense_shape[1])
-    note = "" if old is None else (
-        f"place map {d} was saved before keyframes carried a robot and a session (format "
-        f"version 1): its {m.count} keyframes are named robot {old[0]!r}, session {old[1]!r} "
-        "(the next save stores these names)"
-    )  # fmt: skip
-    return MapParts(index, meta, dense, m.desc_dim, shape, m.fingerprint, m.format_version, note)
+    return MapParts(index, store, dense, m.desc_dim, shape, m.fingerprint, 3, "", m.generation)
 
 
-def _check_count(index: DescriptorIndex, m: Manifest, path: Path) -> DescriptorIndex:
-    if len(index) != m.count:
+def _open_index(
+    d: Path, store: KeyframeStore, config: IndexConfig, m: Manifest, count: int, read_only: bool
+):
+    if config.kind == "flat":
+        return DescriptorIndex(m.desc_dim, config)
+    name = store.state(INDEX_FILE)
+    if name is None or "/" in name or not (d / name).is_file():
         raise MapError(
-            f"FAISS index {path} holds {len(index)} vectors, the manifest lists "
-            f"{m.count}: the map is damaged, restore it from a backup or rebuild it"
+            f"the index snapshot {name!r} that {d}'s keyframe store names is missing: the map "
+            "directory is incomplete; restore it from a backup or rebuild it"
+        )
+    if (config.kind == "milvus") != name.endswith(".milvus"):
+        raise MapError(f"{d / name} is not the index file of a {config.kind!r} map: rebuild it")
+    _check_snapshot(d / name, store)
+    if config.kind == "milvus":
+        from pair_vpr_ros.place_map.milvus import MilvusIndex  # pymilvus only when used
+
+        return MilvusIndex.read(d / name, m.desc_dim, config, m.fingerprint, count, read_only)
+    return check_count(DescriptorIndex.read(d / name, m.desc_dim, config), count, d / name)
+
+
+def _check_snapshot(path: Path, store: KeyframeStore) -> None:
+    if str(crc32_file(path)) != store.state(INDEX_CRC):
+        raise MapError(
+            f"index snapshot {path} fails its CRC32 check (a changed or damaged byte): the "
+            "map is damaged; restore it from a backup or rebuild it"
+        )
+
+
+def saved_index_file(d: Path, m: Manifest) -> tuple[Path, int]:
+    """(the index file, keyframes) of the saved map in `d` (a non-flat kind), files checked."""
+    if m.format_version < 3:
+        check_files(d, m)
+        return d / m.files["index"]["name"], m.count
+    store = KeyframeStore(d / m.files["store"]["name"], saved=True, read_only=True)
+    try:
+        path = d / (store.state(INDEX_FILE) or "?")
+        if not path.is_file():
+            raise MapError(f"index snapshot {path} is missing: the map directory is incomplete")
+        _check_snapshot(path, store)
+        return path, store.count()
+    finally:
+        store.close()
+
+
+def check_count(index: DescriptorIndex, count: int, path: Path) -> DescriptorIndex:
+    if len(index) != count:
+        raise MapError(
+            f"FAISS index {path} holds {len(index)} vectors, the map lists {count} keyframes: "
+            "the map is damaged, restore it from a backup or rebuild it"
         )
     return index
 
 
-def _index_config(m: Manifest, ef_search: int | None) -> IndexConfig:
+def index_config(m: Manifest, ef_search: int | None) -> IndexConfig:
+    """The saved index settings; the dense codec is the manifest's (old maps: f16)."""
     try:
-        config = IndexConfig(**m.index)
+        config = replace(IndexConfig(**m.index), dense_codec=m.dense_codec)
         return config if ef_search is None else replace(config, ef_search=int(ef_search))
     except (TypeError, ConfigError) as err:
         raise MapError(f"manifest index settings {m.index} are invalid ({err}): rebuild") from err

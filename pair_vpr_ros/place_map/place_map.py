@@ -1,10 +1,11 @@
 """PlaceMap: the keyframe map (global descriptors, dense tokens, metadata) with atomic save/load.
 
 Keyframe ids are 0, 1, 2, ... in insertion order and survive save/load, so a loaded map continues
-mapping where it stopped (multi-session). The live map works on private copies in a temporary
-folder, except for the append-only dense file, which it shares with the save it came from:
-entries past the saved count are invisible to that save. So a saved map changes only when `save`
-commits (see persist.py), and `save` never rewrites dense entries that are already on disk.
+mapping where it stopped (multi-session). A loaded (or saved) map works on the saved files
+themselves: its keyframe store (store.py) holds the rows added since the last save in an open
+SQLite transaction, and its append-only dense file grows past the entries the saved rows name.
+So a saved map changes only when `save` commits (see persist.py), and a save writes only what was
+added since the last one. A never-saved map keeps its store and dense file in a working folder.
 `save` and `load` are in saving.py (`MapSaving`, which PlaceMap inherits).
 """
 
@@ -24,12 +25,14 @@ import numpy as np
 
 from pair_vpr_ros.errors import ConfigError, MapError
 from pair_vpr_ros.place_map.checks import dense_tokens, keyframe_ids, unit_descriptor
-from pair_vpr_ros.place_map.dense_store import DenseStore, entry_bytes
+from pair_vpr_ros.place_map.dense_codec import entry_bytes
+from pair_vpr_ros.place_map.dense_store import DenseStore
 from pair_vpr_ros.place_map.files import DirLock
 from pair_vpr_ros.place_map.index import IndexConfig, make_index
-from pair_vpr_ros.place_map.metadata import KeyframeMeta, MetadataStore, validate_meta
+from pair_vpr_ros.place_map.metadata import KeyframeMeta, validate_meta
 from pair_vpr_ros.place_map.milvus_expr import Exclusion, identity, utc_session
 from pair_vpr_ros.place_map.saving import MapSaving
+from pair_vpr_ros.place_map.store import KeyframeStore
 
 
 class PlaceMap(MapSaving):
@@ -39,10 +42,11 @@ class PlaceMap(MapSaving):
     fingerprint: opaque model identity (checkpoint hash + input size + desc dim), stored on save.
     index: "flat" (exact) | "ivf" (exact below 25,000 keyframes, then k-means lists: ~1e6
         keyframes; training pauses an add, see place_map/ivf.py) | "hnsw" | an IndexConfig
-        (kind "milvus": a Milvus collection, see place_map/milvus.py and docs/milvus.md).
+        (kind "milvus": a Milvus collection, see place_map/milvus.py and docs/milvus.md);
+        its `dense_codec` ("q4" default, "f16") is how dense tokens are stored.
     dense_cache_size: dense entries kept in memory (LRU). verify_dense_reads: CRC32-check
-    entries read from disk. work_dir: parent of the temporary working folder (default: $TMPDIR);
-    put it on the disk of the map directory so the first save moves the dense file, not copies it.
+    entries read from disk. work_dir: parent of the working folder of a never-saved map (default:
+    $TMPDIR); put it on the disk of the map directory so the first save moves the dense file.
     """
 
     def __init__(
@@ -63,7 +67,8 @@ class PlaceMap(MapSaving):
         self.desc_dim = int(desc_dim)
         self.dense_shape = (int(dense_shape[0]), int(dense_shape[1]))
         self.fingerprint = str(fingerprint)
-        self._meta = MetadataStore(self._tmp / "meta.sqlite")
+        self._codec = config.dense_codec
+        self._store = self._fresh_store()
         self._dense = self._fresh_dense()
         try:
             self._index = make_index(self.desc_dim, config, self.fingerprint)
@@ -74,11 +79,12 @@ class PlaceMap(MapSaving):
     def _setup(self, cache_size: int, verify_reads: bool, work_dir) -> None:
         self._cache_size, self._verify_reads = int(cache_size), bool(verify_reads)
         self._index: Any = None  # DescriptorIndex (FAISS) or MilvusIndex
-        self._meta: MetadataStore | None = None
+        self._store: KeyframeStore | None = None
         self._dense: DenseStore | None = None
         self._home: Path | None = None  # directory of the last load/save (we hold its lock)
         self._lock: DirLock | None = None
         self._dense_committed = False  # the dense file is the one `_home`'s manifest names
+        self._generation = 0  # of `_home` (its store is `_store` when `_store.saved`)
         self._read_only = False
         self.load_note = ""  # what a caller should log about the load ("" = nothing)
         self._fresh_count = 0
@@ -92,9 +98,13 @@ class PlaceMap(MapSaving):
 
     def _fresh_dense(self) -> DenseStore:
         self._fresh_count += 1
-        path = self._tmp / f"dense-work-{self._fresh_count}.f16"
+        path = self._tmp / f"dense-work-{self._fresh_count}.{self._codec}"
         reads = dict(cache_size=self._cache_size, verify_reads=self._verify_reads)
-        return DenseStore(path, self.dense_shape, owned=True, **reads)
+        return DenseStore(path, self.dense_shape, owned=True, codec=self._codec, **reads)
+
+    def _fresh_store(self) -> KeyframeStore:
+        self._fresh_count += 1
+        return KeyframeStore(self._tmp / f"store-work-{self._fresh_count}.sqlite", saved=False)
 
     # ----------------------------------------------------------------- mapping and queries
 
@@ -110,12 +120,13 @@ class PlaceMap(MapSaving):
         kf_id = len(self)
         self._dense.append(tokens)
         try:
-            self._meta.add(replace(meta, id=kf_id), bytes(features))
+            crc = self._dense.crcs[kf_id]
+            self._store.add(replace(meta, id=kf_id), query, crc, bytes(features))
             self._index.add(query[None], [(*self.identity(meta), meta.stamp)])
         except BaseException as err:
             undo = ""
             try:
-                self._meta.delete_from(kf_id)
+                self._store.delete_from(kf_id)
             except sqlite3.Error as again:  # a full disk fails the clean-up too: say both
                 undo = f"; undoing it failed too ({again})"
             self._dense.drop_last()
@@ -159,7 +170,7 @@ class PlaceMap(MapSaving):
     def meta(self, kf_id: int) -> KeyframeMeta:
         """Metadata of one keyframe; MapError if the id is not in the map."""
         self._check_open()
-        found = self._meta.get(kf_id)
+        found = self._store.get(kf_id)
         if found is None:
             raise MapError(f"keyframe {kf_id} is not in the map (ids 0..{len(self) - 1})")
         return found
@@ -168,17 +179,17 @@ class PlaceMap(MapSaving):
         """Packed features of a keyframe (b"": none, e.g. a map saved before features were
         kept); MapError for an unknown id or damaged bytes."""
         self.meta(kf_id)
-        return self._meta.features(kf_id)
+        return self._store.features(kf_id)
 
     def feature_stats(self) -> tuple[int, int]:
         """(keyframes with features, bytes of all their features)."""
         self._check_open()
-        return self._meta.feature_stats()
+        return self._store.feature_stats()
 
     def all_meta(self) -> list[KeyframeMeta]:
         """Every keyframe's metadata, by id (for plots and markers)."""
         self._check_open()
-        return self._meta.all()
+        return self._store.all()
 
     def __len__(self) -> int:
         self._check_open()
@@ -188,7 +199,8 @@ class PlaceMap(MapSaving):
         """Forget every keyframe (ids restart at 0); the last save stays as it is until `save`."""
         self._check_writable("clear")
         self._index.reset()
-        self._meta.clear()
+        old_store, self._store = self._store, self._fresh_store()
+        old_store.close()  # a saved store: its unsaved rows are rolled back, its save kept
         old, self._dense = self._dense, self._fresh_dense()
         self._discard(old)
         self._dense_committed = False
@@ -222,7 +234,7 @@ class PlaceMap(MapSaving):
     @property
     def bytes_per_keyframe(self) -> int:
         """Stored bytes of one keyframe: dense tokens + float32 descriptor (metadata aside)."""
-        return entry_bytes(self.dense_shape) + 4 * self.desc_dim
+        return entry_bytes(self.dense_shape, self._codec) + 4 * self.desc_dim
 
     @property
     def directory(self) -> Path | None:
@@ -238,8 +250,8 @@ class PlaceMap(MapSaving):
         self._closed = True
         if self._dense is not None:
             self._discard(self._dense)
-        if self._meta is not None:
-            self._meta.close()
+        if self._store is not None:
+            self._store.close()
         if hasattr(self._index, "close"):
             self._index.close()
         if self._lock is not None:

@@ -18,6 +18,7 @@ from pair_vpr_ros.place_map import persist
 from pair_vpr_ros.place_map.dense_store import DenseStore
 from pair_vpr_ros.place_map.files import LOCK_NAME, DirLock, fsync_path
 from pair_vpr_ros.place_map.manifest import MANIFEST_NAME, Manifest, read_manifest, remove_stale
+from pair_vpr_ros.place_map.store import KeyframeStore
 
 # The class `load` is called on (PlaceMap): saving.py never imports place_map.py, which imports it.
 MapT = TypeVar("MapT", bound="MapSaving")
@@ -26,15 +27,36 @@ MapT = TypeVar("MapT", bound="MapSaving")
 class MapSaving:
     """`save` and `load` of PlaceMap (place_map.py holds the state they work on)."""
 
-    def save(self, directory: str | os.PathLike, overwrite: bool = False) -> Path:
+    def flush(self) -> None:
+        """The slow half of the next save, safe to run on another thread while keyframes are
+        added (they append past it): fsync the dense tokens added so far. The save then fsyncs
+        only what came after, and commits."""
+        dense = self._dense
+        try:
+            if dense is not None and not self._closed:
+                dense.sync()
+        except (OSError, TypeError):  # closed or replaced meanwhile: the save syncs its own
+            pass
+
+    def checkpoint(self) -> None:
+        """Fold the saved rows from the keyframe store's WAL into its file (any thread)."""
+        store = self._store
+        if store is not None and not self._closed:
+            store.checkpoint()
+
+    def save(
+        self, directory: str | os.PathLike, overwrite: bool = False, checkpoint: bool = True
+    ) -> Path:
         """Atomically make `directory` hold this map (created if needed) -> its resolved path.
 
         A crash at any moment leaves the previous save in `directory` loadable and intact. After
-        a save the map continues in that directory: later saves there only append dense tokens.
+        a save the map continues in that directory: later saves there write only the keyframes
+        added since (persist.py).
         A map of another model saved there is refused (MapFingerprintError) unless `overwrite`.
         A failed save into a folder it created leaves no folder behind. Kind "milvus": a save
         into another folder than the last one writes the rows again under a new writer key
         (the last folder keeps its own rows; cost: one insert of every keyframe).
+        checkpoint=False: leave the WAL for a `checkpoint` call on another thread (MapControl).
         """
         self._check_writable("save")
         target = Path(directory).expanduser().resolve()
@@ -54,9 +76,16 @@ class MapSaving:
         in_place = self._dense_committed and target == self._home
         if self._home is not None and target != self._home and self.filters_in_index:
             self._index.rekey()  # milvus: `_home` keeps its rows, this save gets its own
+        increment = in_place and self._store.saved
         try:
-            manifest, copied = persist.save(target, self._parts(), in_place)
+            if increment:
+                persist.save_increment(target, self._parts())
+            else:
+                manifest, copied = persist.save(target, self._parts(), in_place)
         except BaseException as err:
+            if increment and self._store.rolled_back:
+                self._store.rolled_back = False
+                self._lost_unsaved(err)  # SQLite rolled the unsaved rows back itself
             if new_lock is not None:
                 new_lock.release()
                 if created:
@@ -67,8 +96,32 @@ class MapSaving:
                     "(if any) is unchanged: free disk space or pick another directory and retry"
                 ) from err
             raise
-        self._after_commit(target, manifest, copied, new_lock)
+        if increment:
+            self._after_increment(target)
+        else:
+            self._after_commit(target, manifest, copied, new_lock)
+        if checkpoint:
+            self._store.checkpoint()
         return target
+
+    def _lost_unsaved(self, err: BaseException) -> None:
+        """A failed commit (disk full) that SQLite answered with a rollback dropped the rows
+        added since the last save: go back to the last save, so the live map stays consistent."""
+        saved, count = self._store.count(), len(self._index)
+        if self._index.config.kind != "flat":
+            self.close()
+            raise MapError(
+                f"saving the place map to {self._home} failed ({err}) and dropped the "
+                f"{count - saved} keyframes added since the last save; the map is closed: free "
+                "disk space and load it again (the last save is intact)"
+            ) from err
+        self._index.truncate(saved)
+        self._dense.truncate(saved)
+        raise MapError(
+            f"saving the place map to {self._home} failed ({err}); the {count - saved} keyframes "
+            f"added since the last save are dropped, the map continues from the last save "
+            f"({saved} keyframes): free disk space and save again"
+        ) from err
 
     def _refuse_other_model(self, target: Path) -> None:
         if not (target / MANIFEST_NAME).is_file():
@@ -86,14 +139,28 @@ class MapSaving:
 
     def _parts(self) -> persist.MapParts:
         return persist.MapParts(
-            self._index, self._meta, self._dense, self.desc_dim, self.dense_shape, self.fingerprint
-        )
+            self._index, self._store, self._dense, self.desc_dim, self.dense_shape,
+            self.fingerprint, generation=self._generation,
+        )  # fmt: skip
+
+    def _after_increment(self, d: Path) -> None:
+        persist.reached("committed")
+        keep = {self._store.state(persist.INDEX_FILE)} - {None}
+        remove_stale(d, self._keep(d, keep))
+        persist.reached("cleaned")
+
+    def _keep(self, d: Path, names: set) -> set[str]:
+        """Files of the saved map in `d`: the manifest's, the store's WAL, the index snapshot."""
+        store = self._store.path.name
+        return names | {MANIFEST_NAME, LOCK_NAME, self._dense.path.name, store,
+                        store + "-wal", store + "-shm", store + "-journal"}  # fmt: skip
 
     def _after_commit(
         self, d: Path, manifest: Manifest, copied: Path | None, lock: DirLock | None
     ) -> None:
         """Bookkeeping once `d` holds the new save; if it fails, the next save copies again."""
         self._dense_committed = False
+        old_store = self._store
         if copied is None:
             self._dense.owned = False  # a save names this file now: never move or delete it
         if lock is not None:
@@ -110,16 +177,19 @@ class MapSaving:
                     old.crcs,
                     cache_size=self._cache_size,
                     verify_reads=self._verify_reads,
+                    codec=old.codec,
                 )
                 self._discard(old)
-            self._dense_committed = True
             fsync_path(d)  # make the manifest switch durable before deleting what it replaced
+            self._store = KeyframeStore(d / manifest.files["store"]["name"], saved=True)
+            old_store.close()  # its rows are in the new store now
+            self._generation, self._dense_committed = manifest.generation, True
         except OSError as err:
             raise MapError(
                 f"the place map was saved to {d}, but finishing the save failed ({err}); "
                 "save again to make sure it is on disk"
             ) from err
-        remove_stale(d, manifest.file_names() | {MANIFEST_NAME, LOCK_NAME})
+        remove_stale(d, self._keep(d, {self._store.state(persist.INDEX_FILE)} - {None}))
         persist.reached("cleaned")
 
     @classmethod
@@ -154,22 +224,23 @@ class MapSaving:
             parts = persist.open_saved(
                 d,
                 expected_fingerprint,
-                obj._tmp / "meta.sqlite",
+                obj._tmp,
                 read_only=read_only,
                 ef_search=ef_search,
                 cache_size=obj._cache_size,
                 verify_reads=obj._verify_reads,
                 legacy=legacy_identity,
             )
-            obj._index, obj._meta, obj._dense = parts.index, parts.meta, parts.dense
+            obj._index, obj._store, obj._dense = parts.index, parts.store, parts.dense
             if verify_dense:
                 obj._dense.verify_all()
         except BaseException:
             obj.close()
             raise
         obj.desc_dim, obj.dense_shape = parts.desc_dim, parts.dense_shape
-        obj.fingerprint = parts.fingerprint
+        obj.fingerprint, obj._codec = parts.fingerprint, parts.dense.codec
         obj._home, obj._dense_committed, obj._read_only = d, True, read_only
+        obj._generation = parts.generation
         obj.load_note = parts.note
         return obj
 

@@ -168,12 +168,20 @@ class MapControl:
 
     # ---- services ----------------------------------------------------------------------------
     def save(self, map_dir: str) -> Result:
+        """Save with the slow I/O off the map thread (keyframes keep flowing): the dense tokens
+        are fsynced here first, the map thread then fsyncs the few added since and commits the
+        new rows, and the store's WAL is folded in here afterwards (place_map/persist.py)."""
+        place_map = self.pipeline.place_map  # may be swapped meanwhile: flush is then a no-op
+
         def run() -> Result:
-            path = self.pipeline.save_map(_map_dir(map_dir))
+            path = self.pipeline.save_map(_map_dir(map_dir), checkpoint=False)
             self._saved = self._save_mark()
             return True, f"saved {self._saved[1]} keyframes to {path}"
 
-        return self._result(run)
+        place_map.flush()
+        result = self._result(run)
+        self.pipeline.place_map.checkpoint()
+        return result
 
     def load(self, map_dir: str) -> Result:
         def run() -> Result:

@@ -11,7 +11,8 @@ import faiss
 import numpy as np
 import pytest
 from bad_input import tree_digest
-from test_bad_input_map import _faiss, _replace_checked, _rewrite_manifest, saved  # noqa: F401
+from test_bad_input_map import _faiss, _rewrite_manifest, saved  # noqa: F401
+from test_bad_input_map_store import faiss_snapshot, replace_snapshot, resign_manifest
 from test_place_map_persist import DIM, SHAPE, add_range
 
 from pair_vpr_ros.errors import ConfigError, MapError
@@ -74,37 +75,40 @@ def _ivf(count: int, metric=faiss.METRIC_INNER_PRODUCT, ids=None, train=True) ->
 
 IVF_CORRUPTIONS = {
     "settings nprobe zero": (
-        lambda d: _rewrite_manifest(d, lambda m: m["index"].update(nprobe=0)),
+        lambda d: resign_manifest(d, lambda m: m["index"].update(nprobe=0)),
         r"manifest index settings .* are invalid .*nprobe must be an integer >= 1, got 0",
     ),
     "settings growth text": (
-        lambda d: _rewrite_manifest(d, lambda m: m["index"].update(retrain_growth="x")),
+        lambda d: resign_manifest(d, lambda m: m["index"].update(retrain_growth="x")),
         r"manifest index settings .* are invalid .*retrain_growth must be",
     ),
     "hnsw file": (
-        lambda d: _faiss(d, faiss.IndexHNSWFlat(DIM, 4, faiss.METRIC_INNER_PRODUCT)),
+        lambda d: faiss_snapshot(d, faiss.IndexHNSWFlat(DIM, 4, faiss.METRIC_INNER_PRODUCT)),
         r"is a IndexHNSWFlat of dim 8, but the manifest says 'ivf' of dim 8",
     ),
     "ivf of another dim": (
-        lambda d: _faiss(d, faiss.IndexIVFFlat(faiss.IndexFlatIP(9), 9, 2, 0)),
+        lambda d: faiss_snapshot(d, faiss.IndexIVFFlat(faiss.IndexFlatIP(9), 9, 2, 0)),
         r"is a IndexIVFFlat of dim 9, but the manifest says 'ivf' of dim 8",
     ),
-    "ivf l2": (lambda d: _faiss(d, _ivf(N_IVF, faiss.METRIC_L2)), r"does not use inner product"),
+    "ivf l2": (
+        lambda d: faiss_snapshot(d, _ivf(N_IVF, faiss.METRIC_L2)),
+        r"does not use inner product",
+    ),
     "ivf untrained": (
-        lambda d: _faiss(d, _ivf(0, train=False)),
+        lambda d: faiss_snapshot(d, _ivf(0, train=False)),
         r"is an untrained or inconsistent IVF index \(4 lists, quantizer IndexFlatIP of 0\)",
     ),
     "ivf other ids": (
-        lambda d: _faiss(d, _ivf(N_IVF, ids=np.arange(N_IVF) + 100)),
+        lambda d: faiss_snapshot(d, _ivf(N_IVF, ids=np.arange(N_IVF) + 100)),
         r"holds ids other than 0..59: the map is damaged",
     ),
     "ivf fewer vectors": (
-        lambda d: _faiss(d, _ivf(30)),
-        r"index-1.faiss holds 30 vectors, the manifest lists 60",
+        lambda d: faiss_snapshot(d, _ivf(30)),
+        r"index-1-0.faiss holds 30 vectors, the map lists 60 keyframes",
     ),
     "ivf truncated": (
-        lambda d: _replace_checked(d, "index", (d / "index-1.faiss").read_bytes()[:-300]),
-        r"index-1.faiss could not be read",
+        lambda d: replace_snapshot(d, (d / "index-1-0.faiss").read_bytes()[:-300]),
+        r"index-1-0.faiss could not be read",
     ),
 }
 
@@ -136,4 +140,4 @@ def test_map_saved_before_ivf_existed_loads_with_defaults(saved: Path) -> None: 
         lambda m: [m["index"].pop(f) for f in ("nlist", "nprobe", "train_at", "retrain_growth")],
     )
     with PlaceMap.load(saved) as m:
-        assert m.index_config == IndexConfig() and len(m) == 12
+        assert m.index_config == IndexConfig(dense_codec="f16") and len(m) == 12

@@ -1,12 +1,13 @@
-"""Bad-input matrix, map folders: every file missing, truncated, corrupted, of the wrong schema or
-fingerprint gives a MapError naming it, through PlaceMap.load and LoopClosurePipeline.load_map,
-and no load or failed save changes a byte of the saved map."""
+"""Bad-input matrix, map folders of format 2 (test/data/maps, written before issue 34; still
+loaded): every file missing, truncated, corrupted, of the wrong schema or fingerprint gives a
+MapError naming it, and no load changes a byte of the saved map. Format 3 (the store, saves,
+full disks, two writers, the pipeline): test_bad_input_map_store.py."""
 
 from __future__ import annotations
 
-import errno
 import json
 import os
+import shutil
 import sqlite3
 import struct
 from pathlib import Path
@@ -14,15 +15,20 @@ from pathlib import Path
 import faiss
 import numpy as np
 import pytest
-import test_place_map_persist as persist_tests
-from bad_input import saved_map_digest, tree_digest
-from test_place_map_persist import DIM, N0, SHAPE, add_range, assert_holds, flip_byte
+from bad_input import tree_digest
+from test_place_map_persist import DIM, N0, SHAPE, add_range, flip_byte
 
 from pair_vpr_ros.errors import MapError, MapFingerprintError
 from pair_vpr_ros.hashing import sha256_file
-from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
-from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap, dense_store, files, manifest, persist
-from pair_vpr_ros.place_map.files import LOCK_NAME
+from pair_vpr_ros.place_map import PlaceMap
+
+MAPS = Path(__file__).parents[1] / "data" / "maps"  # written by pair_vpr_ros at cc01a8d
+
+
+@pytest.fixture
+def saved(tmp_path: Path) -> Path:
+    """A format-2 map of N0 keyframes (test_place_map_persist's content) in tmp_path / "map"."""
+    return Path(shutil.copytree(MAPS / "format-2", tmp_path / "map"))
 
 
 def _rewrite_manifest(d: Path, edit) -> None:
@@ -58,7 +64,6 @@ def _sqlite(d: Path, *statements: str) -> None:
     _replace_checked(d, "meta", tmp.read_bytes())
 
 
-saved = persist_tests.saved  # fixture: a map of N0 keyframes in tmp_path / "map"
 GOOD_TABLE = (
     "CREATE TABLE keyframes (id INTEGER PRIMARY KEY, stamp REAL NOT NULL, frame_id TEXT NOT "
     "NULL, source TEXT NOT NULL, x REAL, y REAL, z REAL, qx REAL, qy REAL, qz REAL, qw REAL, "
@@ -113,7 +118,7 @@ CORRUPTIONS = {
     ),
     "version": (
         lambda d: _rewrite_manifest(d, lambda m: m.update(format_version=99)),
-        r"has format_version 99, this version of pair_vpr_ros reads versions 1, 2: use a "
+        r"has format_version 99, this version of pair_vpr_ros reads versions 1, 2, 3: use a "
         r"matching pair_vpr_ros release or rebuild the map",
     ),
     "field": (
@@ -146,13 +151,13 @@ CORRUPTIONS = {
     ),
     "more keyframes than stored": (
         lambda d: _rewrite_manifest(d, lambda m: m.update(count=N0 + 1)),
-        r"index-1.faiss holds 12 vectors, the manifest lists 13",
+        r"index-1.faiss holds 12 vectors, the map lists 13 keyframes",
     ),
     # Issue 13 #2: a smaller dense_shape used to truncate the dense file on a writable load.
     "dense_shape smaller": (
         lambda d: _rewrite_manifest(d, lambda m: m.update(dense_shape=[2, 8])),
         r"dense-1.f16 does not match its manifest: keyframe 0 fails its CRC32 check when read "
-        r"as \[2, 8\] float16 tokens .* nothing was changed",
+        r"as \[2, 8\] f16 tokens .* nothing was changed",
     ),
     "dense_shape larger": (
         lambda d: _rewrite_manifest(d, lambda m: m.update(dense_shape=[8, 8])),
@@ -237,7 +242,7 @@ CORRUPTIONS = {
     ),
     "faiss fewer vectors": (
         lambda d: _faiss(d, _flat(DIM, 3)),
-        r"holds 3 vectors, the manifest lists 12",
+        r"holds 3 vectors, the map lists 12 keyframes",
     ),
     "sqlite garbage": (
         lambda d: _replace_checked(d, "meta", b"not a database" * 100),
@@ -298,171 +303,6 @@ def test_wrong_fingerprint_is_refused_and_unchanged(saved: Path) -> None:
     assert tree_digest(saved) == before
 
 
-def test_unsaved_tail_is_kept_not_truncated(saved: Path) -> None:
-    """A dense file longer than `count` (a session that never saved) is never shrunk."""
-    with PlaceMap.load(saved) as m:
-        add_range(m, N0, N0 + 3)  # appended, never saved
-    size = (saved / "dense-1.f16").stat().st_size
-    assert size == (N0 + 3) * 64
-    with PlaceMap.load(saved) as m:
-        assert (saved / "dense-1.f16").stat().st_size == size
-        assert_holds(m, list(range(N0)))
-        add_range(m, N0, N0 + 1)  # overwrites the first tail entry
-        m.save(saved)
-    with PlaceMap.load(saved, verify_dense=True) as m:
-        assert_holds(m, list(range(N0 + 1)))
-
-
-def _model_map(tiny_model, tmp_path: Path, count: int = 3) -> Path:
-    pipe = LoopClosurePipeline(tiny_model)
-    n, d = tiny_model.num_patches, tiny_model.config.embed_dim
-    rng = np.random.default_rng(0)
-    for i in range(count):
-        pipe.place_map.add(rng.normal(size=512), rng.normal(size=(n, d)), KeyframeMeta(stamp=i))
-    path = pipe.save_map(tmp_path / "map")
-    pipe.close()
-    return path
-
-
-PIPELINE_CASES = {
-    "sqlite wrong columns": "sqlite wrong columns",
-    "faiss absurd size": "faiss absurd size",
-    "crc values": "crc values",
-    "missing manifest": "no manifest",
-}
-
-
-@pytest.mark.parametrize("case", list(PIPELINE_CASES))
-def test_pipeline_load_map_gives_map_error_and_keeps_its_map(tiny_model, tmp_path, case) -> None:
-    path = _model_map(tiny_model, tmp_path)
-    damage, message = CORRUPTIONS[PIPELINE_CASES[case]]
-    message = message.replace("12", "3")
-    damage(path)
-    before = tree_digest(path)
-    pipe = LoopClosurePipeline(tiny_model)
-    pipe.place_map.add(
-        np.ones(512), np.ones((tiny_model.num_patches, 32)), KeyframeMeta(stamp=0.0)
-    )
-    with pytest.raises(MapError, match=message):
-        pipe.load_map(path)
-    assert len(pipe.place_map) == 1  # the map it had is still there
-    pipe.close()
-    assert tree_digest(path) == before
-
-
-def test_pipeline_refuses_a_map_of_other_shapes(tiny_model, tmp_path) -> None:
-    path = _model_map(tiny_model, tmp_path, count=0)
-    _rewrite_manifest(path, lambda m: m.update(dense_shape=[16, 8]))
-    pipe = LoopClosurePipeline(tiny_model)
-    with pytest.raises(MapFingerprintError, match=r"dense tokens of \[16, 8\], this model makes"):
-        pipe.load_map(path)
-    assert len(pipe.place_map) == 0
-    pipe.close()
-    PlaceMap.load(path).close()  # the refused map was closed (its lock released)
-
-
-# ---- Issue 13 #7: a failed save (disk full) leaves no temporary or half-written files
-
-
-def _enospc(*_args, **_kw):
-    raise OSError(errno.ENOSPC, "No space left on device")
-
-
-def _partial_then_enospc(path, *_args, **_kw):
-    Path(path).write_bytes(b"\0" * 100)  # what a full disk leaves: a partial file
-    _enospc()
-
-
-def _copy_then_enospc(_src_fd, dst, _nbytes):
-    _partial_then_enospc(dst)
-
-
-FULL_DISK_AT = {
-    "dense copy": lambda m, mp: mp.setattr(dense_store, "copy_prefix", _copy_then_enospc),
-    "crc": lambda m, mp: mp.setattr(persist, "write_bytes_durably", _partial_then_enospc),
-    "index": lambda m, mp: mp.setattr(m._index, "write", _partial_then_enospc),
-    "meta": lambda m, mp: mp.setattr(m._meta, "save_to", _partial_then_enospc),
-    "manifest": lambda m, mp: mp.setattr(manifest, "write_bytes_durably", _partial_then_enospc),
-    "fsync": lambda m, mp: mp.setattr(persist, "fsync_path", _enospc),
-}
-
-
-FULL_DISK_CASES = [("save_as", "dense copy")] + [
-    (mode, step) for mode in ("append", "save_as", "fresh") for step in list(FULL_DISK_AT)[1:]
-]
-
-
-@pytest.mark.parametrize(("mode", "step"), FULL_DISK_CASES)
-def test_full_disk_save_leaves_nothing_behind(saved, tmp_path, monkeypatch, mode, step) -> None:
-    target = tmp_path / "other" if mode == "save_as" else saved
-    m = PlaceMap(DIM, SHAPE, "fp-a") if mode == "fresh" else PlaceMap.load(saved)
-    start = len(m)
-    add_range(m, start, start + 2)
-    listing = sorted(os.listdir(target)) if target.exists() else None  # a new folder
-    before = saved_map_digest(saved)
-    with monkeypatch.context() as mp:
-        FULL_DISK_AT[step](m, mp)
-        with pytest.raises(MapError, match=r"saving the place map to .* failed .*No space left"):
-            m.save(target)
-    assert saved_map_digest(saved) == before
-    live = m._dense.path.name if m._dense.path.parent == target else None  # moved, not copied
-    if listing is None:  # issue 25: a failed save into a folder it made leaves no folder
-        assert not target.exists()
-    else:
-        assert sorted(n for n in os.listdir(target) if n != live) == [
-            n for n in listing if n != live
-        ]
-    m.save(target)  # and the save can be retried
-    m.close()
-    with PlaceMap.load(target) as again:
-        assert_holds(again, list(range(start + 2)))
-
-
-# ---- Issue 25 #6: a full disk at the lock file, and a save over another model's map
-
-
-def test_full_disk_at_the_lock_file_is_a_map_error_and_leaves_no_folder(tmp_path, monkeypatch):
-    target = tmp_path / "new" / "map"
-    with PlaceMap(DIM, SHAPE, "fp-a") as m:
-        add_range(m, 0, 2)
-        with monkeypatch.context() as mp:
-            mp.setattr(files.os, "pwrite", _enospc)
-            with pytest.raises(MapError) as err:
-                m.save(target)
-        assert str(err.value) == (
-            f"cannot write the lock file {target / LOCK_NAME} (No space left on device): free "
-            "disk space or pick another directory and retry"
-        )
-        assert not target.exists() and (tmp_path / "new").is_dir()
-        m.save(target)  # retried once there is room
-    with PlaceMap.load(target) as again:
-        assert_holds(again, [0, 1])
-
-
-def test_save_over_another_models_map_is_refused_unless_overwrite(saved, tmp_path) -> None:
-    before = saved_map_digest(saved)
-    with PlaceMap(DIM, SHAPE, "fp-b") as other:
-        add_range(other, 0, 1)
-        with pytest.raises(MapFingerprintError) as err:
-            other.save(saved)
-        assert str(err.value) == (
-            f"map directory {saved} holds a map of another model (fingerprint 'fp-a', this "
-            "map's is 'fp-b'): save into another directory, or pass overwrite=True to replace it"
-        )
-        assert saved_map_digest(saved) == before
-        other.save(saved, overwrite=True)
-    with PlaceMap.load(saved) as again:
-        assert again.fingerprint == "fp-b" and len(again) == 1
-
-
-def test_save_over_the_same_models_map_still_replaces_it(saved) -> None:
-    with PlaceMap(DIM, SHAPE, "fp-a") as same:
-        add_range(same, 0, 1)
-        same.save(saved)
-    with PlaceMap.load(saved) as again:
-        assert len(again) == 1
-
-
 # ---- Issue 38 #8: a full disk while a keyframe's metadata is written is a MapError, even
 # when undoing the half-written rows fails too; the map keeps what it held.
 @pytest.mark.parametrize("undo_fails", [False, True])
@@ -471,7 +311,7 @@ def test_a_full_disk_during_add_is_a_map_error(tmp_path, monkeypatch, undo_fails
 
     with PlaceMap(DIM, SHAPE, "fp-a", work_dir=tmp_path) as m:
         add_range(m, 0, 3)
-        meta = m._meta
+        store = m._store
 
         def full(*args):
             raise sqlite3.OperationalError("database or disk is full")
@@ -479,9 +319,9 @@ def test_a_full_disk_during_add_is_a_map_error(tmp_path, monkeypatch, undo_fails
         def malformed(*args):
             raise sqlite3.DatabaseError("database disk image is malformed")
 
-        monkeypatch.setattr(meta, "add", full)
+        monkeypatch.setattr(store, "add", full)
         if undo_fails:
-            monkeypatch.setattr(meta, "delete_from", malformed)
+            monkeypatch.setattr(store, "delete_from", malformed)
         with pytest.raises(MapError) as err:
             m.add(desc_for(3), dense_for(3), meta_for(3))
         undo = "; undoing it failed too (database disk image is malformed)" if undo_fails else ""

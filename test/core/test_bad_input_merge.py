@@ -50,10 +50,10 @@ CASES = {
         "input map {t}/empty cannot be merged: {t}/empty/manifest.json is missing",
     ),
     "damaged map": (
-        lambda t, a, b: [str(a), str(b), (b / "index-1.faiss").write_bytes(b"x") and str(a)][:2],
+        lambda t, a, b: [str(a), str(b), (b / "map-1.sqlite").write_bytes(b"x") and str(a)][:2],
         1,
-        "input map {b} cannot be merged: map file {b}/index-1.faiss (index) does not match its "
-        "checksum",
+        "input map {b} cannot be merged: keyframe store {b}/map-1.sqlite cannot be read (no such "
+        "table: keyframes)",
     ),
 }
 
@@ -96,7 +96,7 @@ def test_bad_out_is_refused_before_any_work(tmp_path, capsys, out):
     assert tree_digest(tmp_path) == before
 
 
-@pytest.mark.parametrize("step", ["dense", "index", "meta", "manifest"])
+@pytest.mark.parametrize("step", ["dense", "index", "store", "manifest"])
 def test_a_merge_that_dies_while_saving_leaves_no_out_and_unchanged_inputs(
     tmp_path, capsys, monkeypatch, step
 ):
@@ -118,9 +118,9 @@ def test_info_of_a_missing_or_damaged_map_is_an_error_line(tmp_path, capsys):
     assert main(["info", str(tmp_path / "none")]) == 1
     assert capsys.readouterr().err.startswith(f"error: {tmp_path / 'none'}/manifest.json is")
     a = make_map(tmp_path / "a", "r1", "mon", 2, seed=1)
-    (a / "meta-1.sqlite").write_bytes(b"x")
+    (a / "map-1.sqlite").write_bytes(b"x")
     assert main(["info", str(a)]) == 1
-    assert "meta-1.sqlite (meta) does not match its checksum" in capsys.readouterr().err
+    assert "map-1.sqlite cannot be read (no such table: keyframes)" in capsys.readouterr().err
 
 
 def test_folders_of_a_killed_merge_are_removed_by_the_next(tmp_path, capsys):

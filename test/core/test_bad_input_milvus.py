@@ -4,12 +4,12 @@ with exact texts; a server that goes away is a counted skip; nothing saved chang
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
 import pytest
 from bad_input import make_flaky, tree_digest
+from test_bad_input_map_store import resign_manifest
 from test_place_map_persist import DIM, SHAPE, add_range, dense_for, desc_for, meta_for
 
 from pair_vpr_ros.errors import ConfigError, MapError, MapFingerprintError, MapUnavailableError
@@ -151,10 +151,7 @@ def saved_milvus(milvus, tmp_path: Path) -> Path:
 
 
 def _set_index(directory: Path, **fields) -> None:
-    path = directory / "manifest.json"
-    data = json.loads(path.read_text())
-    data["index"].update(fields)
-    path.write_text(json.dumps(data))
+    resign_manifest(directory, lambda data: data["index"].update(fields))
 
 
 def test_a_saved_map_whose_server_is_gone(saved_milvus: Path) -> None:
@@ -166,17 +163,17 @@ def test_a_saved_map_whose_server_is_gone(saved_milvus: Path) -> None:
 
 
 def test_a_saved_map_of_another_kind_of_index_file(saved_milvus: Path) -> None:
-    _set_index(saved_milvus, kind="flat")
+    _set_index(saved_milvus, kind="hnsw")
     with pytest.raises(MapError) as err:
         PlaceMap.load(saved_milvus, "fp")
     assert str(err.value) == (
-        f"{saved_milvus / 'index-1.milvus'} is not the index file of a 'flat' map: rebuild it"
+        f"{saved_milvus / 'index-1-0.milvus'} is not the index file of a 'hnsw' map: rebuild it"
     )
 
 
 def test_a_damaged_record(saved_milvus: Path, tmp_path: Path) -> None:
-    record = saved_milvus / "index-1.milvus"
-    with pytest.raises(MapError, match=r"does not match its checksum"):  # the manifest's sha256
+    record = saved_milvus / "index-1-0.milvus"
+    with pytest.raises(MapError, match=r"fails its CRC32 check"):  # the store's CRC32 of it
         record.write_bytes(record.read_bytes()[:100])
         PlaceMap.load(saved_milvus, "fp")
     cut = tmp_path / "cut.milvus"
@@ -187,9 +184,9 @@ def test_a_damaged_record(saved_milvus: Path, tmp_path: Path) -> None:
 
 def test_a_record_of_another_count(saved_milvus: Path, tmp_path: Path) -> None:
     with pytest.raises(MapError) as err:
-        read_record(saved_milvus / "index-1.milvus", DIM, 7)
+        read_record(saved_milvus / "index-1-0.milvus", DIM, 7)
     assert str(err.value) == (
-        f"milvus record {saved_milvus / 'index-1.milvus'} does not match the manifest (7 "
+        f"milvus record {saved_milvus / 'index-1-0.milvus'} does not match the manifest (7 "
         f"keyframes of {DIM}-d): the map is damaged, restore it from a backup or rebuild it"
     )
 

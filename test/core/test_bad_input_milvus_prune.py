@@ -49,7 +49,7 @@ def _other_program(t: Path, site: str) -> list[str]:
 
 
 def _damaged(t: Path, site: str) -> list[str]:
-    (t / "maps" / "a" / "index-1.milvus").write_bytes(b"x")
+    (t / "maps" / "a" / "index-1-0.milvus").write_bytes(b"x")
     return [site]
 
 
@@ -90,8 +90,8 @@ CASES = {
     ),
     "damaged map": (
         _damaged,
-        "saved map {t}/maps/a cannot be read (map file {t}/maps/a/index-1.milvus (index) does not "
-        "match its checksum in {t}/maps/a/manifest.json (size 1, recorded ",
+        "saved map {t}/maps/a cannot be read (index snapshot {t}/maps/a/index-1-0.milvus fails "
+        "its CRC32 check",
     ),
     "server unreachable": (
         lambda t, s: ["http://127.0.0.1:9"],

@@ -33,7 +33,7 @@ def _not_a_map(t):
 
 def _damaged(t):
     d = make_map(t / "d", "r1", "mon", 2, seed=1)
-    (d / "meta-1.sqlite").write_bytes(b"x")
+    (d / "map-1.sqlite").write_bytes(b"x")
     return [d]
 
 
@@ -54,8 +54,8 @@ CASES = {
     "damaged": (
         _damaged,
         MapError,
-        "prior map {t}/d cannot be used: map file {t}/d/meta-1.sqlite (meta) does not match its "
-        "checksum",
+        "prior map {t}/d cannot be used: keyframe store {t}/d/map-1.sqlite cannot be read (no "
+        "such table: keyframes)",
     ),
     "another model": (
         lambda t: [make_map(t / "m", "r2", "mon", 2, seed=1, fingerprint="model-b")],

@@ -4,12 +4,13 @@ identities in the map (old maps named at load) and in every loop record."""
 from __future__ import annotations
 
 import json
-import sqlite3
+import shutil
 from datetime import datetime, timezone
 
 import numpy as np
 import pytest
 from exact_match import EXACT_MATCH
+from test_bad_input_map import MAPS
 
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.identity import Identity, resolve_identity, robot_from_namespace
@@ -157,41 +158,22 @@ def test_a_map_recorded_on_an_overlapping_clock_keeps_its_candidates(tiny_model,
     same.close()
 
 
-def _as_version_1(directory):
-    """Rewrite a saved map as format version 1 (no robot / session columns), checksums fixed."""
-    from pair_vpr_ros.hashing import sha256_file
-
-    manifest = json.loads((directory / MANIFEST_NAME).read_text())
-    meta = directory / manifest["files"]["meta"]["name"]
-    with sqlite3.connect(meta) as conn:
-        conn.execute("ALTER TABLE keyframes DROP COLUMN robot")
-        conn.execute("ALTER TABLE keyframes DROP COLUMN session")
-    conn.close()
-    manifest["format_version"] = 1
-    manifest["files"]["meta"].update(size=meta.stat().st_size, sha256=sha256_file(meta))
-    (directory / MANIFEST_NAME).write_text(json.dumps(manifest))
-
-
 def test_an_old_map_loads_with_its_keyframes_named_and_a_note(tmp_path):
-    m = PlaceMap(desc_dim=4, dense_shape=(2, 3))
-    for i in range(3):
-        m.add(np.eye(4)[i], np.zeros((2, 3)), KeyframeMeta(stamp=float(i), frame_id="cam"))
-    m.save(tmp_path / "map")
-    m.close()
-    _as_version_1(tmp_path / "map")
+    shutil.copytree(MAPS / "format-1", tmp_path / "map")  # written before robots and sessions
     loaded = PlaceMap.load(tmp_path / "map", legacy_identity=("r7", "legacy"))
-    assert [(k.robot, k.session) for k in loaded.all_meta()] == [("r7", "legacy")] * 3
+    assert [(k.robot, k.session) for k in loaded.all_meta()] == [("r7", "legacy")] * 12
     assert loaded.load_note == (
-        f"place map {tmp_path / 'map'} was saved before keyframes carried a robot and a session "
-        "(format version 1): its 3 keyframes are named robot 'r7', session 'legacy' (the next "
-        "save stores these names)"
+        f"place map {tmp_path / 'map'} is of format version 1; its 12 keyframes are named robot "
+        "'r7', session 'legacy': loaded through a working copy, converted to format 3 by the "
+        "next save into it (dense tokens stay float16)"
     )
-    loaded.add(np.eye(4)[3], np.zeros((2, 3)), KeyframeMeta(stamp=9.0, robot="r7", session="s2"))
+    loaded.add(np.eye(8)[3], np.zeros((4, 8)), KeyframeMeta(stamp=9.0, robot="r7", session="s2"))
     loaded.save(tmp_path / "map")
     loaded.close()
     again = PlaceMap.load(tmp_path / "map", read_only=True)
-    assert json.loads((tmp_path / "map" / MANIFEST_NAME).read_text())["format_version"] == 2
-    assert [k.session for k in again.all_meta()] == ["legacy"] * 3 + ["s2"] and not again.load_note
+    assert json.loads((tmp_path / "map" / MANIFEST_NAME).read_text())["format_version"] == 3
+    assert [k.session for k in again.all_meta()] == ["legacy"] * 12 + ["s2"]
+    assert not again.load_note
     again.close()
 
 

@@ -16,11 +16,9 @@ from exact_match import EXACT_MATCH
 from pair_vpr_ros.geometry.camera import CameraModel
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
 from pair_vpr_ros.geometry.relpose import PoseConfig
-from pair_vpr_ros.hashing import sha256_file
 from pair_vpr_ros.loops.detector import Candidate, DetectorConfig
 from pair_vpr_ros.loops.frames import Frame
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
-from pair_vpr_ros.place_map.manifest import MANIFEST_NAME
 
 H, W = 120, 160
 CAMERA = CameraModel(W, H, 100.0, 100.0, 79.5, 59.5)
@@ -125,16 +123,11 @@ def test_poses_after_save_and_load_come_from_the_features_on_disk(model, tmp_pat
 
 
 def strip_features(map_dir: Path) -> None:
-    """Make a saved map look like one saved before features were kept (old format)."""
-    import json
-
-    manifest = json.loads((map_dir / MANIFEST_NAME).read_text())
-    meta = map_dir / manifest["files"]["meta"]["name"]
-    with sqlite3.connect(meta) as conn:
-        conn.execute("DROP TABLE features")
+    """Make a saved map's keyframes look like ones saved before features were kept (what a
+    format-2 map without a features table converts to)."""
+    with sqlite3.connect(map_dir / "map-1.sqlite") as conn:
+        conn.execute("DELETE FROM features")
     conn.close()
-    manifest["files"]["meta"].update(size=meta.stat().st_size, sha256=sha256_file(meta))
-    (map_dir / MANIFEST_NAME).write_text(json.dumps(manifest))
 
 
 def test_an_old_map_without_features_loads_and_poses_come_for_new_keyframes(model, tmp_path):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import faiss
 import numpy as np
 import pytest
+from test_place_map_persist import stored
 
 from pair_vpr_ros.errors import ConfigError, MapError
 from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
@@ -101,24 +102,34 @@ def test_hnsw_shortcut_and_config_validation() -> None:
         IndexConfig(kind="hnsw", ef_search=0)
 
 
-def test_dense_round_trip_float16() -> None:
-    with PlaceMap(DIM, SHAPE, "fp", dense_cache_size=2) as m:
+@pytest.mark.parametrize("codec", ["q4", "f16"])
+def test_dense_round_trip(codec: str) -> None:
+    index = IndexConfig(dense_codec=codec)
+    with PlaceMap(DIM, SHAPE, "fp", index, dense_cache_size=2) as m:
         fill(m, random_descs(5))
         out = m.get_dense([3, 0, 3, 4])
         assert out.dtype == np.float16 and out.shape == (4, *SHAPE)
         for row, i in zip(out, [3, 0, 3, 4], strict=True):
-            np.testing.assert_array_equal(row, dense_for(i).astype(np.float16))
+            want = dense_for(i).astype(np.float16)
+            if codec == "f16":
+                np.testing.assert_array_equal(row, want)
+            else:  # 4 bits: within half a step (max |x| of the channel / 7) of each value
+                step = np.abs(want).max(axis=0) / 7
+                assert (np.abs(row - want) <= 0.5 * step + 1e-2).all()
+                assert not np.array_equal(row, want)
         assert m.get_dense([]).shape == (0, *SHAPE)
         np.testing.assert_allclose(m.get_desc([1, 2]), random_descs(5)[1:3], atol=1e-6)
 
 
 def test_bytes_per_keyframe(tmp_path) -> None:
-    with PlaceMap(512, (529, 768)) as m:
+    with PlaceMap(512, (529, 768), index=IndexConfig(dense_codec="f16")) as m:
         assert m.bytes_per_keyframe == 529 * 768 * 2 + 512 * 4  # ViT-B/322: float16 + float32
+    with PlaceMap(512, (529, 768)) as m:  # default q4: 4 bits + a float16 scale per channel
+        assert m.bytes_per_keyframe == 529 * 768 // 2 + 768 * 2 + 512 * 4 <= 200 * 1024 + 2048
     with PlaceMap(DIM, SHAPE, "fp") as m:
         fill(m, random_descs(3))
         m.save(tmp_path / "map")
-        (dense,) = (tmp_path / "map").glob("dense-*.f16")
+        (dense,) = (tmp_path / "map").glob("dense-*.q4")
         assert dense.stat().st_size == 3 * (m.bytes_per_keyframe - 4 * DIM)
 
 
@@ -142,7 +153,7 @@ def test_clear_restarts_ids() -> None:
         m.clear()
         assert len(m) == 0 and m.search(unit(0), 3) == [] and m.all_meta() == []
         assert m.add(unit(5), dense_for(7), KeyframeMeta(stamp=1.0)) == 0
-        np.testing.assert_array_equal(m.get_dense([0])[0], dense_for(7).astype(np.float16))
+        np.testing.assert_array_equal(m.get_dense([0])[0], stored(dense_for(7)))
 
 
 @pytest.mark.parametrize(

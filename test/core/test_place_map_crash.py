@@ -1,22 +1,26 @@
 """Crash safety of PlaceMap.save: a save killed (or failing) at any step keeps the last save.
 
 Real crashes run in a child process that `os._exit`s from the save hook at a given step, or is
-SIGKILLed while saving in a loop; failures in-process raise from the hook.
+SIGKILLed while saving in a loop; failures in-process raise from the hook. Modes: "append" and
+"hnsw" continue a saved map (incremental saves: one store commit; hnsw adds an index snapshot),
+"fresh" and "convert" write a new generation (a new map, a format-2 map converted to 3).
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from test_bad_input_map import MAPS
 from test_place_map_persist import DIM, N0, SHAPE, add_range, assert_holds
 
 from pair_vpr_ros.errors import MapError
-from pair_vpr_ros.place_map import PlaceMap, persist
+from pair_vpr_ros.place_map import IndexConfig, PlaceMap, persist
 
 COMMITTED = persist.SAVE_STEPS.index("committed")
 PRE_COMMIT = persist.SAVE_STEPS[:COMMITTED]
@@ -28,7 +32,7 @@ from test_place_map_persist import DIM, N0, SHAPE, add_range
 from pair_vpr_ros.place_map import PlaceMap, persist
 
 mode, directory, step, work = sys.argv[1:5]  # work: its temp folders, left behind by the crash
-if mode == "append":  # continue the saved map and save it again in place
+if mode in ("append", "hnsw", "convert"):  # continue the saved map and save it again in place
     m = PlaceMap.load(directory, work_dir=work)
     add_range(m, N0, N0 + 3)
 elif mode == "fresh":  # a new map (dense file in the temp folder, moved) saved over the old one
@@ -66,17 +70,34 @@ def saved(tmp_path: Path) -> Path:
     return tmp_path / "map"
 
 
+def _map_of(mode: str, saved: Path) -> Path:
+    if mode == "convert":
+        shutil.rmtree(saved)
+        shutil.copytree(MAPS / "format-2", saved)
+    elif mode == "hnsw":
+        shutil.rmtree(saved)
+        with PlaceMap(DIM, SHAPE, "fp-a", IndexConfig(kind="hnsw")) as m:
+            add_range(m, 0, N0)
+            m.save(saved)
+    return saved
+
+
 @pytest.mark.parametrize(
     ("mode", "step"),
-    [("append", s) for s in persist.SAVE_STEPS]
-    + [("fresh", s) for s in ("dense", "manifest", "committed")],
+    [(mode, s) for mode in ("append", "hnsw", "convert") for s in persist.SAVE_STEPS]
+    + [("fresh", s) for s in ("dense", "store", "manifest", "committed")],
 )
 def test_save_killed_at_step_leaves_a_loadable_map(tmp_path: Path, saved: Path, mode, step):
+    codec = "f16" if mode == "convert" else "q4"
+    saved = _map_of(mode, saved)
     child = run_child(tmp_path, mode, str(saved), step)
     assert child.wait(timeout=60) == 17  # it really died at that step
-    new = list(range(N0 + 3)) if mode == "append" else list(range(3))
+    new = list(range(3)) if mode == "fresh" else list(range(N0 + 3))
     with PlaceMap.load(saved, expected_fingerprint="fp-a") as m:
-        assert_holds(m, new if step in persist.SAVE_STEPS[COMMITTED:] else list(range(N0)))
+        done = step in persist.SAVE_STEPS[COMMITTED:]
+        assert_holds(
+            m, new if done else list(range(N0)), codec if mode != "fresh" or not done else "q4"
+        )
         add_range(m, len(m), len(m) + 1)  # and the map can be continued and saved again
         m.save(saved)
     with PlaceMap.load(saved) as m:
@@ -134,12 +155,12 @@ def test_failed_save_keeps_the_old_save_and_can_be_retried(
 
 
 def test_disk_error_during_save_is_a_map_error(saved: Path, monkeypatch) -> None:
-    def fail(_path):
+    def fail():
         raise OSError(28, "No space left on device")
 
     with PlaceMap.load(saved) as m:
         add_range(m, N0, N0 + 1)
-        monkeypatch.setattr(m._index, "write", fail)
+        monkeypatch.setattr(m._dense, "sync", fail)
         with pytest.raises(MapError, match=r"saving the place map to .* failed .*No space left"):
             m.save(saved)
         monkeypatch.undo()

@@ -108,7 +108,7 @@ def test_save_and_load_reattach_the_collection(milvus, tmp_path):
         want = m.search(desc_for(9), 5)
         m.save(tmp_path / "map")
         writer = m._index.writer
-    assert sorted(p.name for p in (tmp_path / "map").glob("index-*")) == ["index-1.milvus"]
+    assert sorted(p.name for p in (tmp_path / "map").glob("index-*")) == ["index-1-0.milvus"]
     with PlaceMap.load(tmp_path / "map", "fp") as m:
         assert (len(m), m._index.writer, m.search(desc_for(9), 5)) == (N, writer, want)
         add_range(m, N, N + 3)  # continues under its writer key

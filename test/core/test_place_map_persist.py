@@ -10,6 +10,7 @@ import pytest
 
 from pair_vpr_ros.errors import MapError, MapFingerprintError
 from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
+from pair_vpr_ros.place_map.dense_codec import decode, encode
 
 DIM, SHAPE, N0 = 8, (4, 8), 12
 
@@ -21,6 +22,11 @@ def desc_for(i: int) -> np.ndarray:
 
 def dense_for(i: int) -> np.ndarray:
     return np.arange(32, dtype=np.float32).reshape(SHAPE) * 0.25 + i
+
+
+def stored(tokens: np.ndarray, codec: str = "q4") -> np.ndarray:
+    """What a map of `codec` gives back for `tokens` (q4: the 4-bit decoded values)."""
+    return decode(encode(tokens.astype(np.float16), codec), tokens.shape, codec)
 
 
 def meta_for(i: int) -> KeyframeMeta:
@@ -38,11 +44,11 @@ def add_range(m: PlaceMap, start: int, stop: int) -> None:
         assert m.add(desc_for(i), dense_for(i), meta_for(i), features_for(i)) == i
 
 
-def assert_holds(m: PlaceMap, ids: list[int]) -> None:
+def assert_holds(m: PlaceMap, ids: list[int], codec: str = "q4") -> None:
     """The map holds exactly keyframes `ids` (content of keyframe i = *_for(ids[i]))."""
     assert len(m) == len(ids)
     for kf_id, i in enumerate(ids):
-        np.testing.assert_array_equal(m.get_dense([kf_id])[0], dense_for(i).astype(np.float16))
+        np.testing.assert_array_equal(m.get_dense([kf_id])[0], stored(dense_for(i), codec))
         np.testing.assert_allclose(m.get_desc([kf_id])[0], desc_for(i), atol=1e-6)
         assert m.meta(kf_id) == KeyframeMeta(kf_id, *list(meta_for(i).__dict__.values())[1:])
         assert m.features(kf_id) == features_for(i)
@@ -90,21 +96,18 @@ def test_empty_map_round_trip(tmp_path: Path) -> None:
 
 
 def test_continue_after_load_and_save_to_same_dir(saved: Path) -> None:
-    assert files(saved) == [
-        "dense-1.crc", "dense-1.f16", "index-1.faiss", "manifest.json", "map.lock",
-        "meta-1.sqlite",
-    ]  # fmt: skip
+    layout = ["dense-1.q4", "manifest.json", "map-1.sqlite", "map.lock"]
+    assert files(saved) == layout
+    manifest = (saved / "manifest.json").read_bytes()
     with PlaceMap.load(saved) as m:
         add_range(m, N0, N0 + 3)
         m.save(saved)
         add_range(m, N0 + 3, N0 + 4)
         m.save(saved)
-    # The dense file is appended in place (never copied); older small files are gone.
-    assert files(saved) == [
-        "dense-1.f16", "dense-3.crc", "index-3.faiss", "manifest.json", "map.lock",
-        "meta-3.sqlite",
-    ]  # fmt: skip
-    assert (saved / "dense-1.f16").stat().st_size == (N0 + 4) * 32 * 2
+    # Incremental saves: the dense file is appended, the store takes the new rows, the manifest
+    # is not rewritten.
+    assert files(saved) == layout and (saved / "manifest.json").read_bytes() == manifest
+    assert (saved / "dense-1.q4").stat().st_size == (N0 + 4) * (16 + 8 * 2)
     with PlaceMap.load(saved) as m:
         assert_holds(m, list(range(N0 + 4)))
 
@@ -127,10 +130,10 @@ def test_save_after_clear_replaces_the_dense_file(saved: Path) -> None:
         m.clear()
         assert m.add(desc_for(7), dense_for(7), meta_for(7)) == 0
         m.save(saved)
-    assert "dense-1.f16" not in files(saved) and "dense-2.f16" in files(saved)
+    assert files(saved) == ["dense-2.q4", "manifest.json", "map-2.sqlite", "map.lock"]
     with PlaceMap.load(saved) as m:
         assert len(m) == 1
-        np.testing.assert_array_equal(m.get_dense([0])[0], dense_for(7).astype(np.float16))
+        np.testing.assert_array_equal(m.get_dense([0])[0], stored(dense_for(7)))
 
 
 def test_save_as_leaves_the_original_untouched(saved: Path, tmp_path: Path) -> None:
@@ -154,11 +157,8 @@ def test_fresh_map_saved_over_an_existing_map(saved: Path) -> None:
         m.save(saved)
     with PlaceMap.load(saved) as m:
         assert len(m) == 2
-        np.testing.assert_array_equal(m.get_dense([1])[0], dense_for(6).astype(np.float16))
-    assert files(saved) == [
-        "dense-2.crc", "dense-2.f16", "index-2.faiss", "manifest.json", "map.lock",
-        "meta-2.sqlite",
-    ]  # fmt: skip
+        np.testing.assert_array_equal(m.get_dense([1])[0], stored(dense_for(6)))
+    assert files(saved) == ["dense-2.q4", "manifest.json", "map-2.sqlite", "map.lock"]
 
 
 def test_one_writer_per_directory_and_read_only_readers(saved: Path) -> None:
@@ -199,10 +199,10 @@ def test_missing_directory(tmp_path: Path) -> None:
 
 
 def test_damaged_dense_entry_is_detected_by_crc(saved: Path) -> None:
-    flip_byte(saved / "dense-1.f16", 5 * 64 + 3)  # inside keyframe 5
+    flip_byte(saved / "dense-1.q4", 5 * 32 + 3)  # inside keyframe 5
     with PlaceMap.load(saved) as m:
-        np.testing.assert_array_equal(m.get_dense([4])[0], dense_for(4).astype(np.float16))
-        with pytest.raises(MapError, match=r"keyframe 5 in .*dense-1.f16 fail their CRC32"):
+        np.testing.assert_array_equal(m.get_dense([4])[0], stored(dense_for(4)))
+        with pytest.raises(MapError, match=r"keyframe 5 in .*dense-1.q4 fail their CRC32"):
             m.get_dense([4, 5])
     with pytest.raises(MapError, match="keyframe 5 .* fail their CRC32 check"):
         PlaceMap.load(saved, verify_dense=True)

@@ -180,7 +180,7 @@ def test_node_trajectories_parse():
 # prior map changes; unusable keyframes are counted skips.
 def _damaged(t):
     d = make_map(t / "d", "a", "day1", 2, seed=1)
-    (d / "meta-1.sqlite").write_bytes(b"x")
+    (d / "map-1.sqlite").write_bytes(b"x")
     return [d]
 
 
@@ -194,8 +194,8 @@ PRIOR_CASES = {
                   "prior_map_dirs: {t}/empty cannot be used: {t}/empty/manifest.json is missing: "
                   "{t}/empty is not a saved place map"),
     "damaged": (_damaged, MapError,
-                "prior_map_dirs: {t}/d cannot be used: map file {t}/d/meta-1.sqlite (meta) does "
-                "not match its checksum"),
+                "prior_map_dirs: {t}/d cannot be used: keyframe store {t}/d/map-1.sqlite cannot "
+                "be read (no such table: keyframes)"),
     "given twice": (lambda t: [make_map(t / "a", "a", "day1", 2, seed=1), t / "a" / ".." / "a"],
                     ConfigError, "prior_map_dirs: {t}/a/../a is given twice: give each folder "
                     "once"),

@@ -1,0 +1,104 @@
+"""Format 3 of a saved place map: maps of formats 1 and 2 (test/data/maps, written by the code
+before issue 34) load with a note and are converted by the next save; saves are incremental; the
+slow half of a save may run on another thread while keyframes are added."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import threading
+from pathlib import Path
+
+import pytest
+import test_place_map_persist as persist_tests
+from test_bad_input_map import MAPS
+from test_place_map_persist import (
+    DIM,
+    N0,
+    SHAPE,
+    add_range,
+    assert_holds,
+    dense_for,
+    desc_for,
+    files,
+)  # fmt: skip
+
+from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
+from pair_vpr_ros.place_map.dense_codec import entry_bytes
+
+saved = persist_tests.saved  # fixture: a format-3 map of N0 keyframes in tmp_path / "map"
+
+
+@pytest.mark.parametrize("version", [1, 2])
+def test_an_old_map_loads_with_a_note_and_the_next_save_converts_it(tmp_path: Path, version):
+    d = Path(shutil.copytree(MAPS / f"format-{version}", tmp_path / "map"))
+    with PlaceMap.load(d, legacy_identity=("", "")) as m:  # v1: keyframes named at load
+        assert_holds(m, list(range(N0)), "f16")  # float16 tokens, bit for bit
+        assert f"is of format version {version}" in m.load_note
+        assert "converted to format 3 by the next save into it" in m.load_note
+        add_range(m, N0, N0 + 2)
+        m.save(d)
+        add_range(m, N0 + 2, N0 + 3)
+        m.save(d)  # incremental from here
+    manifest = json.loads((d / "manifest.json").read_text())
+    assert (manifest["format_version"], manifest["dense_codec"]) == (3, "f16")
+    assert files(d) == ["dense-1.f16", "manifest.json", "map-2.sqlite", "map.lock"]  # kept
+    with PlaceMap.load(d, verify_dense=True) as m:
+        assert_holds(m, list(range(N0 + 3)), "f16") and not m.load_note
+        assert m.index_config.dense_codec == "f16"  # a loaded map keeps its own codec
+
+
+def test_a_read_only_load_of_an_old_map_changes_nothing(tmp_path: Path) -> None:
+    d = Path(shutil.copytree(MAPS / "format-2", tmp_path / "map"))
+    before = {p.name: p.read_bytes() for p in d.iterdir()}
+    with PlaceMap.load(d, read_only=True) as m:
+        assert_holds(m, list(range(N0)), "f16")
+    assert {p.name: p.read_bytes() for p in d.iterdir()} == before
+
+
+def test_an_incremental_save_writes_the_new_keyframes_only(saved: Path) -> None:
+    """The store and the dense file grow by what was added; nothing is rewritten."""
+    store, dense = saved / "map-1.sqlite", saved / "dense-1.q4"
+    with PlaceMap.load(saved) as m:
+        head = dense.read_bytes()
+        add_range(m, N0, N0 + 40)
+        m.save(saved)
+    assert dense.read_bytes()[: len(head)] == head
+    assert dense.stat().st_size == (N0 + 40) * entry_bytes(SHAPE, "q4")
+    assert store.stat().st_size < 64 * 1024  # 52 small rows: no copy of anything
+    with PlaceMap.load(saved) as m:
+        assert_holds(m, list(range(N0 + 40)))
+
+
+def test_flush_and_checkpoint_run_beside_adds(saved: Path) -> None:
+    """As vpr_node saves: flush and checkpoint on another thread while the map thread adds."""
+    with PlaceMap.load(saved) as m:
+        lock, stop = threading.Lock(), threading.Event()
+
+        def other_thread() -> None:
+            while not stop.is_set():
+                m.flush()
+                m.checkpoint()
+
+        side = threading.Thread(target=other_thread)
+        side.start()
+        for i in range(N0, N0 + 30):
+            with lock:
+                add_range(m, i, i + 1)
+            if i % 10 == 0:
+                m.save(saved, checkpoint=False)
+        stop.set()
+        side.join()
+        m.save(saved)
+    with PlaceMap.load(saved) as m:
+        assert_holds(m, list(range(N0 + 30)))
+
+
+def test_negative_zero_in_a_pose_survives_the_row_crc(tmp_path: Path) -> None:
+    """SQLite gives -0.0 back as 0.0: the row CRC32 must not call that damage."""
+    with PlaceMap(DIM, SHAPE, "fp-a") as m:
+        pose = (-0.0, 1.0, 2.0, -0.0, 0.0, 0.0, 1.0)
+        m.add(desc_for(0), dense_for(0), KeyframeMeta(stamp=-0.0, pose=pose))
+        m.save(tmp_path / "map")
+    with PlaceMap.load(tmp_path / "map") as m:
+        assert m.meta(0).pose == pose and m.all_meta()[0].stamp == 0.0
