@@ -17,7 +17,7 @@ from pair_vpr_ros.place_map.dense_store import DenseStore, read_crcs
 from pair_vpr_ros.place_map.index import DescriptorIndex
 from pair_vpr_ros.place_map.manifest import Manifest, check_files
 from pair_vpr_ros.place_map.metadata import MetadataStore
-from pair_vpr_ros.place_map.persist import MapParts, check_count, index_config
+from pair_vpr_ros.place_map.parts import MapParts, check_count, index_config
 from pair_vpr_ros.place_map.store import KeyframeStore
 
 _CHUNK = 1024

@@ -14,10 +14,10 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict
 from pathlib import Path
 
-from pair_vpr_ros.errors import ConfigError, MapError, MapFingerprintError
+from pair_vpr_ros.errors import MapError, MapFingerprintError
 from pair_vpr_ros.place_map.dense_store import DenseStore
 from pair_vpr_ros.place_map.files import (
     crc32_file,
@@ -27,6 +27,7 @@ from pair_vpr_ros.place_map.files import (
     same_device,
 )
 from pair_vpr_ros.place_map.index import DescriptorIndex, IndexConfig
+from pair_vpr_ros.place_map.legacy import open_legacy
 from pair_vpr_ros.place_map.manifest import (
     Manifest,
     check_files,
@@ -35,6 +36,7 @@ from pair_vpr_ros.place_map.manifest import (
     remove_generation,
     write_manifest,
 )
+from pair_vpr_ros.place_map.parts import MapParts, check_count, index_config
 from pair_vpr_ros.place_map.store import KeyframeStore
 
 SAVE_STEPS = ("dense", "index", "store", "manifest", "committed", "cleaned")
@@ -46,21 +48,6 @@ INDEX_CRC = "index_crc"  # ... and the one holding its CRC32
 def reached(step: str) -> None:
     if _SAVE_HOOK is not None:
         _SAVE_HOOK(step)
-
-
-@dataclass
-class MapParts:
-    """The live stores of a map, as a save writes them and `open_saved` returns them."""
-
-    index: DescriptorIndex  # or a MilvusIndex (kind "milvus")
-    store: KeyframeStore
-    dense: DenseStore
-    desc_dim: int
-    dense_shape: tuple[int, int]
-    fingerprint: str
-    format_version: int = 3  # of the save it was opened from (1, 2: converted by the next save)
-    note: str = ""  # what the loader should log (an old format, keyframes named at load)
-    generation: int = 0
 
 
 def _snapshot(d: Path, gen: int, parts: MapParts) -> dict[str, str]:
@@ -161,8 +148,6 @@ def open_saved(d: Path, expected_fingerprint: str | None, work: Path, **options)
             "image size it was built with, or rebuild the map with this model (new directory)"
         )
     if m.format_version < 3:
-        from pair_vpr_ros.place_map.legacy import open_legacy
-
         return open_legacy(d, m, work, **options)
     return _open_v3(d, m, **options)
 
@@ -245,21 +230,3 @@ def saved_index_file(d: Path, m: Manifest) -> tuple[Path, int]:
         return path, store.count()
     finally:
         store.close()
-
-
-def check_count(index: DescriptorIndex, count: int, path: Path) -> DescriptorIndex:
-    if len(index) != count:
-        raise MapError(
-            f"FAISS index {path} holds {len(index)} vectors, the map lists {count} keyframes: "
-            "the map is damaged, restore it from a backup or rebuild it"
-        )
-    return index
-
-
-def index_config(m: Manifest, ef_search: int | None) -> IndexConfig:
-    """The saved index settings; the dense codec is the manifest's (old maps: f16)."""
-    try:
-        config = replace(IndexConfig(**m.index), dense_codec=m.dense_codec)
-        return config if ef_search is None else replace(config, ef_search=int(ef_search))
-    except (TypeError, ConfigError) as err:
-        raise MapError(f"manifest index settings {m.index} are invalid ({err}): rebuild") from err

@@ -18,6 +18,7 @@ from pair_vpr_ros.place_map import persist
 from pair_vpr_ros.place_map.dense_store import DenseStore
 from pair_vpr_ros.place_map.files import LOCK_NAME, DirLock, fsync_path
 from pair_vpr_ros.place_map.manifest import MANIFEST_NAME, Manifest, read_manifest, remove_stale
+from pair_vpr_ros.place_map.parts import MapParts
 from pair_vpr_ros.place_map.store import KeyframeStore
 
 # The class `load` is called on (PlaceMap): saving.py never imports place_map.py, which imports it.
@@ -137,8 +138,8 @@ class MapSaving:
                 "overwrite=True to replace it"
             )
 
-    def _parts(self) -> persist.MapParts:
-        return persist.MapParts(
+    def _parts(self) -> MapParts:
+        return MapParts(
             self._index, self._store, self._dense, self.desc_dim, self.dense_shape,
             self.fingerprint, generation=self._generation,
         )  # fmt: skip

@@ -33,7 +33,7 @@ from test_place_map_persist import (
 )  # fmt: skip
 
 from pair_vpr_ros.errors import MapError, MapFingerprintError
-from pair_vpr_ros.pipeline import LoopClosurePipeline
+from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.place_map import (
     IndexConfig,
     KeyframeMeta,

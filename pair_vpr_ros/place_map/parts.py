@@ -1,0 +1,46 @@
+"""What a saved map opens into (`MapParts`) and the checks both loaders share: the current
+format's (persist.py) and formats 1-2's (legacy.py), so neither loader imports the other's."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from pair_vpr_ros.errors import ConfigError, MapError
+from pair_vpr_ros.place_map.dense_store import DenseStore
+from pair_vpr_ros.place_map.index import DescriptorIndex, IndexConfig
+from pair_vpr_ros.place_map.manifest import Manifest
+from pair_vpr_ros.place_map.store import KeyframeStore
+
+
+@dataclass
+class MapParts:
+    """The live stores of a map, as a save writes them and `open_saved` returns them."""
+
+    index: DescriptorIndex  # or a MilvusIndex (kind "milvus")
+    store: KeyframeStore
+    dense: DenseStore
+    desc_dim: int
+    dense_shape: tuple[int, int]
+    fingerprint: str
+    format_version: int = 3  # of the save it was opened from (1, 2: converted by the next save)
+    note: str = ""  # what the loader should log (an old format, keyframes named at load)
+    generation: int = 0
+
+
+def check_count(index: DescriptorIndex, count: int, path: Path) -> DescriptorIndex:
+    if len(index) != count:
+        raise MapError(
+            f"FAISS index {path} holds {len(index)} vectors, the map lists {count} keyframes: "
+            "the map is damaged, restore it from a backup or rebuild it"
+        )
+    return index
+
+
+def index_config(m: Manifest, ef_search: int | None) -> IndexConfig:
+    """The saved index settings; the dense codec is the manifest's (old maps: f16)."""
+    try:
+        config = replace(IndexConfig(**m.index), dense_codec=m.dense_codec)
+        return config if ef_search is None else replace(config, ef_search=int(ef_search))
+    except (TypeError, ConfigError) as err:
+        raise MapError(f"manifest index settings {m.index} are invalid ({err}): rebuild") from err
