@@ -33,7 +33,7 @@ from pair_vpr_ros.model.network import PairVPR
 
 # Bump when what is cached changes for the same inputs: `openvino_backend.convert`, `quantize`
 # or `advanced_parameters`, `head_layers`, or the export graphs.
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: int8 with NNCF's overflow fix on every layer
 AUTO = "auto"  # the parameter value for the per-user cache folder
 GRAPHS = ("encoder", "query", "chunk")
 OUTPUTS = {"encoder": 2, "query": 3, "chunk": 1}
