@@ -54,7 +54,7 @@ def _start_again_if_needed() -> None:
         try:
             os.execve(sys.executable, sys.orig_argv, environ)
         except OSError as err:  # go on: the typed topic is then off, with one warning
-            sys.stderr.write(f"pair_vpr_ros: could not start again with this venv's libraries: {err}\n")
+            sys.stderr.write(f"pair_vpr_ros: cannot restart with this venv's libraries: {err}\n")
 
 
 def _interrupt(signum, frame) -> None:
