@@ -18,6 +18,7 @@ import csv
 import json
 import math
 import os
+import resource
 import shutil
 import signal
 import subprocess
@@ -29,8 +30,13 @@ from pathlib import Path
 import numpy as np
 
 from pair_vpr_ros.cli import nonnegative_float, positive_float, run_cli
-from pair_vpr_ros.demo.bag import CAMERA_INFO_TOPIC, DEPTH_TOPIC, GROUND_TRUTH_TOPIC, IMAGE_TOPIC
-from pair_vpr_ros.demo.bag import ODOM_TOPIC
+from pair_vpr_ros.demo.bag import (
+    CAMERA_INFO_TOPIC,
+    DEPTH_TOPIC,
+    GROUND_TRUTH_TOPIC,
+    IMAGE_TOPIC,
+    ODOM_TOPIC,
+)
 from pair_vpr_ros.errors import PairVPRError, UsageError
 from pair_vpr_ros.offline.bags.opening import open_bag
 from pair_vpr_ros.offline.bags.reader import read_poses
@@ -39,6 +45,7 @@ from pair_vpr_ros.ros.launch_table import PACKAGE, defaults, node_setups, ros_ar
 
 ROOT = Path(__file__).resolve().parents[2]
 LAUNCH = "vpr_posegraph.launch.py"
+DEMO_MODEL = ROOT / "pair_vpr_ros" / "demo" / "assets" / "demo-small.pth"
 DEMO_CAMERA = "[0.0, 0.0, 1.6, -0.5, 0.5, -0.5, 0.5]"  # optical frame 1.6 m above base_link
 START = "import sys; from pair_vpr_ros.ros.entry import {0}; sys.exit({0}())"
 
@@ -113,7 +120,8 @@ def replay_loops(replay: Path) -> tuple[set[tuple[float, float]], int]:
     with open(replay / "loops.csv", newline="") as f:
         for row in csv.DictReader(f):
             if row["accepted"] == "True":
-                pairs.add((round(float(row["query_stamp"]), 3), round(float(row["match_stamp"]), 3)))
+                pair = (float(row["query_stamp"]), float(row["match_stamp"]))
+                pairs.add((round(pair[0], 3), round(pair[1], 3)))
                 factors += not math.isnan(float(row["tx"] or "nan"))
     return pairs, factors
 
@@ -170,8 +178,10 @@ def report(args, recorder, frames: int, codes: list[int], seconds: float) -> int
     if stamps:
         ate = trajectory_errors(Trajectory(np.asarray(stamps), np.asarray(poses)), truth).ate_rmse
     odom_ate = trajectory_errors(bag_track(args.bag, ODOM_TOPIC), truth).ate_rmse
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)  # the nodes and the player
     summary = {
         "seconds": round(seconds, 1), "rate": args.rate, "launch": args.launch,
+        "cpu_seconds_children": round(children.ru_utime + children.ru_stime, 1),
         "frames": frames, "frames_processed": recorder.counter("frames_processed"),
         "frames_dropped": recorder.counter("frames_dropped"),
         "frames_without_depth": recorder.counter("frames_without_depth"),
@@ -179,10 +189,13 @@ def report(args, recorder, frames: int, codes: list[int], seconds: float) -> int
         "loops_same": len(live & demo_pairs), "loops_only_live": len(live - demo_pairs),
         "loops_only_demo": len(demo_pairs - live),
         "factors_live": recorder.factors, "factors_demo": demo_factors,
+        "loops_posed_by_node": sum(recorder.counter(f"loops_pose_{k}")
+                                   for k in ("metric", "metric_odometry", "scale_free")),
         "posegraph_nodes": len(stamps), "ate_corrected_m": ate, "ate_odometry_m": odom_ate,
         "exit_codes": codes,
     }  # fmt: skip
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
+    (args.out / "loops.json").write_text(json.dumps(recorder.records))
     print(f"demo-live: {summary['seconds']} s (rate {args.rate:g}); frames processed "
           f"{summary['frames_processed']}/{frames}, dropped {summary['frames_dropped']}; loops "
           f"{len(live)} live vs {len(demo_pairs)} make demo, {summary['loops_same']} the same; "
@@ -198,12 +211,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("bag", type=Path, help="the demo bag (make demo writes it)")
     p.add_argument("--replay", type=Path, required=True, help="make demo's replay folder")
     p.add_argument("--out", type=Path, required=True, help="folder for summary.json")
-    p.add_argument("--weights", type=Path, default=ROOT / "pair_vpr_ros/demo/assets/demo-small.pth")
+    p.add_argument("--weights", type=Path, default=DEMO_MODEL, help="the demo model")
     p.add_argument("--params-file", type=Path, default=ROOT / "config/demo.yaml")
     p.add_argument("--rate", type=positive_float, default=1.0, help="bag play speed")
     p.add_argument("--launch", action="store_true", help="start the nodes with `ros2 launch`")
     p.add_argument("--timeout", type=positive_float, default=600.0, help="seconds per step")
-    p.add_argument("--settle", type=nonnegative_float, default=3.0, help="seconds after the last frame")
+    p.add_argument("--settle", type=nonnegative_float, default=3.0,
+                   help="seconds to wait after the last frame")  # fmt: skip
     return p
 
 

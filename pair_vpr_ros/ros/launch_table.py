@@ -4,8 +4,9 @@ launch/vpr_node.launch.py and launch/vpr_posegraph.launch.py declare `LAUNCHES[f
 arguments and start the nodes of `node_setups(file, values)`; the live demo (`ros.demo_live`,
 `make demo-live`) starts the same nodes from the same table, so the demo and the launch cannot
 drift apart (`launch_description` builds their launch descriptions; it alone imports
-`launch` / `launch_ros`, when called, so the rest stays ROS-free). Sensor topics go to `vpr_node` as parameters (a topic given turns that input on;
-a camera_info or depth topic turns relative poses on), the image as a remapping of `image`.
+`launch` / `launch_ros`, when called, so the rest stays ROS-free). Sensor topics go to
+`vpr_node` as parameters (a topic given turns that input on; a camera_info or depth topic turns
+relative poses on), the image as a remapping of `image`.
 '' keeps the parameter file's value.
 """
 
