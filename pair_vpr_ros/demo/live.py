@@ -96,7 +96,8 @@ def start_nodes(values: dict[str, str], out: Path, launch: bool, env: dict) -> l
                 "LAUNCH=1 needs `ros2 launch` on PATH (a ROS install, or the environment of "
                 "scripts/ros_cli_env.sh, docs/launch.md)"
             )
-        command = ["ros2", "launch", PACKAGE, LAUNCH, *[f"{k}:={v}" for k, v in values.items()]]
+        given = [f"{k}:={v}" for k, v in values.items() if v]  # '' = the launch's default
+        command = ["ros2", "launch", PACKAGE, LAUNCH, *given]
         return [Process("ros2 launch", command, env)]
     return [
         Process(s.name, [sys.executable, "-c", START.format(s.executable), *ros_args(s, out)], env)
