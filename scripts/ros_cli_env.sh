@@ -82,9 +82,10 @@ for name in "${SOURCES[@]}"; do
     [ -n "$SRC" ] && [ -d "$SRC/$name" ] || missing+=("$name")
 done
 if [ ${#missing[@]} -gt 0 ]; then
+    repos=$(printf 'ros2/%s, ' "${missing[@]}")
     fail "ROS_SOURCES=${SRC:-<unset>} lacks ${missing[*]}: give a folder with the jazzy" \
-        "branches of ros2/${missing[*]// /, ros2/} (e.g. git clone -b jazzy" \
-        "https://github.com/ros2/<name>), then run this again; the venv is ready"
+        "branches of ${repos%, } (e.g. git clone -b jazzy https://github.com/ros2/<name>)," \
+        "then run this again; the venv is ready"
 fi
 SRC=$(cd "$SRC" && pwd)
 
