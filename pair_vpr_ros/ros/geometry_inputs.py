@@ -121,7 +121,8 @@ class GeometryInputs:
         once. A driver (or a bag player) sends it next to the first image, and its callback may
         run just after the worker took that image: without the wait the first keyframe has no
         intrinsics and no loop to it gets a relative pose. A silent topic costs one wait."""
-        if self.values["camera_info_topic"] and not (self._info_waited or self._info_seen.is_set()):
+        done = self._info_waited or self._info_seen.is_set()
+        if self.values["camera_info_topic"] and not done:
             self._info_waited = not self._info_seen.wait(self.wait)
 
     def camera_for(self, width: int, height: int) -> CameraModel | None:
