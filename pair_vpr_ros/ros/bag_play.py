@@ -41,6 +41,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--wait", type=nonnegative_float, default=0.0,
         help="wait up to this many seconds for the graph's subscribers to connect first",
     )  # fmt: skip
+    p.add_argument(
+        "--wait-for", nargs="+", default=[], metavar="TOPIC",
+        help="with --wait: these topics must have a connected subscriber before playing",
+    )  # fmt: skip
     return p
 
 
@@ -74,14 +78,20 @@ def chosen_connections(reader: AnyReader, topics: list[str] | None, path: Path) 
     return [c for c in reader.connections if topics is None or c.topic in topics]
 
 
-def wait_for_subscribers(node, publishers: dict, seconds: float) -> bool:
+def wait_for_subscribers(node, publishers: dict, seconds: float, needed: list[str]) -> bool:
     """Wait until each publisher is connected to every subscriber the graph shows on its
-    topic, and one topic has any -> True; False after `seconds`."""
+    topic, one topic has any, and each topic in `needed` has one -> True; False after
+    `seconds`."""
     deadline = time.monotonic() + seconds
     while time.monotonic() < deadline:
-        counts = [(p.get_subscription_count(), node.count_subscribers(t))
-                  for t, p in publishers.items()]  # fmt: skip
-        if any(seen for _, seen in counts) and all(m >= seen for m, seen in counts):
+        counts = {t: (p.get_subscription_count(), node.count_subscribers(t))
+                  for t, p in publishers.items()}  # fmt: skip
+        ready = all(counts[t][0] >= 1 for t in needed)
+        if (
+            ready
+            and any(s for _, s in counts.values())
+            and all(m >= s for m, s in counts.values())
+        ):
             return True
         time.sleep(0.1)
     return False
@@ -95,13 +105,14 @@ def play(args: argparse.Namespace) -> int:
     reader = open_bag(args.bag)
     try:
         connections = chosen_connections(reader, args.topics, args.bag)
+        chosen_connections(reader, args.wait_for or None, args.bag)  # each one in the bag
         classes = {c.msgtype: message_class(c.msgtype) for c in connections}
         rclpy.init()
         node = rclpy.create_node("pairvpr_bag_play")
         publishers = {c.topic: node.create_publisher(classes[c.msgtype], c.topic, DEPTH)
                       for c in connections}  # fmt: skip
         clock = node.create_publisher(Clock, "/clock", DEPTH) if args.clock else None
-        if args.wait and not wait_for_subscribers(node, publishers, args.wait):
+        if args.wait and not wait_for_subscribers(node, publishers, args.wait, args.wait_for):
             print(f"pairvpr-bag-play: no subscriber connected within {args.wait:g} s; playing",
                   file=sys.stderr)  # fmt: skip
         sent, late, start, first = 0, 0, time.monotonic(), None

@@ -14,6 +14,7 @@ from nav_msgs.msg import Odometry, Path
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile
+from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import String
 
 DIAGNOSTICS_NAME = "vpr_node: loop closure"
@@ -30,7 +31,8 @@ class LoopRecorder:
         self.path: Path | None = None
         self._lock = threading.Lock()
         self._context = Context()
-        rclpy.init(context=self._context)
+        # no signal handlers: Ctrl-C must reach the caller (demo.live stops the nodes then)
+        rclpy.init(context=self._context, signal_handler_options=SignalHandlerOptions.NO)
         self.node = rclpy.create_node("pairvpr_loop_recorder", context=self._context)
         deep = QoSProfile(depth=1000)  # nothing lost while this thread is busy
         self.node.create_subscription(String, f"{loop_closure}/json", self._on_json, deep)
