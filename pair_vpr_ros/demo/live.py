@@ -48,6 +48,13 @@ LAUNCH = "vpr_posegraph.launch.py"
 DEMO_MODEL = ROOT / "pair_vpr_ros" / "demo" / "assets" / "demo-small.pth"
 DEMO_CAMERA = "[0.0, 0.0, 1.6, -0.5, 0.5, -0.5, 0.5]"  # optical frame 1.6 m above base_link
 START = "import sys; from pair_vpr_ros.ros.entry import {0}; sys.exit({0}())"
+# A process started from a background job inherits SIGINT ignored, and `ros2 launch` then never
+# hears the stop: every child starts with SIGINT at its default, as from a terminal.
+SIGINT_DEFAULT = [
+    sys.executable, "-c",
+    "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); "
+    "os.execvp(sys.argv[1], sys.argv[1:])",
+]  # fmt: skip
 
 
 def demo_arguments(weights: str, params_file: str) -> dict[str, str]:
@@ -66,7 +73,7 @@ class Process:
     def __init__(self, name: str, command: list[str], env: dict[str, str]) -> None:
         self.name, self.ready = name, 0
         self.proc = subprocess.Popen(
-            command, cwd=ROOT, env=env, text=True, stdout=subprocess.PIPE,
+            [*SIGINT_DEFAULT, *command], cwd=ROOT, env=env, text=True, stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT, start_new_session=True,
         )  # fmt: skip
         self._reader = threading.Thread(target=self._read, daemon=True)
@@ -82,8 +89,8 @@ class Process:
             self.proc.send_signal(signal.SIGINT)
         try:
             code = self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
+        except subprocess.TimeoutExpired:  # its whole session: `ros2 launch` leaves no orphans
+            os.killpg(self.proc.pid, signal.SIGKILL)
             code = self.proc.wait()
         self._reader.join(5.0)
         return code
