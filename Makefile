@@ -1,17 +1,26 @@
-# Entry points (see README): `make demo`, `make demo-fleet` and `make test`. Each sets up .venv
-# itself. `make docs` builds the documentation site into site/ (warnings are errors).
+# Entry points (see README): `make demo`, `make demo-live`, `make demo-fleet` and `make test`.
+# Each sets up .venv itself. `make demo-live LAUNCH=1` starts the nodes with `ros2 launch`. `make docs` builds the documentation site into site/ (warnings are errors).
 VENV ?= .venv
 PY := $(VENV)/bin/python
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 export MPLBACKEND := Agg
 
-.PHONY: setup demo demo-fleet demo-model test test-quick lint docs clean
+LAUNCH ?= 0
+
+.PHONY: setup demo demo-live demo-fleet demo-model ros-cli-env test test-quick lint docs clean
 
 setup:
 	@VENV=$(VENV) bash scripts/setup_env.sh
 
 demo: setup
 	@bash scripts/demo.sh $(VENV)
+
+demo-live: setup
+	@LAUNCH=$(LAUNCH) bash scripts/demo_live.sh $(VENV)
+
+# docs/launch.md's recipe: `ros2 launch` and the ros2 CLI in a scratch folder (ROS_SOURCES=...)
+ros-cli-env: setup
+	@PROJECT_VENV=$(VENV) bash scripts/ros_cli_env.sh
 
 demo-fleet: setup
 	@bash scripts/demo_fleet.sh $(VENV)

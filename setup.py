@@ -83,6 +83,7 @@ setup(
             "pairvpr-train-stage1 = pair_vpr_ros.learn.train.stage1:main",
             "pairvpr-train-stage2 = pair_vpr_ros.learn.train.stage2:main",
             "pairvpr-make-demo-bag = pair_vpr_ros.demo.make_bag:main",
+            "pairvpr-bag-play = pair_vpr_ros.ros.bag_play:main",
         ],
     },
 )

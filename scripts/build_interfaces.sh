@@ -31,16 +31,7 @@ fi
 start=$(date +%s)
 echo "setup: building $PKG (colcon, rosidl) into $VENV"
 
-# The wheels' exported CMake files name the include folders of the machine that built them:
-# point them at this venv's Python headers and numpy headers (else CMake stops with
-# "includes non-existent path").
-py_include=$("$PY" -c "import sysconfig; print(sysconfig.get_paths()['include'])")
-np_include=$("$PY" -c "import numpy; print(numpy.get_include())")
-built_py=/opt/python/cp311-cp311/include/python3.11
-grep -rlF /opt/python/ "$VENV/share" 2>/dev/null | while read -r f; do
-    sed -i -e "s#/opt/python/[^;\"]*/numpy/_core/include#$np_include#g" \
-        -e "s#$built_py#$py_include#g" "$f"
-done
+bash scripts/wheel_cmake_paths.sh "$VENV"
 
 rm -rf "$WORK"
 mkdir -p "$WORK"

@@ -35,12 +35,14 @@ from pair_vpr_ros.loops.frames import FrameOutcome
 from pair_vpr_ros.messages.loop import POSE_STATUS_CODES
 from pair_vpr_ros.params.fleet import fleet_config
 from pair_vpr_ros.ros.maps import MapControl
-from pair_vpr_ros.ros.outputs import publish_while_up
+from pair_vpr_ros.ros.outputs import publish_while_up, typed_unusable
 
 try:  # built by `make setup` (scripts/build_interfaces.sh) or colcon in a ROS workspace
     from pair_vpr_ros_interfaces import msg as typed_msgs
-except ImportError:  # the bytes transport needs only std_msgs
-    typed_msgs = None
+except ImportError as err:  # the bytes transport needs only std_msgs
+    typed_msgs, TYPED_MISSING = None, str(err)
+else:
+    TYPED_MISSING = ""
 
 TOPIC_TOKEN = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 # Descriptors are kept by their publisher (transient local) for robots that join or return
@@ -49,14 +51,33 @@ DEPTH = {"keyframes": 1000, "request": 4, "response": 50}
 TYPED = {"keyframes": "KeyframeDescriptor", "request": "ScoreRequest", "response": "ScoreResponse"}
 
 
-def typed_wanted(choice: str) -> bool:
-    """fleet_messages -> typed (True) or bytes; ConfigError for typed without the package."""
-    if choice == "typed" and typed_msgs is None:
+def typed_problem() -> str:
+    """'' when the fleet's typed messages can be published, else why not (the package does
+    not import, or its C type support does not load)."""
+    if typed_msgs is None:
+        return TYPED_MISSING or "pair_vpr_ros_interfaces is not installed"
+    return typed_unusable(getattr(typed_msgs, name) for name in TYPED.values())
+
+
+def typed_wanted(choice: str, warn: Callable[[str], Any]) -> bool:
+    """fleet_messages -> typed (True) or bytes; ConfigError for typed that cannot be used (a
+    fleet must agree on one kind); auto -> bytes without the package, and with one warning
+    when the package imports but its type support does not load."""
+    if choice == "bytes":
+        return False
+    problem = typed_problem()
+    if problem and choice == "typed":
         raise ConfigError(
-            "fleet_messages is typed but pair_vpr_ros_interfaces is not installed: `make setup` "
-            "builds it (docs/interfaces.md), or use fleet_messages bytes on every robot"
+            f"fleet_messages is typed but pair_vpr_ros_interfaces cannot be used ({problem}): "
+            "`make setup` builds it and the node must start from its environment "
+            "(docs/interfaces.md), or use fleet_messages bytes on every robot"
         )
-    return choice == "typed" or (choice == "auto" and typed_msgs is not None)
+    if problem and typed_msgs is not None:
+        warn(
+            f"fleet_messages auto: bytes, because pair_vpr_ros_interfaces cannot be used "
+            f"({problem}); every robot of the fleet must use the same kind"
+        )
+    return not problem
 
 
 class FleetLink:
@@ -77,7 +98,7 @@ class FleetLink:
                 "and _ (starting with a letter), e.g. -p robot_id:=robot_1"
             )
         config = fleet_config(values, robot, session)
-        self.typed = typed_wanted(values["fleet_messages"])
+        self.typed = typed_wanted(values["fleet_messages"], node.get_logger().warning)
         if self.typed:
             self._classes = {name: getattr(typed_msgs, name) for name in TYPED.values()}
             self._codes = POSE_STATUS_CODES  # = LoopClosure.POSE_* (test_typed_loop_closure)

@@ -80,6 +80,8 @@ class GeometryInputs:
         self.last_problem = ""
         self._first_frame: float | None = None
         self._silence_said = False
+        self._info_seen = threading.Event()  # the first usable CameraInfo arrived
+        self._info_waited = False  # ... or one frame waited for it in vain: never again
         try:
             self.camera_for(640, 480)  # the fallback parameters make a valid model
         except (GeometryInputError, ValueError) as err:
@@ -106,6 +108,7 @@ class GeometryInputs:
         """Keep the intrinsics of `msg`; -> the problem when it is unusable (counted)."""
         try:
             self.camera_info = camera_from_info(msg)
+            self._info_seen.set()
         except GeometryInputError as err:
             self.counts.camera_info_invalid += 1
             self.last_problem = f"camera_info unusable: {err}"
@@ -113,6 +116,15 @@ class GeometryInputs:
         return None
 
     # ---- worker ---------------------------------------------------------------------------
+    def await_first_camera_info(self) -> None:
+        """With a camera_info topic and none heard yet: wait up to `wait` s for the first one,
+        once. A driver (or a bag player) sends it next to the first image, and its callback may
+        run just after the worker took that image: without the wait the first keyframe has no
+        intrinsics and no loop to it gets a relative pose. A silent topic costs one wait."""
+        done = self._info_waited or self._info_seen.is_set()
+        if self.values["camera_info_topic"] and not done:
+            self._info_waited = not self._info_seen.wait(self.wait)
+
     def camera_for(self, width: int, height: int) -> CameraModel | None:
         """The CameraInfo intrinsics, else the intrinsics parameters (for this image size),
         else None."""

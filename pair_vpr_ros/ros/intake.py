@@ -121,6 +121,7 @@ class FrameIntake:
     def _process(self, frame: Frame, received: float) -> None:
         frame.pose = self.poses.nearest(frame.stamp, self.values["pose_tolerance"])
         inputs = self.geometry_inputs
+        inputs.await_first_camera_info()
         frame.camera = inputs.camera_for(frame.rgb.shape[1], frame.rgb.shape[0])
         frame.depth = inputs.depth_for(frame.stamp)
         frame.right, frame.baseline = inputs.right_for(frame.stamp), inputs.baseline

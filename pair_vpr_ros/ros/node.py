@@ -126,7 +126,11 @@ class VprNode(ParameterHandling, FrameIntake, NodeServices, Node):
         self._last_queued: float | None = None
         self.poses = PoseTrack(maxlen=v["pose_buffer_size"])
         self.stats = NodeStats()
-        self.geometry_inputs = GeometryInputs(v, self.stats.counts)
+        # depth (and right) images are looked up when the worker takes the frame: keep them for
+        # every frame the queue can hold, else a frame queued behind many others loses its depth
+        self.geometry_inputs = GeometryInputs(
+            v, self.stats.counts, buffer_size=30 + v["queue_size"]
+        )
         self._stop = threading.Event()
         self._closed = False
         if v["load_map_on_start"]:

@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+from collections.abc import Iterable
 from functools import cache
 
 from geometry_msgs.msg import Point
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
+from rclpy.type_support import check_for_type_support
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -58,6 +60,19 @@ def publish_while_up(node: Node, publisher, msg) -> bool:
     return True
 
 
+def typed_unusable(classes: Iterable[type]) -> str:
+    """'' when rclpy can publish every message class in `classes`, else why not. The Python
+    package can import while its C type support cannot (a node started by another
+    environment's `ros2 launch` that lacks this venv's lib/ in LD_LIBRARY_PATH): rclpy then
+    raises UnsupportedTypeSupport or NoTypeSupportImportedException at `create_publisher`."""
+    for cls in classes:
+        try:
+            check_for_type_support(cls)
+        except Exception as err:  # noqa: BLE001 - any failure means typed off, never a crash
+            return f"{type(err).__name__}: {err}".rstrip(": ")
+    return ""
+
+
 @cache
 def message_classes(names: tuple[str, ...] = FACTOR_MSG_TYPES) -> dict[str, type]:
     """rclpy classes of the message types `names` (default: what `loop_messages.factor_msg`
@@ -83,12 +98,13 @@ class LoopOutputs:
         self.factor = node.create_publisher(Odometry, topics["factor"], depth)
         self.markers = node.create_publisher(MarkerArray, topics["markers"], depth)
         self.typed = None
-        if LoopClosure is None:
+        missing = TYPED_MISSING or typed_unusable([LoopClosure])
+        if missing:
             node.get_logger().warning(
                 f"{topics['typed']} is off: the message package pair_vpr_ros_interfaces "
-                f"cannot be imported ({TYPED_MISSING}); build it with `make setup` (pip "
-                "install) or `colcon build` in your ROS workspace (docs/interfaces.md). "
-                "Every other loop-closure topic is on."
+                f"cannot be imported ({missing}); build it with `make setup` (pip "
+                "install) or `colcon build` in your ROS workspace, and start the node from "
+                "its environment (docs/interfaces.md). Every other loop-closure topic is on."
             )
         else:
             self.typed = node.create_publisher(LoopClosure, topics["typed"], depth)

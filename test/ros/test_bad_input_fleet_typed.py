@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 from rclpy.serialization import serialize_message
 
-from pair_vpr_ros.errors import FleetMessageError
+from pair_vpr_ros.errors import ConfigError, FleetMessageError
 from pair_vpr_ros.fleet import KeyframeDescriptor, ScoreRequest, ScoreResponse, encode, model_tag
 from pair_vpr_ros.fleet.typed import from_typed, to_typed
 from pair_vpr_ros.messages.loop import POSE_STATUS_CODES
+from pair_vpr_ros.ros import fleet
 
 msgs = pytest.importorskip("pair_vpr_ros_interfaces.msg")
 CLASSES = {n: getattr(msgs, n) for n in ("KeyframeDescriptor", "ScoreRequest", "ScoreResponse")}
@@ -84,3 +85,26 @@ def test_bad_typed_messages_raise_a_countable_reason(case):
 def test_not_a_fleet_message():
     with pytest.raises(FleetMessageError, match="not a fleet message type: LoopClosure"):
         from_typed(msgs.LoopClosure(), CODES)
+
+
+UNUSABLE = "UnsupportedTypeSupport: Could not import 'rosidl_typesupport_c' for package 'x'"
+
+
+def test_fleet_messages_whose_type_support_does_not_load(monkeypatch):
+    """The package imports but its C library does not load (a node started by another
+    environment): auto falls back to bytes with one warning, typed stops with a clear error."""
+    monkeypatch.setattr(fleet, "typed_unusable", lambda classes: UNUSABLE)
+    warned: list[str] = []
+    assert fleet.typed_wanted("auto", warned.append) is False
+    assert warned == [
+        f"fleet_messages auto: bytes, because pair_vpr_ros_interfaces cannot be used "
+        f"({UNUSABLE}); every robot of the fleet must use the same kind"
+    ]
+    with pytest.raises(ConfigError) as err:
+        fleet.typed_wanted("typed", warned.append)
+    assert str(err.value) == (
+        f"fleet_messages is typed but pair_vpr_ros_interfaces cannot be used ({UNUSABLE}): "
+        "`make setup` builds it and the node must start from its environment "
+        "(docs/interfaces.md), or use fleet_messages bytes on every robot"
+    )
+    assert fleet.typed_wanted("bytes", warned.append) is False and len(warned) == 1

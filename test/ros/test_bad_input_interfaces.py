@@ -23,7 +23,8 @@ MISSING = "No module named 'pair_vpr_ros_interfaces'"
 WARNING = (
     "/loop_closure/typed is off: the message package pair_vpr_ros_interfaces cannot be imported "
     f"({MISSING}); build it with `make setup` (pip install) or `colcon build` in your ROS "
-    "workspace (docs/interfaces.md). Every other loop-closure topic is on."
+    "workspace, and start the node from its environment (docs/interfaces.md). Every other "
+    "loop-closure topic is on."
 )
 # Runs the node as `python -m pair_vpr_ros.ros.node` would, with the package made unimportable.
 BLOCKED = """

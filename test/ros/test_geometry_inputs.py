@@ -3,6 +3,7 @@ topic that stays silent (said once), bad right camera_info counted."""
 
 from __future__ import annotations
 
+import threading
 from types import SimpleNamespace
 
 import numpy as np
@@ -45,3 +46,19 @@ def test_silent_camera_info_is_said_once_after_the_wait():
     assert g.silence_note(200.0) == ""  # once
     quiet, _ = inputs()
     assert quiet.silence_note(0.0) == quiet.silence_note(100.0) == ""
+
+
+def test_the_first_frame_waits_once_for_a_camera_info_just_behind_it():
+    counts = SimpleNamespace(camera_info_invalid=0, depth_unmatched=0, depth_invalid=0)
+    g = GeometryInputs({**defaults(), "camera_info_topic": "/cam/info"}, counts, wait=5.0)
+    info = SimpleNamespace(
+        width=320, height=240, k=[200.0, 0, 160, 0, 200.0, 120, 0, 0, 1], d=[],
+        distortion_model="plumb_bob", p=[200.0, 0, 160, 0, 0, 200.0, 120, 0, 0, 0, 1, 0],
+    )  # fmt: skip
+    threading.Timer(0.05, g.on_camera_info, [info]).start()
+    g.await_first_camera_info()  # returns once the CameraInfo is in, well before 5 s
+    assert g.camera_for(320, 240) is not None
+    silent, _ = inputs(camera_info_topic="/cam/info")
+    silent.wait = 0.05
+    silent.await_first_camera_info()
+    assert silent._info_waited  # one wait in vain, then never again

@@ -120,3 +120,12 @@ def test_without_weights_anywhere_in_the_launch_the_node_resolves_them(share, ro
     vpr, _ = ros(ls.ros_args(node))
     assert vpr.get_parameter("weights").value == ""
     assert vpr.summary.startswith("model random-init:0|tiny|")
+
+
+def test_sensor_topics_reach_the_node_and_relative_poses_follow_them(share):
+    assert launched(share).parameters == [str(share / "config" / "vpr_node.yaml")]  # no odom
+    node = launched(share, depth="/cam/depth", odom="/odom", robot_id="7")
+    assert node.parameters[1:] == [
+        {"depth_topic": "/cam/depth", "pose_topic": "/odom", "robot_id": "7",
+         "relative_pose": True},
+    ]  # fmt: skip

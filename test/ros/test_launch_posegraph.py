@@ -44,7 +44,8 @@ def test_both_nodes_are_installed_executables_with_installed_parameter_files(sha
     assert console_scripts()[graph.executable] == "pair_vpr_ros.ros.entry:posegraph_node"
     assert (vpr.package, graph.package) == (PACKAGE, PACKAGE)
     assert (vpr.name, graph.name) == ("vpr_node", "posegraph_node")
-    assert vpr.parameters == [str(share / "config" / "vpr_node.yaml")]
+    # the odometry also gives vpr_node's keyframes their poses
+    assert vpr.parameters == [str(share / "config" / "vpr_node.yaml"), {"pose_topic": "odom"}]
     assert graph.parameters == [
         str(share / "config" / "posegraph_node.yaml"),
         {"loop_topic": "loop_closure/factor"},
@@ -58,7 +59,7 @@ def test_both_nodes_are_installed_executables_with_installed_parameter_files(sha
 
 def test_camera_to_base_and_weights_reach_the_nodes(share):
     vpr, graph = launched(share, weights="/robot/b.pth", camera_to_base=DEMO_CAMERA)
-    assert vpr.parameters[1:] == [{"weights": "/robot/b.pth"}]
+    assert vpr.parameters[1:] == [{"weights": "/robot/b.pth", "pose_topic": "odom"}]
     assert graph.parameters[2:] == [{"camera_to_base": [0.0, 0.0, 1.6, -0.5, 0.5, -0.5, 0.5]}]
     assert ls.ros_args(graph)[-4:-2] == ["-p", f"camera_to_base:={DEMO_CAMERA}"]
 
@@ -66,7 +67,8 @@ def test_camera_to_base_and_weights_reach_the_nodes(share):
 def test_prior_map_dirs_reach_both_nodes(share):
     vpr, graph = launched(share, prior_map_dirs="['/maps/monday', /maps/r2]")
     dirs = {"prior_map_dirs": ["/maps/monday", "/maps/r2"]}
-    assert vpr.parameters[1:] == [dirs] and graph.parameters[2:] == [dirs]
+    assert vpr.parameters[1:] == [{"pose_topic": "odom", **dirs}]
+    assert graph.parameters[2:] == [dirs]
     for value in ("/maps/a", "[]", "[1]", "['']"):
         with pytest.raises(ValueError) as err:
             launched(share, prior_map_dirs=value)
@@ -109,7 +111,10 @@ def test_the_pose_graph_hears_the_factors_vpr_node_publishes(share):
         assert subscribed == {
             factor: ["nav_msgs/msg/Odometry"], "/robot/odom": ["nav_msgs/msg/Odometry"],
         }  # fmt: skip
-        assert graph.topics("vpr_node")[1] == {"/camera/image_raw": ["sensor_msgs/msg/Image"]}
+        assert graph.topics("vpr_node")[1] == {
+            "/camera/image_raw": ["sensor_msgs/msg/Image"],
+            "/robot/odom": ["nav_msgs/msg/Odometry"],
+        }
         assert pose_graph.values["camera_to_base"] == (0.0, 0.0, 1.6, -0.5, 0.5, -0.5, 0.5)
     finally:
         if graph is not None:
@@ -120,6 +125,26 @@ def test_the_pose_graph_hears_the_factors_vpr_node_publishes(share):
         if pose_graph is not None:
             pose_graph.destroy_node()
         rclpy.try_shutdown()
+
+
+def test_the_sensor_topics_reach_vpr_node_and_turn_relative_poses_on(share):
+    vpr, _ = launched(
+        share, image="/cam/rgb", depth="/cam/depth", camera_info="/cam/info", odom="/odom",
+        right_image="/cam/right", right_camera_info="/cam/right_info", robot_id="r7",
+        map_dir="/maps/r7", params_file="/robot/vpr.yaml",
+    )  # fmt: skip
+    assert vpr.parameters == [
+        "/robot/vpr.yaml",
+        {
+            "depth_topic": "/cam/depth", "camera_info_topic": "/cam/info",
+            "right_image_topic": "/cam/right", "right_camera_info_topic": "/cam/right_info",
+            "pose_topic": "/odom", "robot_id": "r7", "map_dir": "/maps/r7", "relative_pose": True,
+        },
+    ]  # fmt: skip
+    assert vpr.remappings == [("image", "/cam/rgb"), ("loop_closure", "loop_closure")]
+    only_info = launched(share, camera_info="/cam/info")[0].parameters[1]
+    assert only_info == {"camera_info_topic": "/cam/info", "pose_topic": "odom",
+                         "relative_pose": True}  # fmt: skip
 
 
 def test_usage_in_its_docstring_uses_declared_arguments(share):

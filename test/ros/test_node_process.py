@@ -26,12 +26,13 @@ pytestmark = pytest.mark.slow  # node processes, signals, a colcon build
 
 
 def start_command(
-    cmd: list[str], timeout: float = 60.0
+    cmd: list[str], timeout: float = 60.0, env: dict[str, str] | None = None
 ) -> tuple[subprocess.Popen, threading.Thread, list[str]]:
-    """Start `cmd` (a node) and wait until it logs "ready:" -> (process, output reader, its
-    output lines so far); a process that is not ready in `timeout` s is stopped and fails."""
+    """Start `cmd` (a node; environment `env`, default ENV) and wait until it logs "ready:" ->
+    (process, output reader, its output lines so far); a process that is not ready in
+    `timeout` s is stopped and fails."""
     proc = subprocess.Popen(
-        cmd, cwd=ROOT, env=ENV, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+        cmd, cwd=ROOT, env=env or ENV, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT
     )
     lines: list[str] = []
     ready = threading.Event()
