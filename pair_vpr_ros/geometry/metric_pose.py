@@ -19,6 +19,10 @@ from pair_vpr_ros.geometry.depth_noise import depth_sigma
 from pair_vpr_ros.geometry.pnp import solve_pnp
 from pair_vpr_ros.geometry.pnp_uncertainty import refine_with_covariance
 
+# A chessboard held 12-24 squares from a stereo rig (SGBM depth) has a relief of 1-3 % of its
+# size; a desk scene (TUM fr1) 10-40 %.
+PLANAR_RELIEF = 0.05
+
 
 def within(limit: float) -> str:
     """ " within N m" for a finite depth limit, else ""."""
@@ -27,7 +31,8 @@ def within(limit: float) -> str:
 
 def metric_fit(q, m, pairs: np.ndarray, side: str, z: np.ndarray, c):
     """Features q, m, matches [K, 2], the side whose depth z [K] gives the 3-D points, a
-    `PoseConfig` -> (R, t, covariance [6, 6], inliers) of T_match_query, or (reason, inliers)."""
+    `PoseConfig` -> (R, t, covariance [6, 6], inliers, inlier 3-D points [N, 3]) of
+    T_match_query, or (reason, inliers)."""
     ok = np.isfinite(z) & (z <= c.depth_limit)  # far points: too noisy for PnP
     kp_q, kp_m = q.keypoints[pairs[ok, 0]], m.keypoints[pairs[ok, 1]]
     if side == "match":  # 3D in the match frame, seen by the query camera
@@ -53,7 +58,7 @@ def metric_fit(q, m, pairs: np.ndarray, side: str, z: np.ndarray, c):
     s_t, s_r = cv.sigmas(cov)
     if s_t > c.max_translation_sigma_m or s_r > c.max_rotation_sigma_deg:
         return f"pose too uncertain (std {s_t:.2f} m, {s_r:.2f} deg)", len(idx)
-    return r, t, cov, len(idx)
+    return r, t, cov, len(idx), pts[idx]
 
 
 def depth_agreement(q, m, pairs, r, t, c) -> tuple[int, int] | None:
@@ -71,3 +76,13 @@ def depth_agreement(q, m, pairs, r, t, c) -> tuple[int, int] | None:
     ab = (c.depth_sigma_a, c.depth_sigma_b)
     tol = c.depth_agreement_sigmas * np.hypot(depth_sigma(zq[ok], *ab), depth_sigma(zm[ok], *ab))
     return int((gap < tol + 0.02 * zm[ok]).sum()), int(ok.sum())
+
+
+def is_planar(points: np.ndarray, relief: float = PLANAR_RELIEF) -> bool:
+    """Whether 3-D points [N, 3] lie on one plane: their spread along the plane's normal is
+    under `relief` of their spread along the plane's shorter axis. The essential matrix of a
+    plane is ill-posed (a family of solutions fits it), so it cannot check such a pose."""
+    if len(points) < 4:
+        return True
+    lam = np.linalg.eigvalsh(np.cov(points.T))  # ascending
+    return bool(lam[0] <= relief**2 * lam[1])

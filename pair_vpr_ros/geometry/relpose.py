@@ -29,7 +29,7 @@ from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.geometry import covariance as cv
 from pair_vpr_ros.geometry.epipolar import essential_pose, parallax_deg, sampson_residuals
 from pair_vpr_ros.geometry.features import Features, match_features
-from pair_vpr_ros.geometry.metric_pose import metric_fit, within
+from pair_vpr_ros.geometry.metric_pose import is_planar, metric_fit, within
 from pair_vpr_ros.geometry.odometry_scale import Neighbour, loop_length, triangulate_match
 from pair_vpr_ros.geometry.pnp import project
 from pair_vpr_ros.geometry.rotations import exp_so3, log_so3, matrix_quaternion
@@ -206,7 +206,9 @@ def _metric(q, m, pairs, side, z, c: PoseConfig) -> RelativePose:
     fit = metric_fit(q, m, pairs, side, z, c)
     if isinstance(fit[0], str):
         return _fail(*fit)
-    r, t, cov, inliers = fit
+    r, t, cov, inliers, points = fit
+    if is_planar(points):  # the essential matrix cannot check a pose of a plane
+        return RelativePose(METRIC, "", inliers, r, t, cov)
     chi2, angle = _model_disagreement(q, m, pairs, r, cov, c)
     if chi2 <= c.max_model_disagreement_chi2:
         return RelativePose(METRIC, "", inliers, r, t, cov)

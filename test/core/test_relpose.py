@@ -156,8 +156,11 @@ def test_depth_noise_and_floor_settings_are_checked(field, value, message):
 def test_covariance_floor_is_added_to_every_pose(views):
     rq, _, rm, dm, _ = views
     q, m = extract_features(rq, camera=MODEL), extract_features(rm, depth=dm, camera=MODEL)
+    # (no model-disagreement scaling: the floor also enters that check's chi-square)
     zero = dict(floor_rotation_deg=0.0, floor_translation_m=0.0, floor_translation_rel=0.0)
-    bare, floored = relative_pose(q, m, PoseConfig(**zero)), relative_pose(q, m)
+    off = dict(max_model_disagreement_chi2=1e9)
+    bare = relative_pose(q, m, PoseConfig(**zero, **off))
+    floored = relative_pose(q, m, PoseConfig(**off))
     diff = floored.covariance - bare.covariance
     length = np.linalg.norm(bare.translation)
     np.testing.assert_allclose(np.diag(diff), [(0.005 + 0.01 * length) ** 2] * 3
