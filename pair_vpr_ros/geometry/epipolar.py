@@ -2,7 +2,8 @@
 
 `verify_pair` is the detector's optional geometric verification (inliers of a fundamental-matrix
 RANSAC on the same matches the pose uses). `essential_pose` gives the rotation and the
-translation direction of T_match_query from ideal (undistorted) pixels.
+translation direction of T_match_query from ideal (undistorted) pixels; `centre_rim_chi2` checks
+a monocular pose for a camera model that bends the rim (distortion left out).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import cv2
 import numpy as np
 
 from pair_vpr_ros.geometry.features import Features, match_features
+from pair_vpr_ros.geometry.rotations import log_so3
 
 
 def verify_pair(
@@ -85,3 +87,21 @@ def parallax_deg(rays_q: np.ndarray, rays_m: np.ndarray, r: np.ndarray) -> float
     b = rays_m / np.linalg.norm(rays_m, axis=1, keepdims=True)
     cos = np.clip(np.einsum("ni,ni->n", a, b), -1.0, 1.0)
     return math.degrees(float(np.median(np.arccos(cos))))
+
+
+def centre_rim_chi2(
+    px_q: np.ndarray, px_m: np.ndarray, k: np.ndarray, cov_rot: np.ndarray, px: float, need: int
+) -> tuple[float, float]:
+    """(chi-square, 3 dof; angle, deg) of the difference between the rotations of essential
+    matrices fitted to the inliers [N, 2] (ideal pixels) nearer the image centre and to those
+    farther out; cov_rot [3, 3] is the rotation covariance of the fit to all of them (each half
+    has about twice that variance). A radial distortion left out bends the rim's rays more than
+    the centre's, and a near-degenerate motion lets the halves drift apart: either way the
+    pose is less certain than its residuals say. (0, 0) when a half cannot be fitted."""
+    radius = np.linalg.norm(px_q - k[:2, 2], axis=1) + np.linalg.norm(px_m - k[:2, 2], axis=1)
+    centre = radius <= np.median(radius)
+    fits = [essential_pose(px_q[sel], px_m[sel], k, px, need) for sel in (centre, ~centre)]
+    if any(isinstance(f, str) for f in fits):
+        return 0.0, 0.0
+    d = log_so3(fits[0][0] @ fits[1][0].T)
+    return float(d @ np.linalg.solve(4 * cov_rot, d)), math.degrees(float(np.linalg.norm(d)))

@@ -144,6 +144,7 @@ def test_pose_config_checks_its_values():
         ("max_depth_m", float("nan"), "pose max_depth_m=nan must be >= 0"),
         ("depth_agreement_sigmas", -1.0, "pose depth_agreement_sigmas=-1.0 must be > 0"),
         ("floor_rotation_deg", -0.2, "pose floor_rotation_deg=-0.2 must be >= 0"),
+        ("depth_registration_px", -1.0, "pose depth_registration_px=-1.0 must be >= 0"),
         ("max_model_disagreement_chi2", 0.0, "pose max_model_disagreement_chi2=0.0 must be > 0"),
     ],
 )
