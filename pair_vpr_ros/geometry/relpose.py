@@ -251,7 +251,7 @@ def _monocular(q, m, pairs, c: PoseConfig, neighbours, why: str) -> RelativePose
     k = q.camera.k  # the check's ideal pixels, as _essential_fit's
     px_q, px_m = (project(k, f.camera.rays(f.keypoints[pairs[idx, col]]))
                   for f, col in ((q, 0), (m, 1)))  # fmt: skip
-    chi2, angle = centre_rim_chi2(px_q, px_m, k, cov5[2:, 2:], c.essential_px, 8)
+    chi2, angle = centre_rim_chi2(px_q, px_m, k, (r, t), cov5[2:, 2:])
     if chi2 > c.max_model_disagreement_chi2:  # as PnP vs essential matrix: a weaker pose
         cov5 = cov5 * (chi2 / c.max_model_disagreement_chi2)
         why += (f"; covariance x{chi2 / c.max_model_disagreement_chi2:.1f}: rotations of "

@@ -63,10 +63,12 @@ def test_scale_free_pose_without_depth(views):
     rq, _, rm, _, truth = views
     pose = relative_pose(extract_features(rq, camera=MODEL), extract_features(rm, camera=MODEL))
     assert pose.status == "scale-free"
-    assert pose.reason == (
-        "no depth image (monocular): the translation is a direction only; no scale from "
-        "odometry: no map keyframe next to the match keyframe has an odometry baseline (both "
-        "poses known, stamps within 10 s, at least 0.2 m apart, turned at most 10 deg)"
+    # (this view's centre and rim rotations differ by 1.2 deg: its covariance is scaled x2.1)
+    assert pose.reason.startswith("no depth image (monocular): the translation is a direction")
+    assert pose.reason.endswith(
+        "; no scale from odometry: no map keyframe next to the match keyframe has an odometry "
+        "baseline (both poses known, stamps within 10 s, at least 0.2 m apart, turned at most "
+        "10 deg)"
     )
     rot, _, direction = pose_errors(pose.matrix(), truth)
     assert rot < 2.0 and direction < 10.0
