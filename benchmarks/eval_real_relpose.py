@@ -1,5 +1,6 @@
 """Relative poses and covariances on real RGB-D frames with recorded poses, against OpenCV.
 
+    python benchmarks/eval_real_relpose.py --suite
     python benchmarks/eval_real_relpose.py SET_DIR --fx 518 --fy 519 --cx 325.5 --cy 253.5 \
         --depth-scale 1000 [--features sift] [--distort K1] [--focal-error 0.05]
 
@@ -12,6 +13,11 @@ frames (SIFT or ORB, ratio test, ``solvePnPRansac`` from the match's depth; and
 posed correctly (rotation < 1 deg, translation < 5 cm), median rotation / translation error,
 and for ours the chi-square of the 6-dof error against the reported covariance (a calibrated
 covariance: median 5.3) and of the 3-dof rotation error (median 2.4).
+
+``--suite`` (no SET_DIR) reports on the real sets shipped in test/data/real/ (TUM RGB-D fr1/rpy
+and OpenCV's stereo chessboard, ``test/real_frames.py``) instead: a Markdown table per set and
+mode (RGB-D, monocular, lens distortion left out, stereo), OpenCV ORB / SIFT + solvePnPRansac
+beside it.
 
 ``--distort K1`` warps the images with a radial distortion k1 (as a lens would) and tells the
 pose code nothing about it (the "no camera_info" mistake); ``--focal-error`` scales the focal
@@ -168,7 +174,46 @@ def summarise(rows: list[dict]) -> dict:
     }
 
 
+def _line(name: str, rows: list[dict], median, cv: list[dict] | None = None) -> str:
+    posed = [r for r in rows if r.get("status", "cv")]
+    big = [r for r in posed if r.get("rot_deg", 0) > 5 and r.get("chi2_rot", 0) > 100]
+    cells = [name, f"{len(posed)} / {len(rows)}", f"{median(posed, 'rot_deg'):.2f}",
+             f"{median(posed, 'trans_m'):.3f}", f"{median(posed, 'chi2'):.1f}",
+             f"{median(posed, 'chi2_rot'):.2f}", str(len(big))]  # fmt: skip
+    if cv is not None:
+        cells.append(f"{len(cv)} / {len(rows)}, {median(cv, 'rot_deg'):.2f}")
+    return "| " + " | ".join(c.replace("nan", "-") for c in cells) + " |"
+
+
+def suite() -> int:
+    """Print the tables of docs/real-cameras.md for the sets in test/data/real/."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
+    import real_frames as rf  # the suite's loaders (one copy of them)
+
+    truths = rf.tum_truths()
+    cv = {k: rf.opencv_rows(k, truths) for k in ("orb", "sift")}
+    head = ("| set, mode | posed | rotation error median (deg) | translation error median | "
+            "chi^2 median (6 dof) | rotation chi^2 median | rot > 5 deg and chi^2 > 100 | "
+            "OpenCV PnP, same detector kind: posed, rotation median |")  # fmt: skip
+    print(head + "\n|" + " --- |" * 8)
+    for kind in ("sift", "orb"):
+        for depth in (True, False):
+            for dist in (True, False):
+                rows = rf.pose_rows(rf.tum_features(kind, depth, dist), truths)
+                name = (f"TUM fr1/rpy {kind}, {'RGB-D' if depth else 'monocular'}, "
+                        f"{'with distortion' if dist else 'distortion left out'}")  # fmt: skip
+                print(_line(name, rows, rf.median, cv[kind] if depth and dist else None))
+    feats, board_truths, config = rf.chessboard()
+    rows = rf.pose_rows(feats, board_truths, config)
+    print(_line("OpenCV stereo chessboard, SGBM depth (squares)", rows, rf.median))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:
+        argv = sys.argv[1:]
+    if "--suite" in argv:
+        return suite()
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("set", type=Path, help="folder with color/, depth/, pose.txt")
     for name in ("fx", "fy", "cx", "cy"):

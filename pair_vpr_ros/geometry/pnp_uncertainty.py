@@ -5,8 +5,10 @@ model, `depth_noise.point_covariances`) seen at pixel p_i in the other camera. I
 residual has covariance S_i = sigma_px^2 I + J_X Sigma_X J_X^T (J_X: the projection's Jacobian
 with respect to the point), so far points, whose depth is poor, count less. The pose is refined
 by Gauss-Newton on the whitened residuals S_i^-1/2 r_i and its covariance is
-(sum J_i^T S_i^-1 J_i)^-1 times the variance factor max(1, chi^2 / (2n - 6)): the residuals
-say when the pixel noise is larger than assumed (blur, rolling shutter, a poor calibration).
+(sum J_i^T S_i^-1 J_i)^-1 times the variance factor max(0.1, chi^2 / (2n - 6)): the residuals
+say when the pixel noise is larger than assumed (blur, rolling shutter, a poor calibration)
+or smaller (a chessboard's corners: whitened RMS 0.31, docs/real-cameras.md); at most a factor
+of 10 smaller, so a noise-free render is not taken as certainty.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from pair_vpr_ros.geometry.depth_noise import point_covariances
 from pair_vpr_ros.geometry.pnp import project
 
 ITERATIONS = 3
+MIN_VARIANCE_FACTOR = 0.1  # residuals may shrink the assumed noise variance at most 10x
 
 
 def _camera_points(pts, r, t, points_in_match: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -87,6 +90,6 @@ def refine_with_covariance(
     dof = len(res) - 6
     if dof <= 0:
         return None
-    factor = max(1.0, float(np.sum(res**2)) / dof)
+    factor = max(MIN_VARIANCE_FACTOR, float(np.sum(res**2)) / dof)
     cov = np.linalg.inv(jac.T @ jac) * factor
     return r, t, (cov + cov.T) / 2, factor, res

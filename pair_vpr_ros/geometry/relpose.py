@@ -27,9 +27,14 @@ import numpy as np
 
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.geometry import covariance as cv
-from pair_vpr_ros.geometry.epipolar import essential_pose, parallax_deg, sampson_residuals
+from pair_vpr_ros.geometry.epipolar import (
+    centre_rim_chi2,
+    essential_pose,
+    parallax_deg,
+    sampson_residuals,
+)
 from pair_vpr_ros.geometry.features import Features, match_features
-from pair_vpr_ros.geometry.metric_pose import metric_fit, within
+from pair_vpr_ros.geometry.metric_pose import is_planar, metric_fit, within
 from pair_vpr_ros.geometry.odometry_scale import Neighbour, loop_length, triangulate_match
 from pair_vpr_ros.geometry.pnp import project
 from pair_vpr_ros.geometry.rotations import exp_so3, log_so3, matrix_quaternion
@@ -67,11 +72,13 @@ class PoseConfig:
     scale_sigma_floor: float = 0.03  # relative std of the scale at least (odometry error)
     scale_lever_m: float = 1.0  # assumed camera offset from the odometry's turn axis, at most
     # Depth noise sigma_z = a + b z^2 (depth_noise.py: Kinect-class defaults), depth beyond
-    # max_depth_m (0: no limit) not used for PnP, depth agreement within this many sigmas.
+    # max_depth_m (0: no limit) not used for PnP, depth agreement within this many sigmas of
+    # both depths' noise, a misregistration and the pose's covariance (metric_pose.py).
     depth_sigma_a: float = 0.0012
     depth_sigma_b: float = 0.0019
     max_depth_m: float = 0.0
     depth_agreement_sigmas: float = 3.0
+    depth_registration_px: float = 2.0  # depth-to-colour misregistration allowed in agreement
     # Errors no residual shows (intrinsics a little off, distortion left in, image/depth timing,
     # rolling shutter), added to every covariance as independent noise: rotation std per axis,
     # translation std a + b |t|. Measured on real RGB-D pairs (docs/real-cameras.md).
@@ -95,7 +102,7 @@ class PoseConfig:
             if not getattr(self, name) >= 1:
                 raise ConfigError(f"pose {name}={getattr(self, name)!r} must be >= 1")
         for name in ("depth_sigma_a", "max_depth_m", "floor_rotation_deg", "floor_translation_m",
-                     "floor_translation_rel"):  # fmt: skip
+                     "floor_translation_rel", "depth_registration_px"):  # fmt: skip
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"pose {name}={getattr(self, name)!r} must be >= 0")
         if not 0 < self.ratio <= 1:
@@ -206,7 +213,9 @@ def _metric(q, m, pairs, side, z, c: PoseConfig) -> RelativePose:
     fit = metric_fit(q, m, pairs, side, z, c)
     if isinstance(fit[0], str):
         return _fail(*fit)
-    r, t, cov, inliers = fit
+    r, t, cov, inliers, points = fit
+    if is_planar(points):  # the essential matrix cannot check a pose of a plane
+        return RelativePose(METRIC, "", inliers, r, t, cov)
     chi2, angle = _model_disagreement(q, m, pairs, r, cov, c)
     if chi2 <= c.max_model_disagreement_chi2:
         return RelativePose(METRIC, "", inliers, r, t, cov)
@@ -239,6 +248,15 @@ def _monocular(q, m, pairs, c: PoseConfig, neighbours, why: str) -> RelativePose
     if isinstance(fit, RelativePose):
         return fit
     r, t, idx, cov5 = fit
+    k = q.camera.k  # the check's ideal pixels, as _essential_fit's
+    px_q, px_m = (project(k, f.camera.rays(f.keypoints[pairs[idx, col]]))
+                  for f, col in ((q, 0), (m, 1)))  # fmt: skip
+    chi2, angle = centre_rim_chi2(px_q, px_m, k, (r, t), cov5[2:, 2:])
+    if chi2 > c.max_model_disagreement_chi2:  # as PnP vs essential matrix: a weaker pose
+        cov5 = cov5 * (chi2 / c.max_model_disagreement_chi2)
+        why += (f"; covariance x{chi2 / c.max_model_disagreement_chi2:.1f}: rotations of "
+                f"the image centre and rim disagree by {angle:.2f} deg (distortion left "
+                "out?)")  # fmt: skip
     scaled: RelativePose | str = "switched off (odometry_scale false)"
     if c.odometry_scale:
         scaled = _odometry_scaled(q, m, pairs[idx], (r, t, cov5), c, neighbours)

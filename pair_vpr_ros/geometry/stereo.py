@@ -93,6 +93,14 @@ def stereo_depth(
     -> depth [H, W] float32 metres of the left image (NaN: none) from semi-global matching.
     `max_disparity` 0: an eighth of the width (objects at least 8 B fx / W away)."""
     check_pair(left, right)
+    return sgbm_depth(left, right, fx, baseline, max_disparity)
+
+
+def sgbm_depth(
+    left: np.ndarray, right: np.ndarray, fx: float, baseline: float, max_disparity: int = 0
+) -> np.ndarray:
+    """`stereo_depth` without `check_pair`, for a pair known to be rectified (ORB matches on
+    strongly repeated texture, e.g. OpenCV's stereo chessboard sample, can fool the check)."""
     gl, gr = _grey(left), _grey(right)
     n = max_disparity or max(16, gl.shape[1] // 8)
     n = int(math.ceil(n / 16) * 16)
