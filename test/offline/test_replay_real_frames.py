@@ -14,7 +14,8 @@ from real_frames import TUM, TUM_D, TUM_K, chi2, tum_frames
 from test_replay_geometry import CONFIG, depth_msg
 
 from pair_vpr_ros.geometry.rotations import matrix_quaternion, quaternion_matrix
-from pair_vpr_ros.offline.replay import ReplayOptions, replay_bag
+from pair_vpr_ros.offline.replay.options import ReplayOptions
+from pair_vpr_ros.offline.replay.run import replay_bag
 
 INFO, POSE = "sensor_msgs/msg/CameraInfo", "geometry_msgs/msg/PoseStamped"
 
