@@ -1,4 +1,5 @@
-"""offline.bags.reader: reading frames and poses from bags of every writer; every bad input's message."""
+"""offline.bags.reader: reading frames and poses from bags of every writer; every bad input's
+message."""
 
 from __future__ import annotations
 
