@@ -73,11 +73,14 @@ def pytest_make_collect_report(collector):
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item, call):
-    """A test that fails on an extra's missing module (imported where it is used): skipped."""
+    """A test that fails on an extra's missing module (imported where it is used, also when
+    the package wraps it: a ConfigError raised `from` it): skipped."""
     outcome = yield
     report = outcome.get_result()
     error = call.excinfo.value if call.excinfo is not None else None
-    if report.failed and isinstance(error, ModuleNotFoundError) and not in_ci():
+    while error is not None and not isinstance(error, ModuleNotFoundError):
+        error = error.__cause__ or error.__context__
+    if report.failed and error is not None and not in_ci():
         reason = reason_in(f"ModuleNotFoundError: No module named '{error.name}'")
         if reason:
             report.outcome = "skipped"
