@@ -8,6 +8,8 @@ code   meaning
        bag, checkpoint or dataset, an invalid parameter value); one ``error: ...`` line
 2      usage error: the command line itself is wrong (argparse's own code; ``UsageError``)
 130    interrupted by Ctrl-C (128 + SIGINT, as shells report it)
+141    stdout was closed by its reader (``pairvpr-map info --json | head``): the output stops
+       there without a word (128 + SIGPIPE, the code of ``cat`` in the same place)
 =====  ==================================================================================
 
 ``run_cli`` applies it: every ``main(argv=None) -> int`` of the package is
@@ -19,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 from collections.abc import Callable
 
@@ -28,6 +31,19 @@ EXIT_OK = 0
 EXIT_ERROR = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
+EXIT_PIPE = 141
+
+
+def _stdout_closed() -> int:
+    """stdout's reader went away: point stdout at /dev/null, so that the interpreter's last
+    flush at exit cannot raise again ("Exception ignored ... BrokenPipeError"); -> EXIT_PIPE."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):  # no file descriptor (a captured stream): nothing to flush
+        pass
+    return EXIT_PIPE
 
 
 def run_cli(
@@ -43,6 +59,7 @@ def run_cli(
     ``error: <message>`` to stderr (``EXIT_USAGE`` for a ``UsageError``, else ``EXIT_ERROR``);
     Ctrl-C prints ``error: <interrupted>`` and gives ``EXIT_INTERRUPTED``. argparse's own exits
     (``--help``: 0, a bad flag: 2, message already printed) come back as codes, not exceptions.
+    A closed stdout (a pipe into ``head``) stops the tool quietly with ``EXIT_PIPE``.
     """
     try:
         args = parser.parse_args(argv)
@@ -52,6 +69,9 @@ def run_cli(
         return exc.code if isinstance(exc.code, int) else EXIT_USAGE
     try:
         code = body(args)
+        sys.stdout.flush()  # a closed pipe shows here, not at exit after the code is chosen
+    except BrokenPipeError:
+        return _stdout_closed()
     except UsageError as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_USAGE

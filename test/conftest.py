@@ -1,5 +1,7 @@
 """Shared test set-up: keep DDS discovery on this machine before anything can start rclpy, and
-keep the user's weights out of the tests."""
+keep the user's weights out of the tests; fixtures every test can ask for (also when its file
+runs alone: fixtures live here, or in a conftest.py beside the tests, never only in another test
+module); tests of an optional extra skip where it is not installed (test/extras.py)."""
 
 from __future__ import annotations
 
@@ -8,6 +10,8 @@ import os
 from pathlib import Path
 
 import pytest
+from extras import in_ci, reason_in
+from milvus_fixtures import lite_db, milvus  # noqa: F401 - fixtures of the milvus tests
 
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 # Nodes must not hear nodes of another test: with two /vpr_node on one domain, both answer every
@@ -54,3 +58,30 @@ def _ros_domain(monkeypatch):
     rclpy.init in this process and by the node processes a test starts)."""
     if _USER_DOMAIN is None:
         monkeypatch.setenv("ROS_DOMAIN_ID", str(1 + next(_DOMAINS) % 100))
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_make_collect_report(collector):
+    """A test module that cannot be imported because an extra's module is missing: skipped,
+    with the pip command (failed under CI)."""
+    outcome = yield
+    report = outcome.get_result()
+    reason = reason_in(str(report.longrepr)) if report.failed and not in_ci() else None
+    if reason:
+        report.outcome, report.longrepr = "skipped", (str(collector.path), 0, reason)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """A test that fails on an extra's missing module (imported where it is used, also when
+    the package wraps it: a ConfigError raised `from` it): skipped."""
+    outcome = yield
+    report = outcome.get_result()
+    error = call.excinfo.value if call.excinfo is not None else None
+    while error is not None and not isinstance(error, ModuleNotFoundError):
+        error = error.__cause__ or error.__context__
+    if report.failed and error is not None and not in_ci():
+        reason = reason_in(f"ModuleNotFoundError: No module named '{error.name}'")
+        if reason:
+            report.outcome = "skipped"
+            report.longrepr = (str(item.path), item.location[1] or 0, f"Skipped: {reason}")

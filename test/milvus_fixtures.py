@@ -1,5 +1,6 @@
-"""Fixtures of the "milvus" place-map tests (`pytest_plugins = ["milvus_fixtures"]`): one
-milvus-lite file per test module (its start takes ~1 s) and a fresh collection per test."""
+"""Fixtures of the "milvus" place-map tests, provided to every test by test/conftest.py: one
+milvus-lite file per test module (its start takes ~1 s) and a fresh collection per test. Both
+skip (fail under CI) where the milvus extra is not installed."""
 
 from __future__ import annotations
 
@@ -7,15 +8,17 @@ import itertools
 from pathlib import Path
 
 import pytest
+from extras import require
 
 from pair_vpr_ros.place_map import IndexConfig
 
-pymilvus = pytest.importorskip("pymilvus", reason="pip install 'pair_vpr_ros[milvus]'")
 _names = itertools.count()
 
 
 @pytest.fixture(scope="module")
 def lite_db(tmp_path_factory) -> Path:
+    require("pymilvus")
+    require("milvus_lite")
     return tmp_path_factory.mktemp("milvus") / "maps.db"
 
 

@@ -93,6 +93,9 @@ PARAMS: tuple[ParamSpec, ...] = (
        "relative poses ('' = none: use the camera_* parameters)", **RO),
     _p("depth_tolerance", 0.02, "largest stamp gap (s) between an image and its depth image",
        0.0, 1.0, **RO),
+    _p("depth_max_delay", 0.2, "how long (s, wall clock) a frame waits for its depth image to "
+       "arrive (drivers often publish depth after colour); a later one is not used, counted as "
+       "depth_late in /diagnostics", 0.0, 10.0, **RO),
     _p("camera_fx", 0.0, "fallback intrinsics when no camera_info arrives: focal length x in "
        "pixels of the incoming images (0 = none: no relative poses without camera_info)",
        0.0, 1.0e6, **RO),

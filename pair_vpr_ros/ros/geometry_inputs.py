@@ -2,8 +2,10 @@
 images matched to frames by stamp, the latest valid CameraInfo, the parameter fallback.
 
 Depth messages are kept raw (converted only for the frame that uses them). A frame waits up to
-`wait` s in the worker for its depth image (depth drivers often publish after the colour image);
-without one within `tolerance` s it goes on without depth, counted as ``depth_unmatched``.
+`depth_max_delay` s (wall clock) in the worker for its depth image (depth drivers often publish
+after the colour image); without one stamped within `depth_tolerance` s of it, it goes on without
+depth, counted as ``depth_unmatched``. A depth image that arrives later for such a frame is
+counted as ``depth_late`` (so /diagnostics tells a slow depth driver from a missing one).
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ from __future__ import annotations
 import bisect
 import threading
 import time
+from collections import deque
 from typing import Any
 
 from pair_vpr_ros.errors import ConfigError, GeometryInputError, ImageConversionError
@@ -23,25 +26,34 @@ from pair_vpr_ros.types import message_stamp
 
 
 class _StampBuffer:
-    """The last `size` messages in stamp order; `nearest` waits up to `wait` s for a later one."""
+    """The last `size` messages in stamp order; `nearest` waits up to `wait` s for a later one.
 
-    def __init__(self, size: int) -> None:
-        self.size = size
+    The stamps of the last `size` frames that found none are kept, so `add` can tell a message
+    that came too late for its frame (under the same lock as `nearest`: no race)."""
+
+    def __init__(self, size: int, tolerance: float) -> None:
+        self.size, self.tolerance = size, tolerance
         self._stamps: list[float] = []
         self._msgs: list[Any] = []
+        self._missed: deque[float] = deque(maxlen=size)
         self._cond = threading.Condition()
 
-    def add(self, msg: Any) -> None:
+    def add(self, msg: Any) -> bool:
+        """Keep `msg`; -> True when a frame already gave up waiting for it (late)."""
         with self._cond:
             stamp = message_stamp(msg)
+            late = [s for s in self._missed if abs(s - stamp) <= self.tolerance]
+            for s in late:
+                self._missed.remove(s)
             i = bisect.bisect_right(self._stamps, stamp)
             self._stamps.insert(i, stamp)
             self._msgs.insert(i, msg)
             if len(self._stamps) > self.size:
                 del self._stamps[0], self._msgs[0]
             self._cond.notify_all()
+            return bool(late)
 
-    def nearest(self, stamp: float, tolerance: float, wait: float) -> Any | None:
+    def nearest(self, stamp: float, wait: float) -> Any | None:
         deadline = time.monotonic() + wait
         with self._cond:
             # Once a message at or after `stamp` is in, no later one can be nearer.
@@ -52,10 +64,11 @@ class _StampBuffer:
                 self._cond.wait(left)
             i = bisect.bisect_left(self._stamps, stamp)
             near = [j for j in (i - 1, i) if 0 <= j < len(self._stamps)]
-            if not near:
+            best = min(near, key=lambda j: abs(self._stamps[j] - stamp), default=None)
+            if best is None or abs(self._stamps[best] - stamp) > self.tolerance:
+                self._missed.append(stamp)
                 return None
-            best = min(near, key=lambda j: abs(self._stamps[j] - stamp))
-            return self._msgs[best] if abs(self._stamps[best] - stamp) <= tolerance else None
+            return self._msgs[best]
 
 
 class GeometryInputs:
@@ -67,14 +80,14 @@ class GeometryInputs:
         values: dict,
         counts: Any,
         buffer_size: int = 30,
-        wait: float = 0.2,
     ) -> None:
         self.enabled_depth = bool(values["depth_topic"])
         self.tolerance = float(values["depth_tolerance"])
-        self.counts, self.wait, self.size = counts, wait, buffer_size
+        self.wait = float(values["depth_max_delay"])
+        self.counts, self.size = counts, buffer_size
         self.values = values
-        self._depth = _StampBuffer(buffer_size)
-        self._right = _StampBuffer(buffer_size)  # stereo: right images (rectified)
+        self._depth = _StampBuffer(buffer_size, self.tolerance)
+        self._right = _StampBuffer(buffer_size, self.tolerance)  # stereo: right images (rectified)
         self.baseline = 0.0  # stereo: from the right camera_info
         self.camera_info: CameraModel | None = None
         self.last_problem = ""
@@ -89,7 +102,8 @@ class GeometryInputs:
 
     # ---- callbacks (executor threads) ----------------------------------------------------
     def on_depth(self, msg: Any) -> None:
-        self._depth.add(msg)
+        if self._depth.add(msg):
+            self.counts.depth_late += 1
 
     def on_right(self, msg: Any) -> None:
         self._right.add(msg)
@@ -144,10 +158,14 @@ class GeometryInputs:
         """Depth [H, W] m for a frame at `stamp`, or None (counted when depth is expected)."""
         if not self.enabled_depth:
             return None
-        msg = self._depth.nearest(stamp, self.tolerance, self.wait)
+        msg = self._depth.nearest(stamp, self.wait)
         if msg is None:
             self.counts.depth_unmatched += 1
-            self.last_problem = f"no depth image within {self.tolerance} s of {stamp:.3f}"
+            self.last_problem = (
+                f"no depth image stamped within depth_tolerance {self.tolerance} s of the image "
+                f"({stamp:.3f}) arrived within depth_max_delay {self.wait} s (diagnostics "
+                "depth_late counts the ones that came later)"
+            )
             return None
         try:
             return depth_from_msg(msg)
@@ -160,7 +178,7 @@ class GeometryInputs:
         """RGB [H, W, 3] of the right image nearest to `stamp` (stereo), or None (counted)."""
         if not self.values.get("right_image_topic"):
             return None
-        msg = self._right.nearest(stamp, self.tolerance, self.wait)
+        msg = self._right.nearest(stamp, self.wait)
         try:
             return None if msg is None else msg_to_rgb(msg)
         except ImageConversionError as err:

@@ -81,6 +81,8 @@ class NodeCounts:
     bad_poses: int = 0  # pose callback: NaN / inf values, not stored
     camera_info_invalid: int = 0  # camera_info callback: unusable intrinsics (zero focal, ...)
     depth_unmatched: int = 0  # worker: no depth image within depth_tolerance of the frame
+    # (arrived within depth_max_delay)
+    depth_late: int = 0  # depth callback: the depth image of a frame that went on without it
     depth_invalid: int = 0  # worker: the matched depth image could not be read
 
 
@@ -122,6 +124,7 @@ class NodeStats:
             (now.bad_poses - last.bad_poses, "poses invalid (NaN/inf)"),
             (now.camera_info_invalid - last.camera_info_invalid, "camera_info unusable"),
             (now.depth_unmatched - last.depth_unmatched, "frames without depth"),
+            (now.depth_late - last.depth_late, "depth images too late (depth_max_delay)"),
             (now.depth_invalid - last.depth_invalid, "depth images invalid"),
         )
         return ", ".join(f"{n} {words}" for n, words in grew if n)
@@ -181,6 +184,9 @@ def diagnostic_values(
         "map_keyframes_pending": live.counts.map_keyframes_pending,
         "camera_info_invalid": c.camera_info_invalid,
         "frames_without_depth": c.depth_unmatched,
+        # of these: the depth image came after depth_max_delay (late) or never (missing)
+        "depth_late": c.depth_late,
+        "depth_missing": max(0, c.depth_unmatched - c.depth_late),
         "depth_invalid": c.depth_invalid,
         "map_size": live.keyframes,
         "bytes_per_keyframe": live.bytes_per_keyframe,

@@ -16,8 +16,6 @@ from pair_vpr_ros.errors import ConfigError, MapError, MapFingerprintError, MapU
 from pair_vpr_ros.place_map import IndexConfig, PlaceMap
 from pair_vpr_ros.place_map.milvus import read_record
 
-pytest_plugins = ["milvus_fixtures"]  # fixtures lite_db, milvus
-
 URI_RULE = (
     "milvus_uri must be a milvus-lite file (a path ending in .db) or a Milvus server address "
     "(http://host:19530), got {!r}"

@@ -10,13 +10,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 from bad_input import make_flaky, tree_digest
+from extras import require
 from map_fixtures import DENSE, DIM, make_map
 from test_bad_input_milvus import URI_RULE
 
 from pair_vpr_ros.offline.map_cli import main
 from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
 
-pytest.importorskip("pymilvus", reason="pip install 'pair_vpr_ros[milvus]'")
+require("pymilvus")
 
 
 def _rows(uri: str, collection: str = "kf") -> int:

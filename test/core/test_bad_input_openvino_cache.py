@@ -13,8 +13,9 @@ from pathlib import Path
 
 import pytest
 import torch
+from extras import require
 
-pytest.importorskip("openvino")
+require("openvino")
 import numpy as np  # noqa: E402
 import openvino as ov  # noqa: E402
 import openvino.opset13 as ops  # noqa: E402

@@ -139,6 +139,27 @@ CASES = {
         section("loop_per_map: 1").encode(),
         "loop_per_map must be true or false, got 1",
     ),
+    # issue 37: the wait for a depth image
+    "negative depth delay": (
+        section("depth_max_delay: -0.1").encode(),
+        "depth_max_delay=-0.1 is out of range [0.0, 10.0]",
+    ),
+    "depth delay too long": (
+        section("depth_max_delay: 60.0").encode(),
+        "depth_max_delay=60.0 is out of range [0.0, 10.0]",
+    ),
+    "nan depth delay": (
+        section("depth_max_delay: .nan").encode(),
+        "depth_max_delay must be a finite number",
+    ),
+    "string depth delay": (
+        section('depth_max_delay: "0.5 s"').encode(),
+        "depth_max_delay must be a number, got '0.5 s'",
+    ),
+    "list depth delay": (
+        section("depth_max_delay: [0.5]").encode(),
+        "depth_max_delay must be a number, got [0.5]",
+    ),
 }
 
 

@@ -3,12 +3,24 @@
 from __future__ import annotations
 
 import argparse
+import ast
+import os
 import re
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
 from pair_vpr_ros import cli
-from pair_vpr_ros.cli import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, run_cli
+from pair_vpr_ros.cli import (
+    EXIT_ERROR,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    EXIT_PIPE,
+    EXIT_USAGE,
+    run_cli,
+)
 from pair_vpr_ros.errors import BagError, UsageError
 
 
@@ -84,3 +96,47 @@ def test_numeric_flag_types(parse, text, value, message):
     else:
         with pytest.raises(argparse.ArgumentTypeError, match=re.escape(message)):
             parse(text)
+
+
+CHATTY = """
+import argparse, sys
+from pair_vpr_ros.cli import run_cli
+def body(args):
+    for i in range(200000):  # far more than a pipe's buffer
+        print(f"line {i}")
+sys.exit(run_cli(argparse.ArgumentParser(prog="tool"), body, []))
+"""
+
+
+def test_a_closed_stdout_stops_the_tool_quietly():
+    """`pairvpr-map info --json | head`: the reader closes the pipe after a line; the tool stops
+    with 141 (128 + SIGPIPE) and nothing on stderr (no BrokenPipeError traceback, not even the
+    interpreter's "Exception ignored" at exit)."""
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    proc = subprocess.Popen(
+        [sys.executable, "-c", CHATTY], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env
+    )
+    assert proc.stdout.readline() == b"line 0\n"
+    proc.stdout.close()
+    _, err = proc.communicate(timeout=60)
+    assert (proc.returncode, err.decode()) == (EXIT_PIPE, "")
+    assert EXIT_PIPE == 141
+
+
+def test_every_console_script_goes_through_run_cli():
+    """Each tool of setup.py's console_scripts (the nodes aside) calls run_cli (the trainers
+    through driver.stage_main), so each gets the exit codes and the quiet stop on a closed
+    stdout. Read from the source's AST: importing every tool would take seconds."""
+    root = Path(__file__).resolve().parents[2]
+    entries = re.findall(r'"([\w-]+) = ([\w.]+):(\w+)"', (root / "setup.py").read_text())
+    tools = [(m, f) for name, m, f in entries if not m.startswith("pair_vpr_ros.ros.")]
+    assert len(tools) >= 8
+    for module, func in tools:
+        tree = ast.parse((root / (module.replace(".", "/") + ".py")).read_text())
+        main = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == func)
+        called = {n.func.id for n in ast.walk(main) if isinstance(n, ast.Call)
+                  and isinstance(n.func, ast.Name)}  # fmt: skip
+        assert called & {"run_cli", "stage_main"}, module
+    driver = (root / "pair_vpr_ros/learn/train/driver.py").read_text()
+    assert "return run_cli(parser, body, argv, interrupted=resume)" in driver

@@ -12,12 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from bad_input import make_flaky, saved_map_digest
+from extras import require
 from map_fixtures import DENSE, DIM, make_map
 
 from pair_vpr_ros.offline.map_cli import main
 from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap, persist
-
-pytest_plugins = ["milvus_fixtures"]  # fixtures lite_db, milvus
 
 
 def _rows(config: IndexConfig) -> int:
@@ -157,6 +156,8 @@ def _unsaved_run(config: IndexConfig, n: int) -> None:
 @pytest.fixture
 def site(tmp_path) -> IndexConfig:
     """A milvus-lite file inside the maps folder (prune must not take it for a map)."""
+    require("pymilvus")
+    require("milvus_lite")
     (tmp_path / "maps").mkdir()
     uri = str(tmp_path / "maps" / "site.db")
     return IndexConfig(kind="milvus", milvus_uri=uri, milvus_collection="kf", milvus_index="FLAT")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from extras import require
 
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.loops.scoring import encode_for_map
@@ -14,7 +15,7 @@ from pair_vpr_ros.model.calibration import synthetic_calibration, synthetic_scen
 from pair_vpr_ros.model.export import example_inputs, export_graphs
 from pair_vpr_ros.weights import load_model
 
-pytest.importorskip("openvino")
+require("openvino")
 from pair_vpr_ros.model.openvino_backend import OpenVINOModel  # noqa: E402
 
 K = 5  # three chunks of 2: the last one padded
@@ -92,7 +93,7 @@ def test_wrong_image_size_is_explained(ov_fp32):
 
 @pytest.mark.slow
 def test_int8_is_close_and_says_so(torch_model, inputs):
-    pytest.importorskip("nncf")
+    require("nncf")
     images, dense, desc = inputs
     model = OpenVINOModel(torch_model, "int8", calibration=synthetic_calibration(4, 56))
     assert model.fingerprint.startswith("random-init:0+ov-int8|tiny|")

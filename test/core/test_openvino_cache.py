@@ -10,15 +10,16 @@ from pathlib import Path
 
 import pytest
 import torch
+from extras import require
 
 from pair_vpr_ros.model import ModelConfig, build_pairvpr
 from pair_vpr_ros.model.calibration import synthetic_calibration
 from pair_vpr_ros.weights import load_model
 
-pytest.importorskip("openvino")
+require("openvino")
 from pair_vpr_ros.model import openvino_backend, openvino_cache  # noqa: E402
 from pair_vpr_ros.model.openvino_backend import OpenVINOModel  # noqa: E402
-from pair_vpr_ros.model.openvino_cache import (
+from pair_vpr_ros.model.openvino_cache import (  # noqa: E402
     CacheEntry,
     entry_parts,
     resolve_cache_dir,
@@ -65,7 +66,7 @@ def test_second_start_reads_the_cache(tiny_model, tmp_path, monkeypatch):
 
 @pytest.mark.slow
 def test_int8_second_start_skips_calibration(tiny_model, tmp_path, monkeypatch):
-    pytest.importorskip("nncf")
+    require("nncf")
     calibration = synthetic_calibration(4, 56)
     first = OpenVINOModel(tiny_model, "int8", calibration=calibration, cache_dir=tmp_path)
     monkeypatch.setattr(openvino_backend, "quantize", refuse("quantize"))
@@ -80,7 +81,7 @@ def test_int8_second_start_skips_calibration(tiny_model, tmp_path, monkeypatch):
 
 
 def test_every_input_of_the_graphs_has_its_own_entry(tiny_model, tmp_path):
-    pytest.importorskip("nncf")
+    require("nncf")
     images = synthetic_calibration(4, 56)
 
     def key(model=tiny_model, precision="int8", chunk=2, calibration=images) -> str:

@@ -24,7 +24,6 @@ from pair_vpr_ros.loops.recency import eligible_keyframes
 from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
 from pair_vpr_ros.place_map.milvus_expr import Exclusion, exclusion_expr, ids_expr, mask_runs
 
-pytest_plugins = ["milvus_fixtures"]  # fixtures lite_db, milvus
 N = 40
 
 

@@ -72,8 +72,15 @@ def test_a_prior_map_is_searched_at_once_and_never_written(bag, first, tmp_path,
     assert [(r["query_id"], r["match_id"], r["match_session"]) for r in loops[:3]] == [
         (0, 0, "mon"), (1, 1, "mon"), (2, 2, "mon"),
     ]  # fmt: skip
-    ev = s.evaluation  # loops into the prior map are not this run's: unlabelled
+    ev = s.evaluation  # loops into the prior map are not this run's: unlabelled here ...
     assert (ev["accepted"], ev["unlabelled_accepted"], ev["true_accepted"]) == (17, 12, 5)
+    prior = s.prior_evaluation  # ... and labelled apart: the prior map is of this very bag
+    assert (prior["covered"], prior["prior_keyframes"], prior["positives"]) == (17, 17, 17)
+    assert (prior["accepted"], prior["true_accepted"], prior["false_accepted"]) == (12, 12, 0)
+    assert (prior["unlabelled_accepted"], prior["precision"]) == (0, 1.0)
+    assert prior["recall"] == pytest.approx(12 / 17)
+    assert s.line().startswith("frames 17, keyframes 17, loops 17 (5 live, 12 into prior maps)")
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["prior_evaluation"] == prior
     assert saved_map_digest(first / "map") == before
     with PlaceMap.load(tmp_path / "out" / "map", read_only=True) as live:
         assert len(live) == 17 and {m.session for m in live.all_meta()} == {"tue"}
@@ -145,3 +152,21 @@ def test_cli_flags_and_a_prior_map_of_another_model(bag, first, tmp_path, tiny_m
     )
     assert "load it with the same weights and image size it was built with" in err
     assert saved_map_digest(first / "map") == before
+    # with the same weights: live and prior-map loops are reported apart, each on its own line
+    argv = [*argv[:8], "--out", str(tmp_path / "cli3"), "--prior-map", str(out / "map")]
+    assert main([*argv, "--robot-id", "r2", "--session-id", "thu", "--threshold=-1e9"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    summary = json.loads((tmp_path / "cli3" / "summary.json").read_text())
+    prior, live = summary["prior_evaluation"], summary["loops_by_match"].get("r2/thu", 0)
+    assert prior["accepted"] == summary["loops"] - live > 0 and prior["unlabelled_accepted"] == 0
+    assert prior["covered"] == prior["prior_keyframes"] > 0  # the map of this bag: all covered
+    assert lines[-4].startswith("live loops: precision "), lines
+    assert lines[-3].startswith(
+        f"prior-map loops: {prior['accepted']} ({prior['true_accepted']} true, "
+        f"{prior['false_accepted']} false, 0 unlabelled: {prior['covered']} of "
+        f"{prior['covered']} prior keyframes have ground truth), precision "
+    )
+    assert (
+        f"loops {summary['loops']} ({live} live, {prior['accepted']} into prior maps)"
+        in (lines[-1])
+    )

@@ -16,8 +16,6 @@ from pair_vpr_ros.offline.replay.options import ReplayOptions
 from pair_vpr_ros.offline.replay.run import replay_bag
 from pair_vpr_ros.place_map import IndexConfig, PlaceMap
 
-pytest_plugins = ["milvus_fixtures"]  # fixtures lite_db, milvus
-
 
 def _loops(out) -> list[tuple[int, int]]:
     return [(r["query_id"], r["match_id"]) for r in json.loads((out / "loops.json").read_text())]

@@ -1,9 +1,11 @@
 """The node's geometry inputs without ROS: stereo right images and baseline, a camera_info
-topic that stays silent (said once), bad right camera_info counted."""
+topic that stays silent (said once), bad right camera_info counted, the depth wait
+(depth_max_delay) with late depth images counted apart from missing ones."""
 
 from __future__ import annotations
 
 import threading
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -14,8 +16,44 @@ from pair_vpr_ros.ros.geometry_inputs import GeometryInputs
 
 
 def inputs(**values):
-    counts = SimpleNamespace(camera_info_invalid=0, depth_unmatched=0, depth_invalid=0)
-    return GeometryInputs({**defaults(), **values}, counts, wait=0.0), counts
+    counts = SimpleNamespace(
+        camera_info_invalid=0, depth_unmatched=0, depth_invalid=0, depth_late=0
+    )
+    return GeometryInputs({**defaults(), "depth_max_delay": 0.0, **values}, counts), counts
+
+
+def depth_msg(stamp: float) -> SimpleNamespace:
+    """A 4x2 32FC1 depth image of 2 m stamped `stamp` (duck-typed like rclpy's)."""
+    data = np.full((2, 4), 2.0, np.float32).tobytes()
+    sec, nsec = divmod(round(stamp * 1e9), 10**9)
+    header = SimpleNamespace(stamp=SimpleNamespace(sec=sec, nanosec=nsec))
+    return SimpleNamespace(header=header, encoding="32FC1", height=2, width=4, step=16,
+                           is_bigendian=0, data=data)  # fmt: skip
+
+
+def test_depth_max_delay_is_the_wait_and_late_depth_is_counted_apart():
+    g, counts = inputs(depth_topic="/depth", depth_max_delay=0.0)
+    assert g.wait == 0.0 and defaults()["depth_max_delay"] == 0.2
+    assert g.depth_for(5.0) is None
+    assert counts.depth_unmatched == 1 and counts.depth_late == 0
+    assert g.last_problem == (
+        "no depth image stamped within depth_tolerance 0.02 s of the image (5.000) arrived "
+        "within depth_max_delay 0.0 s (diagnostics depth_late counts the ones that came later)"
+    )
+    g.on_depth(depth_msg(5.01))  # came after the frame gave up: late, not missing
+    g.on_depth(depth_msg(9.0))  # no frame waited for this one
+    assert counts.depth_late == 1
+    assert g.depth_for(6.0) is None and counts.depth_unmatched == 2 and counts.depth_late == 1
+    np.testing.assert_array_equal(g.depth_for(9.0), np.full((2, 4), 2.0, np.float32))
+
+
+def test_a_depth_image_within_the_wait_is_used():
+    g, counts = inputs(depth_topic="/depth", depth_max_delay=5.0)
+    threading.Timer(0.1, g.on_depth, (depth_msg(7.0),)).start()
+    start = time.monotonic()
+    depth = g.depth_for(7.0)
+    assert depth is not None and time.monotonic() - start < 4.0
+    assert counts.depth_unmatched == counts.depth_late == 0
 
 
 def test_right_image_and_baseline_for_a_frame():

@@ -51,3 +51,8 @@ def test_stats_percentiles_and_problems():
     stats.counts.bad_poses += 3
     assert stats.problems() == "2 frames invalid, 1 frames failed, 3 poses invalid (NaN/inf)"
     assert stats.problems() == ""
+    stats.counts.depth_unmatched += 3
+    stats.counts.depth_late += 1
+    assert stats.problems() == (
+        "3 frames without depth, 1 depth images too late (depth_max_delay)"
+    )

@@ -304,12 +304,22 @@ def _run(args: argparse.Namespace) -> int:
     )
     for warning in summary.warnings:
         print(f"warning: {warning}", file=sys.stderr)
-    ev = summary.evaluation
+    ev, prior = summary.evaluation, summary.prior_evaluation
     if ev is not None:
         print(
+            f"{'live loops: ' if summary.prior_maps else ''}"
             f"precision {_fmt(ev['precision'])}, recall {_fmt(ev['recall'])} "
             f"({ev['positives']} keyframes with a true match within {ev['gt_radius_m']} m; "
             f"ground truth {ev['gt_topic']})"
+        )
+    if prior is not None:
+        print(
+            f"prior-map loops: {prior['accepted']} ({prior['true_accepted']} true, "
+            f"{prior['false_accepted']} false, {prior['unlabelled_accepted']} unlabelled: "
+            f"{prior['covered']} of {prior['prior_keyframes']} prior keyframes have ground "
+            f"truth), precision {_fmt(prior['precision'])}, recall {_fmt(prior['recall'])} "
+            f"({prior['positives']} keyframes with a prior keyframe within "
+            f"{prior['gt_radius']} m)"
         )
     print(f"outputs in {summary.out_dir}")
     print(summary.line())

@@ -99,7 +99,8 @@ class ReplaySummary:
     out_dir: str = ""
     map_dir: str | None = None
     bag_out: str | None = None
-    evaluation: dict[str, Any] | None = None
+    evaluation: dict[str, Any] | None = None  # the run's own loops (live map)
+    prior_evaluation: dict[str, Any] | None = None  # loops into prior maps (report.prior_truth)
     config: dict[str, Any] = field(default_factory=dict)  # the DetectorConfig used
     model: str = ""  # the model's fingerprint (weights, input size, descriptor size)
     robot: str = ""  # the query side of every loop: this replay's robot and session
@@ -115,8 +116,10 @@ class ReplaySummary:
     loop_evaluation: LoopEvaluation | None = field(default=None, repr=False, compare=False)
 
     def line(self) -> str:
+        live = self.loops_by_match.get(f"{self.robot}/{self.session}", 0)
+        split = f" ({live} live, {self.loops - live} into prior maps)" if self.prior_maps else ""
         return (
-            f"frames {self.frames}, keyframes {self.keyframes}, loops {self.loops}, "
+            f"frames {self.frames}, keyframes {self.keyframes}, loops {self.loops}{split}, "
             f"skipped {self.skipped}, {self.seconds:.1f} s, {self.fps:.1f} frames/s"
         )
 

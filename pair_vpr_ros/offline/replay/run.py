@@ -42,6 +42,7 @@ from pair_vpr_ros.offline.replay.options import ReplayOptions, ReplaySummary
 from pair_vpr_ros.offline.replay.outputs import check_map_dir, prepare_out
 from pair_vpr_ros.offline.report.folder import check_writable, write_report
 from pair_vpr_ros.offline.report.loop_truth import KeyframeInfo
+from pair_vpr_ros.offline.report.prior_truth import evaluate_prior_loops, prior_positions
 from pair_vpr_ros.types import PoseTrack
 from pair_vpr_ros.weights import Weights, check_runtime, load_model
 
@@ -164,15 +165,21 @@ def replay_bag(
             drive(run, pipe, source, o.batch_size, writer, bar)
         summary.bag_out = str(bag_out) if writer is not None else None
         summary.seconds = time.perf_counter() - start
-    _finish(run, pipe, out, o, truth)
+    _finish(run, pipe, out, o, (truth, poses, Path(bag).name))
     return summary
 
 
 def _finish(
-    run: ReplayRun, pipe: LoopClosurePipeline, out: Path, o: ReplayOptions, truth: PoseTrack | None
+    run: ReplayRun,
+    pipe: LoopClosurePipeline,
+    out: Path,
+    o: ReplayOptions,
+    tracks: tuple[PoseTrack | None, PoseTrack | None, str],
 ) -> None:
-    """Save the map, write the report and summary.json (also after a failure part-way)."""
+    """Save the map, write the report and summary.json (also after a failure part-way).
+    `tracks`: the bag's ground truth, its pose topic and its name (prior maps' keyframes)."""
     summary, counts = run.summary, run.counts
+    truth = tracks[0]
     summary.frames, summary.skipped = counts.frames, counts.skipped
     summary.error = summary.error or counts.error
     summary.fps = summary.frames / summary.seconds if summary.seconds > 0 else 0.0
@@ -200,6 +207,12 @@ def _finish(
             summary.loop_evaluation = evaluation
             summary.evaluation = {**evaluation.to_dict(), "gt_topic": summary.gt_topic}
             summary.warnings += replay_notes.exclusion_notes(keyframes, evaluation)
+            if pipe.maps.priors:
+                metas = [m for prior in pipe.maps.priors for m in prior.all_meta()]
+                covered = prior_positions(metas, tracks[2], truth, tracks[1], o.pose_tolerance)
+                summary.prior_evaluation = evaluate_prior_loops(
+                    run.records, keyframes, covered, len(metas), o.gt_radius
+                ).to_dict()
     except PairVPRError as err:
         summary.error = summary.error or str(err)
     except OSError as err:  # the report's files (disk full, folder removed meanwhile)
