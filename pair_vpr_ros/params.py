@@ -93,6 +93,7 @@ def index_config(values: Mapping[str, Any]) -> IndexConfig:
     if values["index"] != "milvus":
         return IndexConfig(kind=values["index"])
     names = ("milvus_uri", "milvus_collection", "milvus_index", "milvus_token_env")
+    names += ("milvus_consistency",)
     return IndexConfig(kind="milvus", **{name: values[name] for name in names})
 
 

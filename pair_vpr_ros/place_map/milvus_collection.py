@@ -181,3 +181,22 @@ def check_layout(info: dict, place: str) -> dict:
             "to a new name or to one this package made"
         )
     return fields
+
+
+def index_params(config) -> dict:
+    """add_index arguments of `config.milvus_index` (see docs/milvus.md for the choice)."""
+    kind = config.milvus_index
+    if kind == "HNSW":
+        params = {"M": config.hnsw_m, "efConstruction": config.ef_construction}
+        return dict(index_type="HNSW", params=params)
+    if kind == "IVF_FLAT":
+        return dict(index_type="IVF_FLAT", params={"nlist": config.nlist or 1024})
+    return dict(index_type="FLAT", params={})
+
+
+def search_params(config, k: int, index_type: str) -> dict:
+    if index_type == "HNSW":
+        return {"params": {"ef": max(int(config.ef_search), int(k))}}
+    if index_type == "IVF_FLAT":
+        return {"params": {"nprobe": int(config.nprobe)}}
+    return {"params": {}}

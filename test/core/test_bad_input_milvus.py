@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from bad_input import make_flaky, tree_digest
+from bad_input import make_flaky, store_text, tree_digest
 from test_place_map_persist import DIM, SHAPE, add_range, dense_for, desc_for, meta_for
 
 from pair_vpr_ros.errors import ConfigError, MapError, MapFingerprintError, MapUnavailableError
@@ -97,7 +97,7 @@ def test_a_collection_of_another_dimension(milvus) -> None:
     with pytest.raises(MapError) as err:
         PlaceMap(2 * DIM, SHAPE, "fp", index=milvus)
     assert str(err.value) == (
-        f"collection {milvus.milvus_collection!r} in milvus-lite file {milvus.milvus_uri} holds "
+        f"collection {milvus.milvus_collection!r} in {store_text(milvus)} holds "
         f"8-d descriptors, this map's are 16-d: use another milvus_collection for this model"
     )
 
@@ -107,7 +107,7 @@ def test_a_collection_of_another_model(milvus) -> None:
     with pytest.raises(MapFingerprintError) as err:
         PlaceMap(DIM, SHAPE, "model-b", index=milvus)
     assert str(err.value) == (
-        f"collection {milvus.milvus_collection!r} in milvus-lite file {milvus.milvus_uri} holds "
+        f"collection {milvus.milvus_collection!r} in {store_text(milvus)} holds "
         "descriptors of model 'model-a', this map's model is 'model-b': use the same weights and "
         "image size, or another milvus_collection"
     )
@@ -121,7 +121,7 @@ def test_a_collection_of_another_program(milvus) -> None:
     with pytest.raises(MapError) as err:
         PlaceMap(DIM, SHAPE, "fp", index=milvus)
     assert str(err.value) == (
-        f"collection {milvus.milvus_collection!r} in milvus-lite file {milvus.milvus_uri} is not "
+        f"collection {milvus.milvus_collection!r} in {store_text(milvus)} is not "
         "a pair_vpr_ros keyframe collection (fields ['id', 'vector'], format None; expected "
         "fields ['pk', 'robot', 'session', 'stamp', 'desc']): set milvus_collection to a new "
         "name or to one this package made"
@@ -136,7 +136,7 @@ def test_a_server_that_goes_away_is_a_counted_skip(milvus) -> None:
         with pytest.raises(MapUnavailableError) as err:
             m.search(desc_for(1), 2)
         assert str(err.value) == (
-            f"collection {milvus.milvus_collection!r} in milvus-lite file {milvus.milvus_uri} "
+            f"collection {milvus.milvus_collection!r} in {store_text(milvus)} "
             "cannot be reached: query skipped, 1 keyframe(s) kept for insertion"
         )
         assert m.index_diagnostics == {"map_searches_skipped": 1, "map_keyframes_pending": 1}

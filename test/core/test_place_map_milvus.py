@@ -176,9 +176,10 @@ def test_two_writers_at_once_lose_nothing(milvus):
         m.close()
 
 
-def test_a_second_process_cannot_open_a_milvus_lite_file(milvus, tmp_path):
+def test_a_second_process_cannot_open_a_milvus_lite_file(lite_db, tmp_path):
     """milvus-lite locks its file to one process: a second writer gets a clear error (several
-    processes need a Milvus server: docs/milvus.md)."""
+    processes need a Milvus server: test_two_writers.py)."""
+    milvus = IndexConfig(kind="milvus", milvus_uri=str(lite_db), milvus_collection="kf_lock")
     with PlaceMap(DIM, SHAPE, "fp", index=milvus):
         code = (
             "from pair_vpr_ros.place_map import PlaceMap, IndexConfig\n"
