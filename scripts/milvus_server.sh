@@ -9,6 +9,7 @@
 #   MILVUS_VENV=.venv-milvus      the server's venv (created on first start)
 #   MILVUS_DATA=.milvus-data      its data; the first start unpacks ~400 MB into DATA/bin
 #   MILVUS_START_TIMEOUT=180      seconds to wait for the health check
+#   MILVUS_HEALTH=http://127.0.0.1:9091/healthz   its health check
 # Client URI: http://127.0.0.1:19530; health: http://127.0.0.1:9091/healthz. One server per
 # machine: a second one while one runs panics (all ports bind to every address).
 set -euo pipefail
@@ -16,7 +17,7 @@ cd "$(dirname "$0")/.."
 VENV=${MILVUS_VENV:-.venv-milvus}
 DATA=${MILVUS_DATA:-.milvus-data}
 TIMEOUT=${MILVUS_START_TIMEOUT:-180}
-HEALTH=http://127.0.0.1:9091/healthz
+HEALTH=${MILVUS_HEALTH:-http://127.0.0.1:9091/healthz}
 PIDFILE="$DATA/server.pid"
 
 healthy() { [ "$(curl -s -m 2 "$HEALTH" 2>/dev/null)" = "OK" ]; }
@@ -27,7 +28,8 @@ stop() {
     # the wrapper leads its own process group (setsid): -9 to the group ends the binary and the
     # wrapper together (SIGTERM would wait for a graceful stop; the data is flushed per insert)
     kill -9 -- "-$pid" 2>/dev/null || true
-    for _ in $(seq 50); do kill -0 "$pid" 2>/dev/null || break; sleep 0.1; done
+    # until no process of the group is left (its ports are free for the next start)
+    for _ in $(seq 100); do kill -0 -- "-$pid" 2>/dev/null || break; sleep 0.1; done
     rm -f "$PIDFILE"
     echo "milvus: stopped (process group $pid)"
 }

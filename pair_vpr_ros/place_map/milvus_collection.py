@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,7 @@ FIELDS = ("pk", "robot", "session", "stamp", "desc")
 NAME_MAX = 256  # VARCHAR length of robot and session
 INSTALL = "pip install 'pair_vpr_ros[milvus]' (pymilvus and milvus-lite)"
 CONNECT_TIMEOUT_S = 10.0
+MIN_SERVER = (2, 3)  # upsert and count(*) queries came with Milvus 2.3
 
 
 def pymilvus() -> Any:
@@ -73,7 +75,8 @@ def connect(uri: str, token_env: str) -> Any:
         )
     token = os.environ.get(token_env, "") if token_env else ""
     try:
-        return milvus.MilvusClient(uri, token=token, timeout=CONNECT_TIMEOUT_S)
+        client = milvus.MilvusClient(uri, token=token, timeout=CONNECT_TIMEOUT_S)
+        version = "" if is_lite(uri) else str(client.get_server_version())
     except Exception as err:  # pymilvus raises MilvusException and its subclasses
         hint = (
             f"check milvus_uri, that the server runs and can be reached, and the token in "
@@ -86,6 +89,18 @@ def connect(uri: str, token_env: str) -> Any:
                 "writers"
             )
         raise MapError(f"cannot connect to {where(uri)} ({_reason(err)}): {hint}") from err
+    check_version(version, uri)
+    return client
+
+
+def check_version(version: str, uri: str) -> None:
+    """MapError when the server is older than MIN_SERVER (no upsert, no count(*) there)."""
+    found = re.match(r"v?(\d+)\.(\d+)", version)
+    if found and (int(found[1]), int(found[2])) < MIN_SERVER:
+        raise MapError(
+            f"{where(uri)} runs Milvus {version}, this package needs Milvus "
+            f"{'.'.join(map(str, MIN_SERVER))} or newer (upsert, count(*)): upgrade the server"
+        )
 
 
 def _reason(err: BaseException) -> str:
