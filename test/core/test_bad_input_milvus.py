@@ -39,6 +39,10 @@ BAD_CONFIGS = {
         "milvus_collection must be 1-255 letters, digits or underscores, not starting with a "
         "digit, got 'my-map'",
     ),
+    "consistency": (
+        dict(milvus_consistency="Eventually"),
+        "milvus_consistency must be one of ('Bounded', 'Session', 'Strong'), got 'Eventually'",
+    ),
     "milvus index": (
         dict(milvus_index="IVF_PQ"),
         "milvus_index must be one of ('IVF_FLAT', 'HNSW', 'FLAT'), got 'IVF_PQ'",
@@ -90,6 +94,27 @@ def test_a_server_unreachable_at_start(tmp_path: Path) -> None:
         "the server runs and can be reached, and the token in $PAIRVPR_MILVUS_TOKEN"
     )
     assert list(tmp_path.iterdir()) == []  # the working folder went with the failed map
+
+
+def test_a_server_of_an_unsupported_version(monkeypatch, tmp_path: Path) -> None:
+    """A 2.2 server has no upsert and no count(*): refused at start, before any write."""
+    import pymilvus
+
+    class OldServer:
+        def __init__(self, *args, **kwargs) -> None:
+            pass
+
+        def get_server_version(self) -> str:
+            return "v2.2.16"
+
+    monkeypatch.setattr(pymilvus, "MilvusClient", OldServer)
+    config = IndexConfig(kind="milvus", milvus_uri="http://127.0.0.1:19530")
+    with pytest.raises(MapError) as err:
+        PlaceMap(DIM, SHAPE, "fp", index=config, work_dir=tmp_path)
+    assert str(err.value) == (
+        "Milvus server http://127.0.0.1:19530 runs Milvus v2.2.16, this package needs Milvus 2.3 "
+        "or newer (upsert, count(*)): upgrade the server"
+    )
 
 
 def test_a_collection_of_another_dimension(milvus) -> None:
