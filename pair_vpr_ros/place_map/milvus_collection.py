@@ -116,8 +116,13 @@ def open_collection(
     milvus = pymilvus()
     try:
         if not client.has_collection(name):
-            _create(client, milvus, name, dim, fingerprint, index)
-        else:
+            try:
+                _create(client, milvus, name, dim, fingerprint, index)
+            except milvus.MilvusException:
+                if not client.has_collection(name):
+                    raise
+                # another writer made it meanwhile (two robots starting at once): check it
+        if client.has_collection(name):
             check_collection(client.describe_collection(name), uri, name, dim, fingerprint)
         ensure_loaded(client, name)
         return str(client.describe_index(name, "desc").get("index_type", index["index_type"]))
