@@ -84,16 +84,21 @@ def test_a_lite_path_that_is_a_plain_file(tmp_path: Path) -> None:
     assert uri.read_text() == "notes"
 
 
-def test_a_server_unreachable_at_start(tmp_path: Path) -> None:
-    config = IndexConfig(kind="milvus", milvus_uri="http://127.0.0.1:9")
+def _refused_at_start(uri: str, work_dir: Path) -> str:
+    """The MapError text of a map that cannot start on `uri`; it leaves no working folder."""
     with pytest.raises(MapError) as err:
-        PlaceMap(DIM, SHAPE, "fp", index=config, work_dir=tmp_path)
-    assert str(err.value) == (
+        PlaceMap(DIM, SHAPE, "fp", index=IndexConfig(kind="milvus", milvus_uri=uri),
+                 work_dir=work_dir)  # fmt: skip
+    assert list(work_dir.iterdir()) == []  # the working folder went with the failed map
+    return str(err.value)
+
+
+def test_a_server_unreachable_at_start(tmp_path: Path) -> None:
+    assert _refused_at_start("http://127.0.0.1:9", tmp_path) == (
         "cannot connect to Milvus server http://127.0.0.1:9 (Fail connecting to server on "
         "127.0.0.1:9, illegal connection params or server unavailable): check milvus_uri, that "
         "the server runs and can be reached, and the token in $PAIRVPR_MILVUS_TOKEN"
     )
-    assert list(tmp_path.iterdir()) == []  # the working folder went with the failed map
 
 
 def test_a_server_of_an_unsupported_version(monkeypatch, tmp_path: Path) -> None:
@@ -108,10 +113,7 @@ def test_a_server_of_an_unsupported_version(monkeypatch, tmp_path: Path) -> None
             return "v2.2.16"
 
     monkeypatch.setattr(pymilvus, "MilvusClient", OldServer)
-    config = IndexConfig(kind="milvus", milvus_uri="http://127.0.0.1:19530")
-    with pytest.raises(MapError) as err:
-        PlaceMap(DIM, SHAPE, "fp", index=config, work_dir=tmp_path)
-    assert str(err.value) == (
+    assert _refused_at_start("http://127.0.0.1:19530", tmp_path) == (
         "Milvus server http://127.0.0.1:19530 runs Milvus v2.2.16, this package needs Milvus 2.3 "
         "or newer (upsert, count(*)): upgrade the server"
     )
