@@ -1,6 +1,6 @@
-"""`pairvpr-map` on maps whose index is Milvus (milvus-lite in tmp_path): merge (milvus with
-milvus, milvus with flat; the merged map answers as its inputs did; a failed merge leaves no
-rows) and prune-milvus (stale rows removed, every row a saved map refers to kept)."""
+"""`pairvpr-map` on maps whose index is Milvus (milvus-lite in tmp_path, and a server): merge
+(milvus with milvus, milvus with flat; the merged map answers as its inputs did; a failed merge
+leaves no rows) and prune-milvus (stale rows removed, every row a saved map refers to kept)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,6 @@
-"""Index kind "milvus" on milvus-lite: same answers as the exact FAISS index, filters instead of
-over-fetching, save/load re-attach, faults (a server that goes away), several writers."""
+"""Index kind "milvus" on milvus-lite and a Milvus server (milvus_fixtures.py): same answers as
+the exact FAISS index, filters instead of over-fetching, save/load re-attach, faults (a server
+that goes away), several writers."""
 
 from __future__ import annotations
 
