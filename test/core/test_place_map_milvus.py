@@ -22,7 +22,6 @@ from pair_vpr_ros.errors import MapError, MapUnavailableError
 from pair_vpr_ros.pipeline import Frame, LoopClosurePipeline
 from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
 from pair_vpr_ros.place_map.milvus_expr import Exclusion, exclusion_expr, ids_expr, mask_runs
-from pair_vpr_ros.place_map.milvus_fresh import local_mask
 from pair_vpr_ros.recency import eligible_keyframes
 
 pytest_plugins = ["milvus_fixtures"]  # fixtures lite_db, milvus
@@ -90,30 +89,6 @@ def test_other_robots_and_sessions_are_candidates_at_once(milvus):
         assert sorted(found.tolist()) == [1, 2]  # 3: among the newest of its robot and session
         found = index.search(desc_for(0), 10, exclusion=Exclusion(10.0, 0.0, 4, "a", "s1"))[0]
         assert sorted(found.tolist()) == [1, 2, 3]  # 0: at the query's very stamp
-
-
-def test_the_node_side_filter_equals_the_server_filter(milvus):
-    """milvus_consistency Bounded searches the newest rows in the node: under the same rules it
-    must let through exactly the rows the server's filter lets through."""
-    rng = np.random.default_rng(8)
-    names = rng.choice(["a", "b"], N), rng.choice(["s1", "s2"], N), rng.integers(0, 30, N)
-    rows = [(str(r), str(s), float(t)) for r, s, t in zip(*names, strict=True)]
-    strong = replace(milvus, milvus_consistency="Strong")
-    with PlaceMap(DIM, SHAPE, "fp", index=strong) as m:
-        index = m._index
-        for i, row in enumerate(rows):
-            index.add(desc_for(i)[None], [row])
-        sizes = []
-        for stamp, window, limit in ((10.0, 5.0, N - 3), (20.0, 0.0, N), (3.0, 40.0, 10)):
-            rule = Exclusion(stamp, window, limit, "a", "s1")
-            server = set(index.search(desc_for(0), N, exclusion=rule)[0].tolist())
-            local = np.flatnonzero(local_mask(index._rows, 0, N, None, rule))
-            assert set(local.tolist()) == server
-            sizes.append(len(server))
-        assert 0 < min(sizes) < N  # the rules leave some rows out, not all
-        allowed = rng.random(N) < 0.5
-        server = set(index.search(desc_for(0), N, max_id=29, allowed=allowed)[0].tolist())
-        assert set(np.flatnonzero(local_mask(index._rows, 0, 30, allowed, None))) == server
 
 
 def test_filter_expressions():
