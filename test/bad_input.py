@@ -98,3 +98,9 @@ def make_flaky(place_map) -> FlakyClient:
     index = place_map._index
     index.client = FlakyClient(index.client)
     return index.client
+
+
+def store_text(config) -> str:
+    """How messages name the store of `config` (written out here, not taken from the code)."""
+    uri = config.milvus_uri
+    return f"milvus-lite file {uri}" if uri.endswith(".db") else f"Milvus server {uri}"

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 from extras import in_ci, reason_in
-from milvus_fixtures import lite_db, milvus  # noqa: F401 - fixtures of the milvus tests
+from milvus_fixtures import lite_db, milvus, server_milvus, store  # noqa: F401 - milvus fixtures
 
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 # Nodes must not hear nodes of another test: with two /vpr_node on one domain, both answer every

@@ -49,6 +49,7 @@ def index_config(values: Mapping[str, Any]) -> IndexConfig:
     if values["index"] != "milvus":
         return IndexConfig(kind=values["index"], dense_codec=codec)
     names = ("milvus_uri", "milvus_collection", "milvus_index", "milvus_token_env")
+    names += ("milvus_consistency",)
     return IndexConfig(kind="milvus", dense_codec=codec, **{name: values[name] for name in names})
 
 

@@ -80,6 +80,10 @@ PARAMS: tuple[ParamSpec, ...] = (
     _p("milvus_token_env", "PAIRVPR_MILVUS_TOKEN", "index milvus: name of the environment "
        "variable that holds the server token (the token is never a parameter, never logged)",
        **RO),
+    _p("milvus_consistency", "Bounded", "index milvus: Bounded (no wait; the node also searches "
+       "its keyframes of the last 10 s, so each is found at once), Session or Strong (the "
+       "server waits for its time tick, ~200 ms a search; docs/milvus.md)",
+       choices=("Bounded", "Session", "Strong"), **RO),
     # ---- inputs (start-up only)
     _p("image_topic", "image", "sensor_msgs/Image input topic ('' = none)", **RO),
     _p("compressed_image_topic", "", "sensor_msgs/CompressedImage input topic ('' = none)", **RO),

@@ -23,6 +23,7 @@ from pair_vpr_ros.place_map.ivf import IvfIndex, Training, check_loaded, omp_thr
 
 INDEX_KINDS = ("flat", "hnsw", "ivf", "milvus")
 MILVUS_INDEXES = ("IVF_FLAT", "HNSW", "FLAT")
+MILVUS_CONSISTENCY = ("Bounded", "Session", "Strong")  # docs/milvus.md: what each costs
 MILVUS_NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,254}")  # Milvus's collection-name rule
 # Smallest value of each integer IndexConfig field (39: FAISS's k-means minimum for one list).
 LOWEST = dict(hnsw_m=1, ef_construction=1, ef_search=1, nlist=0, nprobe=1, train_at=39,
@@ -63,6 +64,9 @@ class IndexConfig:
     dense_codec: how the map stores dense tokens (not a search setting, but carried here so the
         map's settings travel as one): "q4" (4-bit, 200 KiB per ViT-B keyframe) or "f16"
         (uncompressed, 794 KiB); see dense_codec.py. A loaded map keeps its own.
+    milvus_consistency: how a search sees the map's own latest inserts: "Bounded" (default: no
+        wait for the server's time tick; the rows written in the last 10 s are searched in
+        the node too), "Session" or "Strong" (the server waits for the tick, ~200 ms).
     """
 
     kind: str = "flat"
@@ -80,6 +84,7 @@ class IndexConfig:
     milvus_index: str = "IVF_FLAT"
     milvus_token_env: str = "PAIRVPR_MILVUS_TOKEN"
     dense_codec: str = "q4"
+    milvus_consistency: str = "Bounded"
 
     def __post_init__(self) -> None:
         check_codec(self.dense_codec)
@@ -123,6 +128,11 @@ class IndexConfig:
         if self.milvus_index not in MILVUS_INDEXES:
             raise ConfigError(
                 f"milvus_index must be one of {MILVUS_INDEXES}, got {self.milvus_index!r}"
+            )
+        if self.milvus_consistency not in MILVUS_CONSISTENCY:
+            raise ConfigError(
+                f"milvus_consistency must be one of {MILVUS_CONSISTENCY}, got "
+                f"{self.milvus_consistency!r}"
             )
         if not isinstance(self.milvus_token_env, str):
             raise ConfigError(f"milvus_token_env must be a string, got {self.milvus_token_env!r}")

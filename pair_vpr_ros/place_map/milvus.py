@@ -27,6 +27,7 @@ import numpy as np
 
 from pair_vpr_ros.errors import MapError, MapUnavailableError
 from pair_vpr_ros.place_map import milvus_collection as mc
+from pair_vpr_ros.place_map.milvus_collection import index_params, search_params
 from pair_vpr_ros.place_map.milvus_expr import (
     ID_BITS,
     MAX_WRITER,
@@ -35,6 +36,7 @@ from pair_vpr_ros.place_map.milvus_expr import (
     id_range,
     ids_expr,
 )
+from pair_vpr_ros.place_map.milvus_fresh import FreshRows, local_mask, local_search, merge
 
 CHUNK = 2000  # rows per upsert call
 MAX_LIMIT = 16384  # Milvus's largest top-k
@@ -72,6 +74,7 @@ class MilvusIndex:
         self._unsure = 0  # rows below this may be in it already (a failed call): upsert them
         self.down = False  # the last call to Milvus failed
         self.skipped = 0  # searches refused while Milvus was unreachable
+        self._fresh = FreshRows()  # rows a Bounded search may not see yet: searched here too
         self.writer = self._new_writer() if writer is None else int(writer)
         # no saved record names this writer key (yet): its rows are deleted on close
         self.unrecorded = writer is None
@@ -133,6 +136,7 @@ class MilvusIndex:
                 write = self.client.upsert if lo < self._unsure else self.client.insert
                 write(self.collection, self._row_dicts(lo, hi))
                 self._synced = hi
+                self._fresh.written(lo)
         except _faults() as err:
             self._unsure = len(self._rows)
             if not self.down:
@@ -165,6 +169,7 @@ class MilvusIndex:
             _log.warning("place map clear: %s did not answer (%s)", self._where(), err)
             self.writer = secrets.randbelow(MAX_WRITER) + 1
         self._rows, self._synced, self._unsure = [], 0, 0
+        self._fresh.clear()
         self.unrecorded = True
 
     def rekey(self) -> None:
@@ -177,6 +182,7 @@ class MilvusIndex:
         except _faults() as err:
             raise MapError(f"cannot read {self._where()} ({mc._reason(err)})") from err
         self._synced = self._unsure = 0
+        self._fresh.clear()
         self.unrecorded = True
         if self.flush():
             _log.info("place map: rows of writer %d copied to writer %d", old, self.writer)
@@ -223,19 +229,27 @@ class MilvusIndex:
                 "kept for insertion"
             )
         query = np.asarray(desc, np.float32).reshape(1, self.dim)
+        level = self.config.milvus_consistency
         try:
             found = self.client.search(
                 self.collection, query, filter=expr, limit=min(int(k), MAX_LIMIT),
                 anns_field="desc", search_params=search_params(self.config, k, self.index_type),
+                consistency_level=level,
             )[0]  # fmt: skip
         except _faults() as err:
             self.down, self.skipped = True, self.skipped + 1
             raise MapUnavailableError(
                 f"{self._where()} did not answer a search ({mc._reason(err)}): query skipped"
             ) from err
-        ids = np.array([hit["pk"] - self.base for hit in found], np.int64)
+        # a server keys hits "id", milvus-lite by the primary field's name: Hit.id is either
+        ids = np.array([int(hit.id) - self.base for hit in found], np.int64)
         sims = np.array([hit["distance"] for hit in found], np.float32)
-        return ids, sims
+        if level != "Bounded":  # Strong and Session wait until the map's own rows are visible
+            return ids, sims
+        lo = self._fresh.first(n)
+        mask = local_mask(self._rows, lo, limit, allowed, exclusion)
+        near = local_search(self._desc, query, lo, mask, min(int(k), MAX_LIMIT))
+        return merge((ids, sims), near, min(int(k), MAX_LIMIT))
 
     def reconstruct(self, ids: np.ndarray) -> np.ndarray:
         """ids [K] (validated) -> descriptors [K, dim] float32, from the map's own copy."""
@@ -329,22 +343,3 @@ def read_record(path: Path, dim: int, count: int) -> tuple[dict, dict]:
             "the map is damaged, restore it from a backup or rebuild it"
         )
     return record, arrays
-
-
-def index_params(config) -> dict:
-    """add_index arguments of `config.milvus_index` (see docs/milvus.md for the choice)."""
-    kind = config.milvus_index
-    if kind == "HNSW":
-        params = {"M": config.hnsw_m, "efConstruction": config.ef_construction}
-        return dict(index_type="HNSW", params=params)
-    if kind == "IVF_FLAT":
-        return dict(index_type="IVF_FLAT", params={"nlist": config.nlist or 1024})
-    return dict(index_type="FLAT", params={})
-
-
-def search_params(config, k: int, index_type: str) -> dict:
-    if index_type == "HNSW":
-        return {"params": {"ef": max(int(config.ef_search), int(k))}}
-    if index_type == "IVF_FLAT":
-        return {"params": {"nprobe": int(config.nprobe)}}
-    return {"params": {}}

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,7 @@ FIELDS = ("pk", "robot", "session", "stamp", "desc")
 NAME_MAX = 256  # VARCHAR length of robot and session
 INSTALL = "pip install 'pair_vpr_ros[milvus]' (pymilvus and milvus-lite)"
 CONNECT_TIMEOUT_S = 10.0
+MIN_SERVER = (2, 3)  # upsert and count(*) queries came with Milvus 2.3
 
 
 def pymilvus() -> Any:
@@ -95,7 +97,8 @@ def connect(uri: str, token_env: str) -> Any:
     lite = _LiteReason()  # milvus-lite logs its own traceback: its reason goes in our message
     try:
         with lite:
-            return milvus.MilvusClient(uri, token=token, timeout=CONNECT_TIMEOUT_S)
+            client = milvus.MilvusClient(uri, token=token, timeout=CONNECT_TIMEOUT_S)
+        version = "" if is_lite(uri) else str(client.get_server_version())
     except Exception as err:  # pymilvus raises MilvusException and its subclasses
         if lite.reason and not lite.reason.startswith("DataDirLockedError"):  # lock: below
             raise MapError(
@@ -113,6 +116,18 @@ def connect(uri: str, token_env: str) -> Any:
                 "writers"
             )
         raise MapError(f"cannot connect to {where(uri)} ({_reason(err)}): {hint}") from err
+    check_version(version, uri)
+    return client
+
+
+def check_version(version: str, uri: str) -> None:
+    """MapError when the server is older than MIN_SERVER (no upsert, no count(*) there)."""
+    found = re.match(r"v?(\d+)\.(\d+)", version)
+    if found and (int(found[1]), int(found[2])) < MIN_SERVER:
+        raise MapError(
+            f"{where(uri)} runs Milvus {version}, this package needs Milvus "
+            f"{'.'.join(map(str, MIN_SERVER))} or newer (upsert, count(*)): upgrade the server"
+        )
 
 
 class _LiteReason(logging.Handler):
@@ -152,8 +167,13 @@ def open_collection(
     milvus = pymilvus()
     try:
         if not client.has_collection(name):
-            _create(client, milvus, name, dim, fingerprint, index)
-        else:
+            try:
+                _create(client, milvus, name, dim, fingerprint, index)
+            except milvus.MilvusException:
+                if not client.has_collection(name):
+                    raise
+                # another writer made it meanwhile (two robots starting at once): check it
+        if client.has_collection(name):
             check_collection(client.describe_collection(name), uri, name, dim, fingerprint)
         ensure_loaded(client, name)
         return str(client.describe_index(name, "desc").get("index_type", index["index_type"]))
@@ -232,3 +252,22 @@ def check_layout(info: dict, place: str) -> dict:
             "to a new name or to one this package made"
         )
     return fields
+
+
+def index_params(config) -> dict:
+    """add_index arguments of `config.milvus_index` (see docs/milvus.md for the choice)."""
+    kind = config.milvus_index
+    if kind == "HNSW":
+        params = {"M": config.hnsw_m, "efConstruction": config.ef_construction}
+        return dict(index_type="HNSW", params=params)
+    if kind == "IVF_FLAT":
+        return dict(index_type="IVF_FLAT", params={"nlist": config.nlist or 1024})
+    return dict(index_type="FLAT", params={})
+
+
+def search_params(config, k: int, index_type: str) -> dict:
+    if index_type == "HNSW":
+        return {"params": {"ef": max(int(config.ef_search), int(k))}}
+    if index_type == "IVF_FLAT":
+        return {"params": {"nprobe": int(config.nprobe)}}
+    return {"params": {}}

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from bad_input import make_flaky, tree_digest
+from bad_input import make_flaky, store_text, tree_digest
 from test_bad_input_map_store import resign_manifest
 from test_place_map_persist import DIM, SHAPE, add_range, dense_for, desc_for, meta_for
 
@@ -36,6 +36,10 @@ BAD_CONFIGS = {
         dict(milvus_collection="my-map"),
         "milvus_collection must be 1-255 letters, digits or underscores, not starting with a "
         "digit, got 'my-map'",
+    ),
+    "consistency": (
+        dict(milvus_consistency="Eventually"),
+        "milvus_consistency must be one of ('Bounded', 'Session', 'Strong'), got 'Eventually'",
     ),
     "milvus index": (
         dict(milvus_index="IVF_PQ"),
@@ -78,16 +82,39 @@ def test_a_lite_path_that_is_a_plain_file(tmp_path: Path) -> None:
     assert uri.read_text() == "notes"
 
 
-def test_a_server_unreachable_at_start(tmp_path: Path) -> None:
-    config = IndexConfig(kind="milvus", milvus_uri="http://127.0.0.1:9")
+def _refused_at_start(uri: str, work_dir: Path) -> str:
+    """The MapError text of a map that cannot start on `uri`; it leaves no working folder."""
     with pytest.raises(MapError) as err:
-        PlaceMap(DIM, SHAPE, "fp", index=config, work_dir=tmp_path)
-    assert str(err.value) == (
+        PlaceMap(DIM, SHAPE, "fp", index=IndexConfig(kind="milvus", milvus_uri=uri),
+                 work_dir=work_dir)  # fmt: skip
+    assert list(work_dir.iterdir()) == []  # the working folder went with the failed map
+    return str(err.value)
+
+
+def test_a_server_unreachable_at_start(tmp_path: Path) -> None:
+    assert _refused_at_start("http://127.0.0.1:9", tmp_path) == (
         "cannot connect to Milvus server http://127.0.0.1:9 (Fail connecting to server on "
         "127.0.0.1:9, illegal connection params or server unavailable): check milvus_uri, that "
         "the server runs and can be reached, and the token in $PAIRVPR_MILVUS_TOKEN"
     )
-    assert list(tmp_path.iterdir()) == []  # the working folder went with the failed map
+
+
+def test_a_server_of_an_unsupported_version(monkeypatch, tmp_path: Path) -> None:
+    """A 2.2 server has no upsert and no count(*): refused at start, before any write."""
+    import pymilvus
+
+    class OldServer:
+        def __init__(self, *args, **kwargs) -> None:
+            pass
+
+        def get_server_version(self) -> str:
+            return "v2.2.16"
+
+    monkeypatch.setattr(pymilvus, "MilvusClient", OldServer)
+    assert _refused_at_start("http://127.0.0.1:19530", tmp_path) == (
+        "Milvus server http://127.0.0.1:19530 runs Milvus v2.2.16, this package needs Milvus 2.3 "
+        "or newer (upsert, count(*)): upgrade the server"
+    )
 
 
 def test_a_collection_of_another_dimension(milvus) -> None:
@@ -95,7 +122,7 @@ def test_a_collection_of_another_dimension(milvus) -> None:
     with pytest.raises(MapError) as err:
         PlaceMap(2 * DIM, SHAPE, "fp", index=milvus)
     assert str(err.value) == (
-        f"collection {milvus.milvus_collection!r} in milvus-lite file {milvus.milvus_uri} holds "
+        f"collection {milvus.milvus_collection!r} in {store_text(milvus)} holds "
         f"8-d descriptors, this map's are 16-d: use another milvus_collection for this model"
     )
 
@@ -105,7 +132,7 @@ def test_a_collection_of_another_model(milvus) -> None:
     with pytest.raises(MapFingerprintError) as err:
         PlaceMap(DIM, SHAPE, "model-b", index=milvus)
     assert str(err.value) == (
-        f"collection {milvus.milvus_collection!r} in milvus-lite file {milvus.milvus_uri} holds "
+        f"collection {milvus.milvus_collection!r} in {store_text(milvus)} holds "
         "descriptors of model 'model-a', this map's model is 'model-b': use the same weights and "
         "image size, or another milvus_collection"
     )
@@ -119,7 +146,7 @@ def test_a_collection_of_another_program(milvus) -> None:
     with pytest.raises(MapError) as err:
         PlaceMap(DIM, SHAPE, "fp", index=milvus)
     assert str(err.value) == (
-        f"collection {milvus.milvus_collection!r} in milvus-lite file {milvus.milvus_uri} is not "
+        f"collection {milvus.milvus_collection!r} in {store_text(milvus)} is not "
         "a pair_vpr_ros keyframe collection (fields ['id', 'vector'], format None; expected "
         "fields ['pk', 'robot', 'session', 'stamp', 'desc']): set milvus_collection to a new "
         "name or to one this package made"
@@ -134,7 +161,7 @@ def test_a_server_that_goes_away_is_a_counted_skip(milvus) -> None:
         with pytest.raises(MapUnavailableError) as err:
             m.search(desc_for(1), 2)
         assert str(err.value) == (
-            f"collection {milvus.milvus_collection!r} in milvus-lite file {milvus.milvus_uri} "
+            f"collection {milvus.milvus_collection!r} in {store_text(milvus)} "
             "cannot be reached: query skipped, 1 keyframe(s) kept for insertion"
         )
         assert m.index_diagnostics == {"map_searches_skipped": 1, "map_keyframes_pending": 1}

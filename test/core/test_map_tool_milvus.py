@@ -1,6 +1,6 @@
-"""`pairvpr-map` on maps whose index is Milvus (milvus-lite in tmp_path): merge (milvus with
-milvus, milvus with flat; the merged map answers as its inputs did; a failed merge leaves no
-rows) and prune-milvus (stale rows removed, every row a saved map refers to kept)."""
+"""`pairvpr-map` on maps whose index is Milvus (milvus-lite in tmp_path, and a server): merge
+(milvus with milvus, milvus with flat; the merged map answers as its inputs did; a failed merge
+leaves no rows) and prune-milvus (stale rows removed, every row a saved map refers to kept)."""
 
 from __future__ import annotations
 
@@ -11,8 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from bad_input import make_flaky, saved_map_digest
-from extras import require
+from bad_input import make_flaky, saved_map_digest, store_text
 from map_fixtures import DENSE, DIM, make_map
 
 from pair_vpr_ros.offline.map_cli import main
@@ -154,13 +153,18 @@ def _unsaved_run(config: IndexConfig, n: int) -> None:
 
 
 @pytest.fixture
-def site(tmp_path) -> IndexConfig:
-    """A milvus-lite file inside the maps folder (prune must not take it for a map)."""
-    require("pymilvus")
-    require("milvus_lite")
+def site(tmp_path, store):
+    """A milvus-lite file inside the maps folder (prune must not take it for a map), or a
+    collection of its own on the test server."""
+    from milvus_fixtures import drop, new_name
+
     (tmp_path / "maps").mkdir()
-    uri = str(tmp_path / "maps" / "site.db")
-    return IndexConfig(kind="milvus", milvus_uri=uri, milvus_collection="kf", milvus_index="FLAT")
+    lite = store.endswith(".db")
+    uri = str(tmp_path / "maps" / "site.db") if lite else store
+    name = "kf" if lite else new_name("site")
+    yield IndexConfig(kind="milvus", milvus_uri=uri, milvus_collection=name, milvus_index="FLAT")
+    if not lite:
+        drop(uri, name)
 
 
 def test_prune_removes_stale_rows_and_keeps_every_saved_one(site, tmp_path, capsys, caplog):
@@ -180,8 +184,10 @@ def test_prune_removes_stale_rows_and_keeps_every_saved_one(site, tmp_path, caps
     _unsaved_run(site, 4)
     writer_u = _stale_writer(site, {writer_a, writer_b})
     before = _inputs_answer([a], QUERIES), _inputs_answer([b], QUERIES)
-    args = ["prune-milvus", site.milvus_uri, "--maps", str(maps), "--collection", "kf"]
-    head = f"collection 'kf' in milvus-lite file {site.milvus_uri}: {{}} rows, 7 kept for 3 saved "
+    args = ["prune-milvus", site.milvus_uri, "--maps", str(maps)]
+    args += ["--collection", site.milvus_collection]
+    head = f"collection {site.milvus_collection!r} in {store_text(site)}: {{}} rows, 7 kept for "
+    head += "3 saved "
     stale = [
         f"stale: writer {writer_b}: 1 rows, ids 4..4 (past its saved 4), r1/mon",
         f"stale: writer {writer_u}: 4 rows, ids 0..3 (no saved map), r9/crash",
@@ -211,7 +217,8 @@ def test_prune_removes_stale_rows_and_keeps_every_saved_one(site, tmp_path, caps
 def _stale_writer(config: IndexConfig, known: set[int]) -> int:
     from pymilvus import MilvusClient
 
-    rows = MilvusClient(config.milvus_uri).query("kf", filter="pk >= 0", output_fields=["pk"])
+    client = MilvusClient(config.milvus_uri)
+    rows = client.query(config.milvus_collection, filter="pk >= 0", output_fields=["pk"])
     return ({int(r["pk"]) >> 32 for r in rows} - known).pop()
 
 
@@ -221,7 +228,7 @@ def test_a_saved_map_not_given_gets_its_rows_back_at_load(site, tmp_path, capsys
     a = make_map(tmp_path / "a", "r1", "mon", 3, seed=1, index=site)
     want = _inputs_answer([a], QUERIES)
     args = ["prune-milvus", site.milvus_uri, "--maps", str(tmp_path / "maps"), "--collection"]
-    assert main([*args, "kf", "--yes"]) == 0
+    assert main([*args, site.milvus_collection, "--yes"]) == 0
     assert capsys.readouterr().out.splitlines()[-1] == "removed 3 stale rows; 0 remain"
     with caplog.at_level(logging.WARNING), PlaceMap.load(a) as m:
         assert "held 0 of this map's 3 keyframes; inserting them again" in caplog.text

@@ -1,5 +1,6 @@
-"""Index kind "milvus" on milvus-lite: same answers as the exact FAISS index, filters instead of
-over-fetching, save/load re-attach, faults (a server that goes away), several writers."""
+"""Index kind "milvus" on milvus-lite and a Milvus server (milvus_fixtures.py): same answers as
+the exact FAISS index, filters instead of over-fetching, save/load re-attach, faults (a server
+that goes away), several writers."""
 
 from __future__ import annotations
 
@@ -41,9 +42,11 @@ def test_an_inserted_keyframe_is_found_by_the_next_query(milvus):
             assert top[0][0] == i and top[0][1] == pytest.approx(1.0, abs=1e-5)
 
 
-def test_answers_equal_the_exact_faiss_index(milvus):
+@pytest.mark.parametrize("level", ["Bounded", "Session", "Strong"])
+def test_answers_equal_the_exact_faiss_index(milvus, level):
     rng = np.random.default_rng(3)
     allowed = rng.random(N) < 0.5
+    milvus = replace(milvus, milvus_consistency=level)
     with filled(milvus) as m, filled(IndexConfig(kind="flat")) as flat:
         for q in range(0, N, 7):
             for kwargs in ({}, {"max_id": 17}, {"allowed": allowed}, {"max_id": 0}):
@@ -176,9 +179,10 @@ def test_two_writers_at_once_lose_nothing(milvus):
         m.close()
 
 
-def test_a_second_process_cannot_open_a_milvus_lite_file(milvus, tmp_path):
+def test_a_second_process_cannot_open_a_milvus_lite_file(lite_db, tmp_path):
     """milvus-lite locks its file to one process: a second writer gets a clear error (several
-    processes need a Milvus server: docs/milvus.md)."""
+    processes need a Milvus server: test_two_writers.py)."""
+    milvus = IndexConfig(kind="milvus", milvus_uri=str(lite_db), milvus_collection="kf_lock")
     with PlaceMap(DIM, SHAPE, "fp", index=milvus):
         code = (
             "from pair_vpr_ros.place_map import PlaceMap, IndexConfig\n"

@@ -1,5 +1,6 @@
-"""`pairvpr-bag-replay --index milvus` on a milvus-lite file: the loops of the default index,
-twice in a row against the same file (the second run starts clean: its own writer key)."""
+"""`pairvpr-bag-replay --index milvus` on a milvus-lite file and a server: the loops of the
+default index, twice in a row against the same store (the second run starts clean: its own
+writer key)."""
 
 from __future__ import annotations
 

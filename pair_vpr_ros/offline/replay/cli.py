@@ -44,7 +44,11 @@ RUNTIME = (
     "openvino_calibration",
     "openvino_calibration_topic",
 )
-INDEX = ("index", "milvus_uri", "milvus_collection", "milvus_index", "dense_codec")  # the map
+# ... the map: its index and how it stores dense tokens
+INDEX = (
+    "index", "milvus_uri", "milvus_collection", "milvus_index", "milvus_consistency",
+    "dense_codec",
+)  # fmt: skip
 DEPTH_TOLERANCE = float_flag("a number of seconds in [0, 1]", lambda v: 0 <= v <= 1)
 
 POSITIVE_METRES = float_flag("a finite number of metres > 0", lambda v: v > 0)
