@@ -31,8 +31,8 @@ from tqdm import tqdm
 from pair_vpr_ros.loops.recency import eligible_keyframes
 from pair_vpr_ros.place_map import IndexConfig
 from pair_vpr_ros.place_map.index import DescriptorIndex
-from pair_vpr_ros.place_map.milvus import MilvusIndex
-from pair_vpr_ros.place_map.milvus_expr import Exclusion
+from pair_vpr_ros.place_map.milvus.expr import Exclusion
+from pair_vpr_ros.place_map.milvus.index import MilvusIndex
 
 KINDS = ("flat", "hnsw", "ivf", "milvus-HNSW", "milvus-IVF_FLAT", "milvus-FLAT")
 BULK = 10_000  # rows handed to one add while building

@@ -19,7 +19,7 @@ from pair_vpr_ros.identity import Identity
 from pair_vpr_ros.loops.detector import Candidate, DetectorConfig
 from pair_vpr_ros.loops.recency import GroupedRecency
 from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
-from pair_vpr_ros.place_map.milvus_expr import Exclusion
+from pair_vpr_ros.place_map.milvus.expr import Exclusion
 
 
 def recency_of(place_map: PlaceMap) -> GroupedRecency:

@@ -17,7 +17,7 @@ from pair_vpr_ros.cli import run_cli
 from pair_vpr_ros.place_map.index import INDEX_KINDS
 from pair_vpr_ros.place_map.info import map_info
 from pair_vpr_ros.place_map.merge import merge_maps
-from pair_vpr_ros.place_map.milvus_prune import prune_milvus
+from pair_vpr_ros.place_map.milvus.prune import prune_milvus
 
 
 def build_parser() -> argparse.ArgumentParser:

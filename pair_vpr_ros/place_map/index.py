@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 import numbers
-import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,11 +19,9 @@ import numpy as np
 from pair_vpr_ros.errors import ConfigError, MapError
 from pair_vpr_ros.place_map.dense_codec import check_codec
 from pair_vpr_ros.place_map.ivf import IvfIndex, Training, check_loaded, omp_threads
+from pair_vpr_ros.place_map.milvus.collection import check_milvus_settings
 
 INDEX_KINDS = ("flat", "hnsw", "ivf", "milvus")
-MILVUS_INDEXES = ("IVF_FLAT", "HNSW", "FLAT")
-MILVUS_CONSISTENCY = ("Bounded", "Session", "Strong")  # docs/milvus.md: what each costs
-MILVUS_NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,254}")  # Milvus's collection-name rule
 # Smallest value of each integer IndexConfig field (39: FAISS's k-means minimum for one list).
 LOWEST = dict(hnsw_m=1, ef_construction=1, ef_search=1, nlist=0, nprobe=1, train_at=39,
               exact_below=0, search_threads=0)  # fmt: skip
@@ -105,37 +102,7 @@ class IndexConfig:
                 f"grown that factor) or 0 (never retrain), got {growth!r}"
             )
         if self.kind == "milvus":
-            self._check_milvus()
-
-    def _check_milvus(self) -> None:
-        uri = self.milvus_uri
-        if not isinstance(uri, str) or not (
-            uri.endswith(".db") or re.fullmatch(r"https?://[^\s/]+(:\d+)?/?", uri)
-        ):
-            raise ConfigError(
-                f"milvus_uri must be a milvus-lite file (a path ending in .db) or a Milvus "
-                f"server address (http://host:19530), got {uri!r}"
-            )
-        if uri.endswith(".db"):  # the record of a saved map must not depend on the cwd
-            object.__setattr__(self, "milvus_uri", str(Path(uri).expanduser().absolute()))
-        if not isinstance(self.milvus_collection, str) or not MILVUS_NAME_RE.fullmatch(
-            self.milvus_collection
-        ):
-            raise ConfigError(
-                f"milvus_collection must be 1-255 letters, digits or underscores, not starting "
-                f"with a digit, got {self.milvus_collection!r}"
-            )
-        if self.milvus_index not in MILVUS_INDEXES:
-            raise ConfigError(
-                f"milvus_index must be one of {MILVUS_INDEXES}, got {self.milvus_index!r}"
-            )
-        if self.milvus_consistency not in MILVUS_CONSISTENCY:
-            raise ConfigError(
-                f"milvus_consistency must be one of {MILVUS_CONSISTENCY}, got "
-                f"{self.milvus_consistency!r}"
-            )
-        if not isinstance(self.milvus_token_env, str):
-            raise ConfigError(f"milvus_token_env must be a string, got {self.milvus_token_env!r}")
+            object.__setattr__(self, "milvus_uri", check_milvus_settings(self))
 
 
 class DescriptorIndex:
@@ -325,7 +292,7 @@ def _not_range(size: int, lo: int, hi: int) -> tuple[int, faiss.IDSelector | Non
 def make_index(dim: int, config: IndexConfig, fingerprint: str):
     """A new empty index of `config.kind`: DescriptorIndex (FAISS) or MilvusIndex."""
     if config.kind == "milvus":
-        from pair_vpr_ros.place_map.milvus import MilvusIndex  # pymilvus only when used
+        from pair_vpr_ros.place_map.milvus.index import MilvusIndex  # pymilvus only when used
 
         return MilvusIndex(dim, config, fingerprint)
     return DescriptorIndex(dim, config)

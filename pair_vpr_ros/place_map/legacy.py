@@ -51,7 +51,7 @@ def open_legacy(
             cache_size=cache_size, verify_reads=verify_reads, codec="f16",
         )  # fmt: skip
         if config.kind == "milvus":  # last: the local files are checked before any row changes
-            from pair_vpr_ros.place_map.milvus import MilvusIndex  # pymilvus only when used
+            from pair_vpr_ros.place_map.milvus.index import MilvusIndex  # pymilvus only when used
 
             index = MilvusIndex.read(
                 index_path, m.desc_dim, config, m.fingerprint, m.count, read_only

@@ -202,7 +202,7 @@ def _open_index(
         raise MapError(f"{d / name} is not the index file of a {config.kind!r} map: rebuild it")
     _check_snapshot(d / name, store)
     if config.kind == "milvus":
-        from pair_vpr_ros.place_map.milvus import MilvusIndex  # pymilvus only when used
+        from pair_vpr_ros.place_map.milvus.index import MilvusIndex  # pymilvus only when used
 
         return MilvusIndex.read(d / name, m.desc_dim, config, m.fingerprint, count, read_only)
     return check_count(DescriptorIndex.read(d / name, m.desc_dim, config), count, d / name)

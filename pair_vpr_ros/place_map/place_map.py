@@ -30,7 +30,7 @@ from pair_vpr_ros.place_map.dense_store import DenseStore
 from pair_vpr_ros.place_map.files import DirLock
 from pair_vpr_ros.place_map.index import IndexConfig, make_index
 from pair_vpr_ros.place_map.metadata import KeyframeMeta, validate_meta
-from pair_vpr_ros.place_map.milvus_expr import Exclusion, identity, utc_session
+from pair_vpr_ros.place_map.milvus.expr import Exclusion, identity, utc_session
 from pair_vpr_ros.place_map.saving import MapSaving
 from pair_vpr_ros.place_map.store import KeyframeStore
 
@@ -42,7 +42,7 @@ class PlaceMap(MapSaving):
     fingerprint: opaque model identity (checkpoint hash + input size + desc dim), stored on save.
     index: "flat" (exact) | "ivf" (exact below 25,000 keyframes, then k-means lists: ~1e6
         keyframes; training pauses an add, see place_map/ivf.py) | "hnsw" | an IndexConfig
-        (kind "milvus": a Milvus collection, see place_map/milvus.py and docs/milvus.md);
+        (kind "milvus": a Milvus collection, see place_map/milvus/index.py and docs/milvus.md);
         its `dense_codec` ("q4" default, "f16") is how dense tokens are stored.
     dense_cache_size: dense entries kept in memory (LRU). verify_dense_reads: CRC32-check
     entries read from disk. work_dir: parent of the working folder of a never-saved map (default:

@@ -14,7 +14,7 @@ from test_place_map_persist import DIM, SHAPE, add_range, dense_for, desc_for, m
 
 from pair_vpr_ros.errors import ConfigError, MapError, MapFingerprintError, MapUnavailableError
 from pair_vpr_ros.place_map import IndexConfig, PlaceMap
-from pair_vpr_ros.place_map.milvus import read_record
+from pair_vpr_ros.place_map.milvus.index import read_record
 
 URI_RULE = (
     "milvus_uri must be a milvus-lite file (a path ending in .db) or a Milvus server address "
@@ -230,7 +230,7 @@ def test_without_pymilvus(monkeypatch, milvus) -> None:
 
 
 def test_search_with_an_exclusion_needs_milvus() -> None:
-    from pair_vpr_ros.place_map.milvus_expr import Exclusion
+    from pair_vpr_ros.place_map.milvus.expr import Exclusion
 
     with PlaceMap(DIM, SHAPE, "fp") as m:
         add_range(m, 0, 2)

@@ -1,4 +1,4 @@
-"""milvus_consistency "Bounded" (place_map/milvus_fresh.py): the map's newest rows, searched in
+"""milvus_consistency "Bounded" (place_map/milvus/fresh.py): the map's newest rows, searched in
 the node, under the same rules as the server's filter, merged with the server's answer."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import numpy as np
 from test_place_map_persist import DIM, SHAPE, desc_for
 
 from pair_vpr_ros.place_map import PlaceMap
-from pair_vpr_ros.place_map.milvus_expr import Exclusion
-from pair_vpr_ros.place_map.milvus_fresh import FreshRows, local_mask, merge
+from pair_vpr_ros.place_map.milvus.expr import Exclusion
+from pair_vpr_ros.place_map.milvus.fresh import FreshRows, local_mask, merge
 
 N = 40
 

@@ -23,7 +23,7 @@ from pair_vpr_ros.loops.frames import Frame
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.loops.recency import eligible_keyframes
 from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
-from pair_vpr_ros.place_map.milvus_expr import Exclusion, exclusion_expr, ids_expr, mask_runs
+from pair_vpr_ros.place_map.milvus.expr import Exclusion, exclusion_expr, ids_expr, mask_runs
 
 N = 40
 

@@ -24,7 +24,7 @@ SCRIPT = ROOT / "scripts" / "milvus_server.sh"
 WRITER = """
 import sys, numpy as np
 from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
-from pair_vpr_ros.place_map.milvus_expr import Exclusion
+from pair_vpr_ros.place_map.milvus.expr import Exclusion
 uri, name, robot, other, out, start, stop = sys.argv[1:8]
 config = IndexConfig(kind="milvus", milvus_uri=uri, milvus_collection=name, milvus_index="FLAT")
 loaded = start != "0"

@@ -3,7 +3,7 @@
 A Milvus server makes an insert visible to searches at its next time tick (200 ms by default):
 a Strong search waits for it (~200 ms per search measured, docs/milvus.md), a Bounded search
 does not wait but may miss rows written in the last `common.gracefulTime` (5 s by default).
-The map keeps its own copy of every descriptor anyway (milvus.py), so the rows it wrote in
+The map keeps its own copy of every descriptor anyway (index.py), so the rows it wrote in
 the last FRESH_S seconds are searched here, exactly, under the same eligibility rules as the
 server's filter, and merged with the server's answer: every keyframe the map inserted is
 found by its next search, and no search waits for a tick.
@@ -16,7 +16,7 @@ from collections import deque
 
 import numpy as np
 
-from pair_vpr_ros.place_map.milvus_expr import Exclusion
+from pair_vpr_ros.place_map.milvus.expr import Exclusion
 
 # Milvus' default common.gracefulTime is 5 s: a Bounded search sees every row written before
 # (its start - 5 s). Twice that, so a slow round trip or a clock step cannot open a gap.

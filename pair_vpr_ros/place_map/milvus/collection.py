@@ -1,6 +1,6 @@
 """Connecting to Milvus and creating or checking the keyframe collection (index kind "milvus").
 
-The collection: `pk` INT64 primary key (`writer << 32 | keyframe id`, see milvus_expr.py),
+The collection: `pk` INT64 primary key (`writer << 32 | keyframe id`, see expr.py),
 `robot` and `session` VARCHAR, `stamp` DOUBLE (s), `desc` FLOAT_VECTOR of the model's
 dimension, inner-product metric, Strong consistency (a row inserted is seen by the next search).
 The model fingerprint is a collection property (`pairvpr.fingerprint`): milvus-lite returns the
@@ -27,6 +27,42 @@ NAME_MAX = 256  # VARCHAR length of robot and session
 INSTALL = "pip install 'pair_vpr_ros[milvus]' (pymilvus and milvus-lite)"
 CONNECT_TIMEOUT_S = 10.0
 MIN_SERVER = (2, 3)  # upsert and count(*) queries came with Milvus 2.3
+
+MILVUS_INDEXES = ("IVF_FLAT", "HNSW", "FLAT")
+MILVUS_CONSISTENCY = ("Bounded", "Session", "Strong")  # docs/milvus.md: what each costs
+MILVUS_NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,254}")  # Milvus's collection-name rule
+
+
+def check_milvus_settings(config: Any) -> str:
+    """ConfigError unless an IndexConfig's milvus_* settings are usable -> its milvus_uri, a
+    lite file's made absolute (the record of a saved map must not depend on the cwd)."""
+    uri = config.milvus_uri
+    if not isinstance(uri, str) or not (
+        uri.endswith(".db") or re.fullmatch(r"https?://[^\s/]+(:\d+)?/?", uri)
+    ):
+        raise ConfigError(
+            f"milvus_uri must be a milvus-lite file (a path ending in .db) or a Milvus "
+            f"server address (http://host:19530), got {uri!r}"
+        )
+    if not isinstance(config.milvus_collection, str) or not MILVUS_NAME_RE.fullmatch(
+        config.milvus_collection
+    ):
+        raise ConfigError(
+            f"milvus_collection must be 1-255 letters, digits or underscores, not starting "
+            f"with a digit, got {config.milvus_collection!r}"
+        )
+    if config.milvus_index not in MILVUS_INDEXES:
+        raise ConfigError(
+            f"milvus_index must be one of {MILVUS_INDEXES}, got {config.milvus_index!r}"
+        )
+    if config.milvus_consistency not in MILVUS_CONSISTENCY:
+        raise ConfigError(
+            f"milvus_consistency must be one of {MILVUS_CONSISTENCY}, got "
+            f"{config.milvus_consistency!r}"
+        )
+    if not isinstance(config.milvus_token_env, str):
+        raise ConfigError(f"milvus_token_env must be a string, got {config.milvus_token_env!r}")
+    return str(Path(uri).expanduser().absolute()) if uri.endswith(".db") else uri
 
 
 def pymilvus() -> Any:

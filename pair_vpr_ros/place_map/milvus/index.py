@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 
 from pair_vpr_ros.errors import MapError, MapUnavailableError
-from pair_vpr_ros.place_map import milvus_collection as mc
-from pair_vpr_ros.place_map.milvus_collection import index_params, search_params
-from pair_vpr_ros.place_map.milvus_expr import (
+from pair_vpr_ros.place_map.milvus import collection as mc
+from pair_vpr_ros.place_map.milvus.collection import index_params, search_params
+from pair_vpr_ros.place_map.milvus.expr import (
     ID_BITS,
     MAX_WRITER,
     Exclusion,
@@ -36,7 +36,7 @@ from pair_vpr_ros.place_map.milvus_expr import (
     id_range,
     ids_expr,
 )
-from pair_vpr_ros.place_map.milvus_fresh import FreshRows, local_mask, local_search, merge
+from pair_vpr_ros.place_map.milvus.fresh import FreshRows, local_mask, local_search, merge
 
 CHUNK = 2000  # rows per upsert call
 MAX_LIMIT = 16384  # Milvus's largest top-k

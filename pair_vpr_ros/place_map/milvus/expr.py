@@ -2,7 +2,7 @@
 
 Milvus ranks only the rows a filter lets through, so the top-K are never eaten by recent frames
 and nothing is fetched to be thrown away. Rows of one map are keyed `pk = (writer << 32) | id`
-(see milvus.py): "ids < n of this map" is one primary-key range.
+(see index.py): "ids < n of this map" is one primary-key range.
 """
 
 from __future__ import annotations

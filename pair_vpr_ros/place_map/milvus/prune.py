@@ -1,6 +1,6 @@
 """Removing stale rows from a Milvus keyframe collection (`pairvpr-map prune-milvus`).
 
-Rows are keyed `pk = writer << 32 | keyframe id` (milvus.py), and a saved map names its writer
+Rows are keyed `pk = writer << 32 | keyframe id` (index.py), and a saved map names its writer
 key and keyframe count in its record (`index-<g>.milvus`). A row is stale when no saved map
 refers to it: its writer key is named by none (a run that was never saved: an interrupted
 replay, a merge that failed), or its id is at or past the largest saved count of its writer
@@ -10,7 +10,7 @@ The saved maps are found under the folders the caller gives (every manifest.json
 a map there that cannot be read stops the prune, because its rows could not be told apart. A
 map of the collection is kept whatever URI its record names (a moved file still belongs to its
 maps). A saved map whose folder was not given loses its rows, but gets them back on its next
-load: its record holds its own copy of them (milvus.py).
+load: its record holds its own copy of them (index.py).
 """
 
 from __future__ import annotations
@@ -22,11 +22,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from pair_vpr_ros.errors import ConfigError, MapError
-from pair_vpr_ros.place_map import milvus_collection as mc
 from pair_vpr_ros.place_map.index import IndexConfig
 from pair_vpr_ros.place_map.manifest import MANIFEST_NAME, read_manifest
-from pair_vpr_ros.place_map.milvus import read_record
-from pair_vpr_ros.place_map.milvus_expr import ID_BITS, id_range
+from pair_vpr_ros.place_map.milvus import collection as mc
+from pair_vpr_ros.place_map.milvus.expr import ID_BITS, id_range
+from pair_vpr_ros.place_map.milvus.index import read_record
 from pair_vpr_ros.place_map.persist import saved_index_file
 
 BATCH = 1000  # rows per query-iterator page
