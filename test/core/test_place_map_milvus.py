@@ -254,7 +254,8 @@ def test_the_pipeline_counts_skipped_queries(tiny_model, milvus):
     pipe.close()
 
 
-def test_without_the_extra_the_error_says_what_to_install(monkeypatch, milvus):
+def test_without_the_extra_the_error_says_what_to_install(monkeypatch, tmp_path):
+    milvus = IndexConfig(kind="milvus", milvus_uri=str(tmp_path / "x.db"))  # never connected
     monkeypatch.setitem(sys.modules, "pymilvus", None)
     with pytest.raises(MapError.__mro__[1], match=r"pip install 'pair_vpr_ros\[milvus\]'"):
         PlaceMap(DIM, SHAPE, "fp", index=milvus)

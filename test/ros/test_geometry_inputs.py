@@ -88,7 +88,8 @@ def test_silent_camera_info_is_said_once_after_the_wait():
 
 def test_the_first_frame_waits_once_for_a_camera_info_just_behind_it():
     counts = SimpleNamespace(camera_info_invalid=0, depth_unmatched=0, depth_invalid=0)
-    g = GeometryInputs({**defaults(), "camera_info_topic": "/cam/info"}, counts, wait=5.0)
+    values = {**defaults(), "camera_info_topic": "/cam/info", "depth_max_delay": 5.0}
+    g = GeometryInputs(values, counts)
     info = SimpleNamespace(
         width=320, height=240, k=[200.0, 0, 160, 0, 200.0, 120, 0, 0, 1], d=[],
         distortion_model="plumb_bob", p=[200.0, 0, 160, 0, 0, 200.0, 120, 0, 0, 0, 1, 0],
