@@ -1,5 +1,6 @@
 # Entry points (see README): `make demo`, `make demo-live`, `make demo-fleet` and `make test`.
-# Each sets up .venv itself. `make demo-live LAUNCH=1` starts the nodes with `ros2 launch`. `make docs` builds the documentation site into site/ (warnings are errors).
+# Each sets up .venv itself. `make demo-live LAUNCH=1` starts the nodes with `ros2 launch`.
+# `make docs` builds the documentation site into site/ (warnings are errors).
 VENV ?= .venv
 PY := $(VENV)/bin/python
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
