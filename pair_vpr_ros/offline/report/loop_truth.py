@@ -168,6 +168,11 @@ def queries_with_true_match(
     return {int(i) for i in ids[found]}
 
 
+def share(part: int, whole: int) -> float | None:
+    """part / whole, None when there is nothing to divide (no labelled loop, no positive)."""
+    return part / whole if whole else None
+
+
 @dataclass(frozen=True)
 class LoopEvaluation:
     """Ground-truth evaluation of one run; ``labels[i]`` belongs to ``records[i]``."""
@@ -185,12 +190,11 @@ class LoopEvaluation:
 
     @property
     def precision(self) -> float | None:
-        labelled = self.true_accepted + self.false_accepted
-        return self.true_accepted / labelled if labelled else None
+        return share(self.true_accepted, self.true_accepted + self.false_accepted)
 
     @property
     def recall(self) -> float | None:
-        return self.true_accepted / self.positives if self.positives else None
+        return share(self.true_accepted, self.positives)
 
     def to_dict(self) -> dict[str, Any]:
         return {

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from pair_vpr_ros.messages.loop import same_session
-from pair_vpr_ros.offline.report.loop_truth import KeyframeInfo
+from pair_vpr_ros.offline.report.loop_truth import KeyframeInfo, share
 from pair_vpr_ros.types import Pose, PoseTrack
 
 PriorKey = tuple[str, str, int]  # robot, session, keyframe id
@@ -48,12 +48,11 @@ class PriorEvaluation:
 
     @property
     def precision(self) -> float | None:
-        labelled = self.true_accepted + self.false_accepted
-        return self.true_accepted / labelled if labelled else None
+        return share(self.true_accepted, self.true_accepted + self.false_accepted)
 
     @property
     def recall(self) -> float | None:
-        return self.true_queries / self.positives if self.positives else None
+        return share(self.true_queries, self.positives)
 
     def to_dict(self) -> dict[str, Any]:
         return {**asdict(self), "precision": self.precision, "recall": self.recall}
