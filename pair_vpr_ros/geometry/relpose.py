@@ -254,6 +254,8 @@ def _monocular(q, m, pairs, c: PoseConfig, neighbours, why: str) -> RelativePose
     chi2, angle = centre_rim_chi2(px_q, px_m, k, (r, t), cov5[2:, 2:])
     if chi2 > c.max_model_disagreement_chi2:  # as PnP vs essential matrix: a weaker pose
         cov5 = cov5 * (chi2 / c.max_model_disagreement_chi2)
+        # a lens model that bends the rim biases both halves: half their angle on each axis
+        cov5[2:, 2:] += np.eye(3) * math.radians(angle / 2) ** 2
         why += (f"; covariance x{chi2 / c.max_model_disagreement_chi2:.1f}: rotations of "
                 f"the image centre and rim disagree by {angle:.2f} deg (distortion left "
                 "out?)")  # fmt: skip

@@ -12,6 +12,7 @@ from real_frames import (
     opencv_rows,
     pose_rows,
     tum_features,
+    tum_poses,
     tum_truths,
 )
 
@@ -24,6 +25,10 @@ from pair_vpr_ros.geometry.metric_pose import is_planar
 
 def _posed(rows: list[dict]) -> list[dict]:
     return [r for r in rows if r["status"]]
+
+
+def _pairs(poses: list[np.ndarray]) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]:
+    return {(i, j): (poses[i], poses[j]) for i in range(len(poses)) for j in range(i)}
 
 
 def test_tum_rgbd_poses_every_pair_opencv_poses_as_accurately():
@@ -49,6 +54,17 @@ def test_tum_rgbd_orb_poses_every_pair():
     assert [r["reason"] for r in rows if not r["status"]] == []
     assert median(rows, "rot_deg") < 1.0
     assert max(r["rot_deg"] for r in rows) < 2.5
+    assert 2.0 <= median(rows, "chi2") <= 12.0
+
+
+def test_tum_colour_stamps_trail_the_ground_truth():
+    """The ground truth the suite compares with is taken TUM_STAMP_DELAY_S (10 ms) before each
+    colour stamp: OpenCV's PnP poses, which owe nothing to this project's code, are closer to
+    it than to the ground truth at the stamps (the camera turns up to 83 deg/s)."""
+    at_stamp = {(i, j): np.linalg.inv(b) @ a for (i, j), (a, b) in _pairs(tum_poses(0.0)).items()}
+    for kind in ("sift", "orb"):
+        delayed = median(opencv_rows(kind, tum_truths()), "rot_deg")
+        assert delayed < median(opencv_rows(kind, at_stamp), "rot_deg") - 0.05
 
 
 def test_wrong_demo_pairs_get_no_pose_even_with_few_inliers_allowed():
@@ -76,7 +92,8 @@ def test_tum_distortion_left_out_never_gives_a_tight_wrong_pose(kind, depth):
     """The real lens (k1 = 0.26) told nothing about: poses get worse, but none is both far off
     and confident (a tight wrong factor bends a pose graph). RGB-D: PnP and the essential
     matrix disagree; monocular: the rotations of the image centre and rim disagree (before
-    that check: SIFT, 5.4 deg off at rotation chi-square 138; now 85)."""
+    that check: SIFT, 5.4 deg off at rotation chi-square 138; with it 85; with half the
+    centre / rim angle added, none of the poses over 5 deg has more than 69)."""
     truths = tum_truths()
     wrong = pose_rows(tum_features(kind, depth, distortion=False), truths)
     right = pose_rows(tum_features(kind, depth, distortion=True), truths)
@@ -89,12 +106,12 @@ def test_tum_distortion_left_out_never_gives_a_tight_wrong_pose(kind, depth):
 
 MONO_XFAIL = pytest.mark.xfail(
     strict=True,
-    reason="issue 36: monocular rotation covariances on TUM fr1/rpy are too tight "
-    "(rotation chi-square median 12.9 with SIFT, 8.7 with ORB; target 0.8-6)",
+    reason="issue 36: SIFT monocular rotation covariances on TUM fr1/rpy are too tight "
+    "(rotation chi-square median 14.7; target 0.8-6; ORB: 3.26)",
 )
 
 
-@pytest.mark.parametrize("kind", [pytest.param(k, marks=MONO_XFAIL) for k in ("sift", "orb")])
+@pytest.mark.parametrize("kind", [pytest.param("sift", marks=MONO_XFAIL), "orb"])
 def test_tum_monocular_rotation_covariance_is_calibrated(kind):
     rows = pose_rows(tum_features(kind, depth=False), tum_truths())
     assert len(_posed(rows)) >= 15
