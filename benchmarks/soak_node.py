@@ -42,7 +42,7 @@ import numpy as np
 # other ROS processes on this machine share the domain (one of them once cleared a soak's map).
 NS = f"/vpr_soak_{os.getpid()}"
 
-# Tiny random-network settings: only identical images pass (see test/core/test_pipeline.py).
+# Tiny random-network settings: only identical images pass (see test/loops/test_pipeline.py).
 TINY = dict(
     global_floor=0.99999, score_threshold=-1e6, keyframe_max_similarity=0.99999, top_k=1
 )  # fmt: skip

@@ -6,11 +6,11 @@ from __future__ import annotations
 import json
 import shutil
 from datetime import datetime, timezone
+from pathlib import Path
 
 import numpy as np
 import pytest
 from exact_match import EXACT_MATCH
-from test_bad_input_map import MAPS
 
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.identity import Identity, resolve_identity, robot_from_namespace
@@ -20,6 +20,8 @@ from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.loops.recency import GroupedRecency, eligible_keyframes
 from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
 from pair_vpr_ros.place_map.manifest import MANIFEST_NAME
+
+MAPS = Path(__file__).parents[1] / "data" / "maps"  # maps written by earlier pair_vpr_ros
 
 
 @pytest.mark.parametrize(

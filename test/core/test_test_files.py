@@ -159,3 +159,16 @@ def test_the_check_finds_a_fixture_only_another_module_defines(tmp_path):
     )
     assert missing_fixtures(mine, root=tmp_path) == {"lent", "ghost"}
     assert plugins_declared(mine)
+
+
+def test_tests_mirror_the_source_tree():
+    """test/<stage>/ holds the tests of pair_vpr_ros/<stage>/; test/core those of the top-level
+    modules (errors, types, identity, ...) and the project-wide checks (architecture, docs,
+    these). Test file names are unique across folders (pytest imports them by name)."""
+    stages = {
+        p.name for p in (TEST.parent / "pair_vpr_ros").iterdir() if (p / "__init__.py").exists()
+    }
+    folders = {p.parent.name for p in TEST.glob("*/test_*.py")}
+    assert folders - stages == {"core"}
+    names = [p.name for p in TEST.glob("*/test_*.py")]
+    assert sorted({n for n in names if names.count(n) > 1}) == []
