@@ -117,6 +117,9 @@ PARAMS: tuple[ParamSpec, ...] = (
     _p("features", "sift", "keypoints for relative poses: sift (accurate) or orb (cheaper)",
        choices=("sift", "orb"), **RO),
     _p("max_features", 1000, "keypoints per keyframe at most", 50, 100000, **RO),
+    _p("feature_storage", "compact", "how the map stores each keyframe's features: compact "
+       "(the 500 strongest SIFT keypoints, 4-bit descriptors, float16 depth: 36 KB) or full "
+       "(every keypoint as extracted: 140 KB for 1000 SIFT)", choices=("compact", "full"), **RO),
     _p("depth_sigma_a", 0.0012, "depth noise sigma_z = a + b z^2 (m): a; defaults from "
        "published Kinect noise studies (docs/real-cameras.md)", 0.0, 10.0, **RO),
     _p("depth_sigma_b", 0.0019, "depth noise: b (1/m); stereo: sigma_disparity / (f baseline)",
