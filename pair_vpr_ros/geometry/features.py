@@ -169,8 +169,15 @@ def pack_features(f: Features, compact: bool = True, keep: int | None = None) ->
                      None if f.depth is None else f.depth[pick], f.camera)  # fmt: skip
     n, width = f.descriptors.shape
     parts = [
-        _HEADER.pack(b"FEAT", 2 if compact else 1, _KIND_CODES[f.kind], f.depth is not None,
-                     f.camera is not None, n, width),  # fmt: skip
+        _HEADER.pack(
+            b"FEAT",
+            2 if compact else 1,
+            _KIND_CODES[f.kind],
+            f.depth is not None,
+            f.camera is not None,
+            n,
+            width,
+        ),  # fmt: skip
         f.camera.pack() if f.camera is not None else b"\0" * PACKED_SIZE,
     ]
     desc = np.ascontiguousarray(f.descriptors, np.uint8)

@@ -134,7 +134,29 @@ class DescriptorIndex:
         if getattr(self, "_ivf", None) is not None:
             self._ivf.config = config
 
+    @classmethod
+    def viewing(
+        cls, dim: int, config: IndexConfig, index: faiss.Index, backing: object
+    ) -> DescriptorIndex:
+        """A "flat" index over vectors it does not own (a loaded map's descriptor cache,
+        dense_store.open_cache; `backing` keeps them mapped): its first change copies them."""
+        obj = cls(dim, config)
+        obj._set(index)
+        obj._backing = backing
+        return obj
+
+    def _own(self) -> None:
+        """FAISS cannot grow or cut a view: copy the viewed vectors into an index of its own."""
+        if getattr(self, "_backing", None) is None:
+            return
+        view = self._backing[1]  # uint8 [faiss header + rows]: the rows after the header
+        rows = view[view.size - 4 * self.dim * len(self) :].view(np.float32)
+        own = self._new_index()
+        own.add(rows.reshape(-1, self.dim))
+        self._set(own)
+
     def _set(self, index: faiss.Index) -> None:
+        self._backing = None
         self._ivf = IvfIndex(self.dim, self.config, index) if self.config.kind == "ivf" else None
         self._faiss = index
 
@@ -156,6 +178,7 @@ class DescriptorIndex:
         reaches a training size trains the index first (a pause: see ivf.py). `rows` (robot,
         session, stamp per descriptor) are for the "milvus" kind; FAISS kinds ignore them."""
         desc = np.ascontiguousarray(desc, dtype=np.float32).reshape(-1, self.dim)
+        self._own()
         (self._index if self._ivf is None else self._ivf).add(desc)
 
     def reset(self) -> None:
@@ -163,6 +186,7 @@ class DescriptorIndex:
 
     def truncate(self, count: int) -> None:
         """Kind "flat": forget ids >= count (a save that lost its unsaved keyframes)."""
+        self._own()
         self._index.remove_ids(faiss.IDSelectorRange(int(count), len(self)))
 
     def search(

@@ -85,6 +85,7 @@ class PlaceMap(MapSaving):
         self._lock: DirLock | None = None
         self._dense_committed = False  # the dense file is the one `_home`'s manifest names
         self._generation = 0  # of `_home` (its store is `_store` when `_store.saved`)
+        self._desc_cache: tuple[int, int] | None = None  # (count, CRC32) of its cache file
         self._read_only = False
         self.load_note = ""  # what a caller should log about the load ("" = nothing)
         self._fresh_count = 0
@@ -171,6 +172,8 @@ class PlaceMap(MapSaving):
         """Metadata of one keyframe; MapError if the id is not in the map."""
         self._check_open()
         found = self._store.get(kf_id)
+        if found is None and 0 <= kf_id < len(self):  # a row gone from a saved store
+            raise self._store.damaged(f"has no row for keyframe {kf_id} (rows are missing)")
         if found is None:
             raise MapError(f"keyframe {kf_id} is not in the map (ids 0..{len(self) - 1})")
         return found
