@@ -221,8 +221,8 @@ class KeyframeStore:
         try:
             rows = self._conn.execute(sql, (start,)).fetchall()
             if len(rows) != n - start:
-                got = len(rows) + start
-                raise self.damaged(f"holds {got} keyframe rows with ids 0..{n - 1}: rows are missing")
+                got = f"{len(rows) + start} keyframe rows with ids 0..{n - 1}"
+                raise self.damaged(f"holds {got}: rows are missing")
             for i, (blob, crc) in enumerate(rows, start):
                 if zlib.crc32(blob) != crc:  # before the shape: a damaged row is named as one
                     raise self.damaged(f"holds keyframe {i} with a wrong CRC32 (a damaged row)")
