@@ -102,7 +102,7 @@ def test_hnsw_shortcut_and_config_validation() -> None:
         IndexConfig(kind="hnsw", ef_search=0)
 
 
-@pytest.mark.parametrize("codec", ["q4", "f16"])
+@pytest.mark.parametrize("codec", ["q4a", "q4", "f16"])
 def test_dense_round_trip(codec: str) -> None:
     index = IndexConfig(dense_codec=codec)
     with PlaceMap(DIM, SHAPE, "fp", index, dense_cache_size=2) as m:
@@ -113,8 +113,11 @@ def test_dense_round_trip(codec: str) -> None:
             want = dense_for(i).astype(np.float16)
             if codec == "f16":
                 np.testing.assert_array_equal(row, want)
-            else:  # 4 bits: within half a step (max |x| of the channel / 7) of each value
-                step = np.abs(want).max(axis=0) / 7
+            else:  # 4 bits: within half a step of each value (q4: max |x| of the channel / 7;
+                # q4a: (max - min) / 15, up to 2.2 % more as a code of 32 steps an octave)
+                step = np.abs(want).max(axis=0).astype(np.float32) / 7
+                if codec == "q4a":
+                    step = np.ptp(want, axis=0).astype(np.float32) / 15 * 1.03
                 assert (np.abs(row - want) <= 0.5 * step + 1e-2).all()
                 assert not np.array_equal(row, want)
         assert m.get_dense([]).shape == (0, *SHAPE)
@@ -124,12 +127,12 @@ def test_dense_round_trip(codec: str) -> None:
 def test_bytes_per_keyframe(tmp_path) -> None:
     with PlaceMap(512, (529, 768), index=IndexConfig(dense_codec="f16")) as m:
         assert m.bytes_per_keyframe == 529 * 768 * 2 + 512 * 4  # ViT-B/322: float16 + float32
-    with PlaceMap(512, (529, 768)) as m:  # default q4: 4 bits + a float16 scale per channel
-        assert m.bytes_per_keyframe == 529 * 768 // 2 + 768 * 2 + 512 * 4 <= 200 * 1024 + 2048
+    with PlaceMap(512, (529, 768)) as m:  # default q4a: 4 bits, a step and zero per channel
+        assert m.bytes_per_keyframe == 529 * 768 // 2 + 768 * 2 + 4 + 512 * 4 <= 200 * 1024 + 2048
     with PlaceMap(DIM, SHAPE, "fp") as m:
         fill(m, random_descs(3))
         m.save(tmp_path / "map")
-        (dense,) = (tmp_path / "map").glob("dense-*.q4")
+        (dense,) = (tmp_path / "map").glob("dense-*.q4a")
         assert dense.stat().st_size == 3 * (m.bytes_per_keyframe - 4 * DIM)
 
 
