@@ -15,6 +15,7 @@ from __future__ import annotations
 import mmap
 import os
 import struct
+import threading
 import zlib
 from array import array
 from collections import OrderedDict
@@ -220,10 +221,28 @@ def cache_path(store_path: Path) -> Path:
     return store_path.with_name(store_path.name + CACHE_SUFFIX)
 
 
+class CacheCheck:
+    """The CRC32 check of a mapped cache's rows, on a thread started at load (zlib releases
+    the GIL, so it runs beside what the caller does next); `ok` waits for it."""
+
+    def __init__(self, rows: memoryview, crc: int) -> None:
+        self._ok = False
+        self._thread = threading.Thread(target=self._run, args=(rows, crc), daemon=True)
+        self._thread.start()
+
+    def _run(self, rows: memoryview, crc: int) -> None:
+        self._ok = zlib.crc32(rows) == crc
+
+    def ok(self) -> bool:
+        self._thread.join()
+        return self._ok
+
+
 def open_cache(path: Path, dim: int, count: int) -> tuple[faiss.Index, object, int] | None:
     """-> (an IndexFlatIP of the `count` cached descriptors [count, dim] that views the file,
-    what must stay alive while it is used, the rows' CRC32), or None when the cache does not
-    hold exactly those rows (missing, short, another count, a wrong CRC32)."""
+    (what must stay alive while it is used, its `CacheCheck`), the rows' CRC32), or None when
+    the cache cannot hold those rows (missing, short, another count or dim). The rows' CRC32 is
+    checked on a thread: the index must not be used before `CacheCheck.ok` says they match."""
     try:
         with open(path, "rb") as fh:
             mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_COPY)
@@ -235,13 +254,12 @@ def open_cache(path: Path, dim: int, count: int) -> tuple[faiss.Index, object, i
     magic, version, d, n, crc = _CACHE_HEAD.unpack_from(mm)
     if (magic, version, d, n) != (b"PVDC", 1, dim, count):
         return None
-    if zlib.crc32(memoryview(mm)[_PAGE:size]) != crc:
-        return None  # damaged: the load scans the store's rows (each checked) instead
+    check = CacheCheck(memoryview(mm)[_PAGE:size], crc)
     start = _PAGE - _FAISS_HEAD.size
     mm[start:_PAGE] = _FAISS_HEAD.pack(b"IxFI", dim, count, 1 << 20, 1 << 20, 1, 0, count * dim)
     view = np.frombuffer(mm, np.uint8, size - start, start)  # private: the file is unchanged
     index = faiss.read_index(faiss.ZeroCopyIOReader(faiss.swig_ptr(view), view.size))
-    return index, (mm, view), crc
+    return index, (mm, view, check), crc
 
 
 def write_cache(path: Path, rows: np.ndarray, start: int, crc: int) -> int:

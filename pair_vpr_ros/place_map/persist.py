@@ -12,10 +12,13 @@ previous save is untouched: the dense file may have grown, but only past the row
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
+
+import numpy as np
 
 from pair_vpr_ros.errors import MapError, MapFingerprintError
 from pair_vpr_ros.place_map.dense_store import DenseStore, cache_path, open_cache
@@ -198,9 +201,20 @@ def _open_index(
     cached = open_cache(cache_path(store.path), m.desc_dim, count) if count else None
     if cached is not None:
         view, backing, crc = cached
-        return DescriptorIndex.viewing(m.desc_dim, config, view, backing), (count, crc)
+        rows = functools.partial(_scan, store.path, m.desc_dim)
+        return DescriptorIndex.viewing(m.desc_dim, config, view, backing, rows), (count, crc)
     index.add(store.scan(m.desc_dim))
     return index, None
+
+
+def _scan(path: Path, desc_dim: int) -> np.ndarray:
+    """The descriptors [n, desc_dim] of the last commit of the store `path`, each checked (when
+    a descriptor cache fails its check)."""
+    store = KeyframeStore(path, saved=True, read_only=True)
+    try:
+        return store.scan(desc_dim)
+    finally:
+        store.close()
 
 
 def _open_snapshot(

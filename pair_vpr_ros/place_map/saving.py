@@ -134,7 +134,8 @@ class MapSaving:
             return
         count, crc = self._desc_cache or (0, 0)
         n = len(self._index)
-        count, crc = (count, crc) if count <= n else (0, 0)
+        if count > n or self._index.cache_failed:  # written again, whole
+            count, crc, self._index.cache_failed = 0, 0, False
         try:
             if n > count:
                 rows = self._index.reconstruct(np.arange(count, n))

@@ -204,7 +204,10 @@ class KeyframeStore:
     def count_checked(self) -> int:
         """The number of keyframe rows (ids 0..n-1) and no features row of another id: two
         lookups of the primary keys (no row is read)."""
-        lo, hi = self._one("SELECT MIN(id), MAX(id) FROM keyframes")
+        # one MIN or MAX a subquery: SQLite reads one end of the primary key for each
+        lo, hi = self._one(
+            "SELECT (SELECT MIN(id) FROM keyframes), (SELECT MAX(id) FROM keyframes)"
+        )
         n = 0 if hi is None else int(hi) + 1
         if lo not in (0, None):  # rows missing further on: found when read (`get`, `scan`)
             raise self.damaged(f"holds keyframe rows with ids {lo}..{hi}: rows are missing")

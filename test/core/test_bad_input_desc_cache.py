@@ -1,7 +1,8 @@
 """Bad-input matrix, the descriptor cache of a flat map (`map-<g>.sqlite.desc`, derived from the
-keyframe store): a damaged, short, foreign or missing cache is never used (the load reads the
-checked rows instead, with the same results) and the next save writes it again; a damaged
-keyframe row behind a valid cache is still reported when the row is read."""
+keyframe store): a damaged, short, foreign or missing cache is never used (the load, or the
+first search when only the CRC32 check of its rows fails, reads the checked rows instead, with
+the same results) and the next save writes it again; a damaged keyframe row behind a valid
+cache is still reported when the row is read."""
 
 from __future__ import annotations
 
@@ -27,7 +28,9 @@ def hits(m: PlaceMap) -> list:
 
 
 def uses_cache(m: PlaceMap) -> bool:
-    return m._desc_cache is not None
+    """The map searches its descriptor cache (the first search waits for its CRC32 check)."""
+    m.search(desc_for(0), 1)
+    return m._desc_cache is not None and not m._index.cache_failed
 
 
 DAMAGES = {
