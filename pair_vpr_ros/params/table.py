@@ -66,11 +66,11 @@ PARAMS: tuple[ParamSpec, ...] = (
        "lists: large maps), hnsw (graph) or milvus (a Milvus collection: milvus_uri; optional "
        "package: pip install 'pair_vpr_ros[milvus]')",
        choices=("flat", "hnsw", "ivf", "milvus"), **RO),
-    _p("dense_codec", "q4a", "how a new map stores each keyframe's dense tokens: q4a (4 bits "
-       "on each channel's own range: 200 KiB per ViT-B keyframe), q4 (4 bits around zero, the "
-       "same size: maps of before q4a) or f16 (uncompressed float16, 794 KiB); a loaded map "
-       "keeps its own (docs/performance.md, compact keyframes)",
-       choices=("q4a", "q4", "f16"), **RO),
+    _p("dense_codec", "q4", "how a new map stores each keyframe's dense tokens: q4 (4 bits and "
+       "a float16 scale per channel: 200 KiB per ViT-B keyframe), q4a (4 bits on each "
+       "channel's own range, the same size: lower error, no better re-ranking agreement) or f16 "
+       "(uncompressed float16, 794 KiB); a loaded map keeps its own (docs/performance.md, "
+       "compact keyframes)", choices=("q4", "q4a", "f16"), **RO),
     _p("milvus_uri", "", "index milvus: a milvus-lite file (path ending in .db, created if "
        "missing) or a Milvus server address (http://host:19530)", **RO),
     _p("milvus_collection", "pairvpr_keyframes", "index milvus: the collection (maps of one "

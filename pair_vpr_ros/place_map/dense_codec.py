@@ -1,11 +1,14 @@
-"""How one keyframe's dense tokens [N, D] are stored: "q4a" (default), "q4" or "f16" (as given).
+"""How one keyframe's dense tokens [N, D] are stored: "q4" (default), "q4a" or "f16" (as given).
 
 "q4a" (issue 34): 4 bits a value on a grid of each channel's own range, x = (q - z) s with q in
 0..15: the step s = base 2^(e / 16) (one uint8 e per channel, one float32 base per keyframe: the
 step is at most 4.4 % above (max - min) / 15) and the zero point z (int8 per channel) centres the
 16 levels on the channel's values. ViT tokens' channels sit off zero (on the demo model the mean
 of a channel is 0.6 of its spread, median over channels), so a grid of their own range halves
-the squared error of q4's grid around zero, in the same 203,136 + 1,536 + 4 = 204,676 bytes.
+the squared error of q4's grid around zero, in the same 203,136 + 1,536 + 4 = 204,676 bytes;
+but on the demo model it picks the same re-ranked winners as q4, no more (docs/performance.md),
+and unlike q4 it is not idempotent: tokens decoded and encoded again (a merge) move by up to a
+step. So q4 stays the default.
 "q4": 4-bit symmetric quantisation with one float16 scale per channel (computed per keyframe):
 q = round(x / s) in -7..7 with s = max |x| of the channel / 7, two values per byte, then the D
 scales. ViT-B/322 (529 x 768): 203,136 + 1,536 = 204,672 bytes (200 KiB) instead of 812,544.
@@ -60,7 +63,9 @@ def _steps(base: np.float32, e: np.ndarray) -> np.ndarray:
 
 def _encode_q4a(x: np.ndarray) -> bytes:
     lo, hi = x.min(axis=0), x.max(axis=0)  # [D]
-    ideal = (hi - lo) / np.float32(15)
+    # a step that spans the range in 15, and one that reaches the channel's centre with an int8
+    # zero point (a constant channel far from 0)
+    ideal = np.maximum((hi - lo) / np.float32(15), np.abs(lo + hi) / np.float32(240))
     top = float(ideal.max())
     base = np.float32(top * 2.0 ** (-255 / 32) if top > 0 else 1.0)
     with np.errstate(divide="ignore"):

@@ -47,7 +47,7 @@ from pair_vpr_ros.place_map.files import LOCK_NAME
 from pair_vpr_ros.place_map.store import KeyframeStore
 
 saved = persist_tests.saved  # fixture: a format-3 map of N0 keyframes in tmp_path / "map"
-ENTRY = 16 + 8 + 8 + 4  # a q4a entry of [4, 8] tokens: nibbles, 8 steps, 8 zeros, a base
+ENTRY = 16 + 2 * 8  # a q4 entry of [4, 8] tokens: 16 bytes of nibbles + 8 float16 scales
 
 
 def _edit_manifest(d: Path, edit) -> None:
@@ -102,7 +102,7 @@ def _foreign_dense(d: Path) -> None:
         for i in range(N0):
             other.add(desc_for(i), dense_for(i + 100), meta_for(i))
         other.save(d.parent / "other")
-    os.replace(d.parent / "other" / "dense-1.q4a", d / "dense-1.q4a")
+    os.replace(d.parent / "other" / "dense-1.q4", d / "dense-1.q4")
 
 
 CORRUPTIONS = {
@@ -123,8 +123,8 @@ CORRUPTIONS = {
         r"map file .*map-1.sqlite listed in .*manifest.json is missing",
     ),
     "missing dense": (
-        lambda d: (d / "dense-1.q4a").unlink(),
-        r"map file .*dense-1.q4a listed in .*manifest.json is missing",
+        lambda d: (d / "dense-1.q4").unlink(),
+        r"map file .*dense-1.q4 listed in .*manifest.json is missing",
     ),
     "store garbage": (
         lambda d: (d / "map-1.sqlite").write_bytes(b"not a database" * 100),
@@ -154,12 +154,12 @@ CORRUPTIONS = {
     ),
     "foreign dense segment": (
         _foreign_dense,
-        r"dense-1.q4a does not match its manifest: keyframe 0 fails its CRC32 check when read "
-        r"as \[4, 8\] q4a tokens",
+        r"dense-1.q4 does not match its manifest: keyframe 0 fails its CRC32 check when read "
+        r"as \[4, 8\] q4 tokens",
     ),
     "truncated dense segment": (
-        lambda d: os.truncate(d / "dense-1.q4a", 11 * ENTRY + 5),
-        r"dense token file .*dense-1.q4a is too short: 401 bytes hold 11 keyframes, the manifest "
+        lambda d: os.truncate(d / "dense-1.q4", 11 * ENTRY + 5),
+        r"dense token file .*dense-1.q4 is too short: 357 bytes hold 11 keyframes, the manifest "
         r"lists 12",
     ),
 }
@@ -200,7 +200,7 @@ def _outcome(d: Path) -> str:
 
 
 @pytest.mark.slow  # 144 copies of a map loaded and read
-@pytest.mark.parametrize("name", ["map-1.sqlite", "dense-1.q4a", "manifest.json"])
+@pytest.mark.parametrize("name", ["map-1.sqlite", "dense-1.q4", "manifest.json"])
 def test_a_flipped_byte_anywhere_is_reported_never_used(saved: Path, tmp_path: Path, name: str):
     size = (saved / name).stat().st_size
     offsets = np.unique(np.linspace(0, size - 1, 48).astype(int))
@@ -239,10 +239,10 @@ def test_unsaved_tail_is_kept_not_truncated(saved: Path) -> None:
     """A dense file longer than the saved rows (a session that never saved) is never shrunk."""
     with PlaceMap.load(saved) as m:
         add_range(m, N0, N0 + 3)  # appended, never saved
-    size = (saved / "dense-1.q4a").stat().st_size
+    size = (saved / "dense-1.q4").stat().st_size
     assert size == (N0 + 3) * ENTRY
     with PlaceMap.load(saved) as m:
-        assert (saved / "dense-1.q4a").stat().st_size == size
+        assert (saved / "dense-1.q4").stat().st_size == size
         assert_holds(m, list(range(N0)))
         add_range(m, N0, N0 + 1)  # overwrites the first tail entry
         m.save(saved)

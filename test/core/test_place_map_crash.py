@@ -88,7 +88,7 @@ def _map_of(mode: str, saved: Path) -> Path:
     + [("fresh", s) for s in ("dense", "store", "manifest", "committed")],
 )
 def test_save_killed_at_step_leaves_a_loadable_map(tmp_path: Path, saved: Path, mode, step):
-    codec = "f16" if mode == "convert" else "q4a"
+    codec = "f16" if mode == "convert" else "q4"
     saved = _map_of(mode, saved)
     child = run_child(tmp_path, mode, str(saved), step)
     assert child.wait(timeout=60) == 17  # it really died at that step
@@ -96,7 +96,7 @@ def test_save_killed_at_step_leaves_a_loadable_map(tmp_path: Path, saved: Path, 
     with PlaceMap.load(saved, expected_fingerprint="fp-a") as m:
         done = step in persist.SAVE_STEPS[COMMITTED:]
         assert_holds(
-            m, new if done else list(range(N0)), codec if mode != "fresh" or not done else "q4a"
+            m, new if done else list(range(N0)), codec if mode != "fresh" or not done else "q4"
         )
         add_range(m, len(m), len(m) + 1)  # and the map can be continued and saved again
         m.save(saved)

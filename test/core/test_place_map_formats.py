@@ -64,13 +64,13 @@ def test_a_read_only_load_of_an_old_map_changes_nothing(tmp_path: Path) -> None:
 
 def test_an_incremental_save_writes_the_new_keyframes_only(saved: Path) -> None:
     """The store and the dense file grow by what was added; nothing is rewritten."""
-    store, dense = saved / "map-1.sqlite", saved / "dense-1.q4a"
+    store, dense = saved / "map-1.sqlite", saved / "dense-1.q4"
     with PlaceMap.load(saved) as m:
         head = dense.read_bytes()
         add_range(m, N0, N0 + 40)
         m.save(saved)
     assert dense.read_bytes()[: len(head)] == head
-    assert dense.stat().st_size == (N0 + 40) * entry_bytes(SHAPE, "q4a")
+    assert dense.stat().st_size == (N0 + 40) * entry_bytes(SHAPE, "q4")
     assert store.stat().st_size < 64 * 1024  # 52 small rows: no copy of anything
     with PlaceMap.load(saved) as m:
         assert_holds(m, list(range(N0 + 40)))

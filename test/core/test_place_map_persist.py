@@ -10,7 +10,7 @@ import pytest
 
 from pair_vpr_ros.errors import MapError, MapFingerprintError
 from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
-from pair_vpr_ros.place_map.dense_codec import decode, encode, entry_bytes
+from pair_vpr_ros.place_map.dense_codec import decode, encode
 
 DIM, SHAPE, N0 = 8, (4, 8), 12
 
@@ -24,8 +24,8 @@ def dense_for(i: int) -> np.ndarray:
     return np.arange(32, dtype=np.float32).reshape(SHAPE) * 0.25 + i
 
 
-def stored(tokens: np.ndarray, codec: str = "q4a") -> np.ndarray:
-    """What a map of `codec` gives back for `tokens` (q4a, q4: the 4-bit decoded values)."""
+def stored(tokens: np.ndarray, codec: str = "q4") -> np.ndarray:
+    """What a map of `codec` gives back for `tokens` (q4: the 4-bit decoded values)."""
     return decode(encode(tokens.astype(np.float16), codec), tokens.shape, codec)
 
 
@@ -44,7 +44,7 @@ def add_range(m: PlaceMap, start: int, stop: int) -> None:
         assert m.add(desc_for(i), dense_for(i), meta_for(i), features_for(i)) == i
 
 
-def assert_holds(m: PlaceMap, ids: list[int], codec: str = "q4a") -> None:
+def assert_holds(m: PlaceMap, ids: list[int], codec: str = "q4") -> None:
     """The map holds exactly keyframes `ids` (content of keyframe i = *_for(ids[i]))."""
     assert len(m) == len(ids)
     for kf_id, i in enumerate(ids):
@@ -96,7 +96,7 @@ def test_empty_map_round_trip(tmp_path: Path) -> None:
 
 
 def test_continue_after_load_and_save_to_same_dir(saved: Path) -> None:
-    layout = ["dense-1.q4a", "manifest.json", "map-1.sqlite", "map-1.sqlite.desc", "map.lock"]
+    layout = ["dense-1.q4", "manifest.json", "map-1.sqlite", "map-1.sqlite.desc", "map.lock"]
     assert files(saved) == layout
     manifest = (saved / "manifest.json").read_bytes()
     with PlaceMap.load(saved) as m:
@@ -107,7 +107,7 @@ def test_continue_after_load_and_save_to_same_dir(saved: Path) -> None:
     # Incremental saves: the dense file is appended, the store takes the new rows, the manifest
     # is not rewritten.
     assert files(saved) == layout and (saved / "manifest.json").read_bytes() == manifest
-    assert (saved / "dense-1.q4a").stat().st_size == (N0 + 4) * (16 + 8 + 8 + 4)
+    assert (saved / "dense-1.q4").stat().st_size == (N0 + 4) * (16 + 8 * 2)
     with PlaceMap.load(saved) as m:
         assert_holds(m, list(range(N0 + 4)))
 
@@ -131,7 +131,7 @@ def test_save_after_clear_replaces_the_dense_file(saved: Path) -> None:
         assert m.add(desc_for(7), dense_for(7), meta_for(7)) == 0
         m.save(saved)
     assert files(saved) == [
-        "dense-2.q4a",
+        "dense-2.q4",
         "manifest.json",
         "map-2.sqlite",
         "map-2.sqlite.desc",
@@ -165,7 +165,7 @@ def test_fresh_map_saved_over_an_existing_map(saved: Path) -> None:
         assert len(m) == 2
         np.testing.assert_array_equal(m.get_dense([1])[0], stored(dense_for(6)))
     assert files(saved) == [
-        "dense-2.q4a",
+        "dense-2.q4",
         "manifest.json",
         "map-2.sqlite",
         "map-2.sqlite.desc",
@@ -211,10 +211,10 @@ def test_missing_directory(tmp_path: Path) -> None:
 
 
 def test_damaged_dense_entry_is_detected_by_crc(saved: Path) -> None:
-    flip_byte(saved / "dense-1.q4a", 5 * entry_bytes(SHAPE, "q4a") + 3)  # inside keyframe 5
+    flip_byte(saved / "dense-1.q4", 5 * 32 + 3)  # inside keyframe 5
     with PlaceMap.load(saved) as m:
         np.testing.assert_array_equal(m.get_dense([4])[0], stored(dense_for(4)))
-        with pytest.raises(MapError, match=r"keyframe 5 in .*dense-1.q4a fail their CRC32"):
+        with pytest.raises(MapError, match=r"keyframe 5 in .*dense-1.q4 fail their CRC32"):
             m.get_dense([4, 5])
     with pytest.raises(MapError, match="keyframe 5 .* fail their CRC32 check"):
         PlaceMap.load(saved, verify_dense=True)
