@@ -1,10 +1,10 @@
-"""What the map's 4-bit dense tokens (dense_codec "q4") cost the re-ranking (issue 34).
+"""What the map's 4-bit dense tokens (dense_codec "q4a", "q4") cost the re-ranking (issue 34).
 
 Demo-world frames (benchmarks/bench_model.py's `agreement_images`: spread over the laps of the
 seed-1234 world, revisits included) are encoded by the shipped demo model; each frame is a query
 whose k nearest others by global descriptor are its candidates, re-ranked as config/demo.yaml
 does (pair score + global_weight x descriptor similarity) once with the float16 tokens the map
-stored before and once with the same tokens through the q4 codec (what a map now gives back).
+stored before and once with the same tokens through each 4-bit codec (what a map gives back).
 
 Reported: top-1 agreement (the same candidate wins), the same place (top-1 within the replay's
 ground-truth radius of float16's), and the AP / recall at precision 0.9 of the re-ranked top-1 as
@@ -70,12 +70,14 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     model = load_pairvpr(default_demo_weights())
     images, places = agreement_images(model.config.image_size, args.queries)
-    f16, q4 = StoredAs(model, "f16"), StoredAs(model, "q4")
-    found = agreement({"fp32": f16, "q4": q4}, images, args.k, places, args.global_weight)["q4"]
-    print(f"q4 vs f16 tokens, {args.queries} queries, top {args.k}, global weight "
-          f"{args.global_weight:g}: top-1 agreement {found['top1']:.4f}, same place "
-          f"{found['same_place']:.4f}, largest score lost {found['regret_max']:.3f}")  # fmt: skip
-    for name, m in (("f16", f16), ("q4", q4)):
+    paths = {"fp32": StoredAs(model, "f16")} | {c: StoredAs(model, c) for c in ("q4", "q4a")}
+    found = agreement(paths, images, args.k, places, args.global_weight)
+    for codec in ("q4", "q4a"):
+        f = found[codec]
+        print(f"{codec} vs f16 tokens, {args.queries} queries, top {args.k}, global weight "
+              f"{args.global_weight:g}: top-1 agreement {f['top1']:.4f}, same place "
+              f"{f['same_place']:.4f}, largest score lost {f['regret_max']:.3f}")  # fmt: skip
+    for name, m in (("f16", paths["fp32"]), ("q4", paths["q4"]), ("q4a", paths["q4a"])):
         ap, r90 = loop_ap(m, images, places, args.k, args.global_weight)
         print(f"{name}: re-ranked top-1 AP {ap:.4f}, recall at precision 0.9 {r90:.4f}")
     return 0

@@ -17,6 +17,16 @@ import numpy as np
 from pair_vpr_ros.errors import GeometryInputError
 from pair_vpr_ros.geometry.camera import PACKED_SIZE, CameraModel
 from pair_vpr_ros.geometry.depth_noise import robust_depth_at
+from pair_vpr_ros.geometry.feature_codec import (
+    COMPACT_KEEP,
+    decode_keypoints,
+    decode_sift,
+    encode_keypoints,
+    encode_sift,
+    keypoint_grid,
+    sift_bytes,
+    strongest,
+)
 
 KINDS = {"sift": 128, "orb": 32}  # descriptor bytes
 
@@ -25,13 +35,15 @@ KINDS = {"sift": 128, "orb": 32}  # descriptor bytes
 class Features:
     """keypoints [M, 2] float32 distorted pixels; descriptors [M, 128 | 32] uint8; depth [M]
     float32 metres along the optical axis (NaN: unknown) or None without a depth image;
-    camera: the intrinsics of the image (None: unknown)."""
+    camera: the intrinsics of the image (None: unknown); response [M] float32: the detector's
+    strength of each keypoint (None: unknown; not stored, picks what a compact record keeps)."""
 
     keypoints: np.ndarray
     descriptors: np.ndarray
     kind: str = "sift"
     depth: np.ndarray | None = None
     camera: CameraModel | None = None
+    response: np.ndarray | None = None
     _float: np.ndarray | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
@@ -99,6 +111,7 @@ def extract_features(
         to_full = np.array([w / grey.shape[1], h / grey.shape[0]], np.float32)
         points = np.array([kp.pt for kp in keypoints], np.float32) * to_full
         out = Features(points, np.clip(descriptors, 0, 255).astype(np.uint8), kind)
+        out.response = np.array([kp.response for kp in keypoints], np.float32)
     out.camera = camera
     if depth is not None:
         out.depth = robust_depth_at(depth, out.keypoints, *depth_noise)
@@ -141,42 +154,84 @@ def match_features(
 
 
 _HEADER = struct.Struct("<4sBBBBIH2x")  # magic, version, kind, has depth, has camera, M, width
+_GRID = struct.Struct("<fff")  # version 2: keypoint grid origin x, y and step (px)
 _KIND_CODES = {kind: i for i, kind in enumerate(KINDS)}
 
 
-def pack_features(f: Features) -> bytes:
-    """Features -> bytes for the place map: header, camera record, keypoints [M, 2] float32,
-    descriptors [M, W] uint8, depth [M] float32 (when known); little-endian."""
+def pack_features(f: Features, compact: bool = True, keep: int | None = None) -> bytes:
+    """Features -> bytes for the place map, little-endian: header, camera record, then
+    compact (version 2, feature_codec.py: the `keep` strongest keypoints as uint16, 4-bit SIFT
+    descriptors, float16 depth; `keep` default: COMPACT_KEEP of the kind) or full (version 1:
+    keypoints [M, 2] float32, descriptors [M, W] uint8, depth [M] float32 when known)."""
+    if compact:
+        pick = strongest(f.response, len(f.keypoints), keep or COMPACT_KEEP[f.kind])
+        f = Features(f.keypoints[pick], f.descriptors[pick], f.kind,
+                     None if f.depth is None else f.depth[pick], f.camera)  # fmt: skip
     n, width = f.descriptors.shape
     parts = [
         _HEADER.pack(
-            b"FEAT", 1, _KIND_CODES[f.kind], f.depth is not None, f.camera is not None, n, width
+            b"FEAT",
+            2 if compact else 1,
+            _KIND_CODES[f.kind],
+            f.depth is not None,
+            f.camera is not None,
+            n,
+            width,
         ),  # fmt: skip
         f.camera.pack() if f.camera is not None else b"\0" * PACKED_SIZE,
-        np.ascontiguousarray(f.keypoints, "<f4").tobytes(),
-        np.ascontiguousarray(f.descriptors, np.uint8).tobytes(),
     ]
+    desc = np.ascontiguousarray(f.descriptors, np.uint8)
+    if compact:
+        grid = keypoint_grid(f.keypoints)
+        parts += [_GRID.pack(*grid), encode_keypoints(f.keypoints, grid)]
+        parts.append(encode_sift(desc) if f.kind == "sift" else desc.tobytes())
+        if f.depth is not None:
+            parts.append(np.asarray(f.depth, "<f4").astype("<f2").tobytes())
+        return b"".join(parts)
+    parts += [np.ascontiguousarray(f.keypoints, "<f4").tobytes(), desc.tobytes()]
     if f.depth is not None:
         parts.append(np.ascontiguousarray(f.depth, "<f4").tobytes())
     return b"".join(parts)
 
 
+def _sizes(version: int, kind: str, n: int, width: int, has_depth: bool) -> tuple[int, ...]:
+    """Bytes of (grid, keypoints, descriptors, depth) in a record of `version`."""
+    if version == 1:
+        return 0, n * 8, n * width, n * 4 if has_depth else 0
+    desc = sift_bytes(n) if kind == "sift" else n * width
+    return _GRID.size, n * 4, desc, n * 2 if has_depth else 0
+
+
 def unpack_features(data: bytes) -> Features:
-    """Inverse of `pack_features`; GeometryInputError when the bytes are not a features record."""
+    """Inverse of `pack_features` (versions 1 and 2); GeometryInputError when the bytes are not
+    a features record."""
     try:
-        magic, _, code, has_depth, has_camera, n, width = _HEADER.unpack_from(data)
+        magic, version, code, has_depth, has_camera, n, width = _HEADER.unpack_from(data)
         kind = list(KINDS)[code]
         pos = _HEADER.size
+        if magic != b"FEAT" or version not in (1, 2):
+            raise ValueError(f"not a features record of version 1 or 2 (version {version})")
         camera = CameraModel.unpack(data[pos : pos + PACKED_SIZE]) if has_camera else None
         pos += PACKED_SIZE
-        sizes = (n * 8, n * width, n * 4 if has_depth else 0)
-        if magic != b"FEAT" or width != KINDS[kind] or len(data) != pos + sum(sizes):
+        sizes = _sizes(version, kind, n, width, bool(has_depth))
+        if width != KINDS[kind] or len(data) != pos + sum(sizes):
             raise ValueError("size or header mismatch")
     except (struct.error, IndexError, ValueError) as err:
         raise GeometryInputError(f"stored keyframe features are damaged ({err})") from err
-    keypoints = np.frombuffer(data, "<f4", n * 2, pos).reshape(n, 2).astype(np.float32)
+    grid = _GRID.unpack_from(data, pos) if version == 2 else None
     pos += sizes[0]
-    descriptors = np.frombuffer(data, np.uint8, n * width, pos).reshape(n, width).copy()
+    if grid is None:
+        keypoints = np.frombuffer(data, "<f4", n * 2, pos).reshape(n, 2).astype(np.float32)
+    else:
+        keypoints = decode_keypoints(data[pos : pos + sizes[1]], n, grid)
     pos += sizes[1]
-    depth = np.frombuffer(data, "<f4", n, pos).astype(np.float32) if has_depth else None
+    if version == 2 and kind == "sift":
+        descriptors = decode_sift(data[pos : pos + sizes[2]], n)
+    else:
+        descriptors = np.frombuffer(data, np.uint8, n * width, pos).reshape(n, width).copy()
+    pos += sizes[2]
+    depth = None
+    if has_depth:
+        depth = np.frombuffer(data, "<f4" if version == 1 else "<f2", n, pos).astype(np.float32)
+        depth[np.isinf(depth)] = np.nan  # float16 overflow (over 65 km): no depth
     return Features(keypoints, descriptors, kind, depth, camera)

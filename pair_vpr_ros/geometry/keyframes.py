@@ -28,11 +28,13 @@ from pair_vpr_ros.geometry.stereo import StereoInputError, stereo_depth
 @dataclass(frozen=True)
 class GeometryConfig:
     """relative_pose: compute T_match_query for accepted loops (features are then extracted
-    for every keyframe and stored in the map); features: "sift" or "orb"."""
+    for every keyframe and stored in the map); features: "sift" or "orb"; compact_features:
+    store them compactly (feature_codec.py) rather than as extracted."""
 
     relative_pose: bool = True
     features: str = "sift"
     max_features: int = 1000
+    compact_features: bool = True
     pose: PoseConfig = field(default_factory=PoseConfig)
 
     def __post_init__(self) -> None:
@@ -95,9 +97,10 @@ class KeyframeGeometry:
         self.counts.stereo_depth += 1
         return depth
 
-    @staticmethod
-    def pack(features: Features | None) -> bytes:
-        return b"" if features is None else pack_features(features)
+    def pack(self, features: Features | None) -> bytes:
+        if features is None:
+            return b""
+        return pack_features(features, self.config.compact_features)
 
     def unpack(self, data: bytes) -> Features | None:
         """Stored bytes -> Features (None when there are none or they are damaged)."""

@@ -32,6 +32,7 @@ def geometry_config(values: Mapping[str, Any]) -> GeometryConfig:
         relative_pose=values["relative_pose"],
         features=values["features"],
         max_features=values["max_features"],
+        compact_features=values["feature_storage"] == "compact",
         pose=PoseConfig(
             depth_sigma_a=values["depth_sigma_a"],
             depth_sigma_b=values["depth_sigma_b"],

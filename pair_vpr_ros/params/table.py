@@ -67,9 +67,10 @@ PARAMS: tuple[ParamSpec, ...] = (
        "package: pip install 'pair_vpr_ros[milvus]')",
        choices=("flat", "hnsw", "ivf", "milvus"), **RO),
     _p("dense_codec", "q4", "how a new map stores each keyframe's dense tokens: q4 (4 bits and "
-       "a float16 scale per channel: 200 KiB per ViT-B keyframe) or f16 (uncompressed float16, "
-       "794 KiB); a loaded map keeps its own (docs/performance.md, compact keyframes)",
-       choices=("q4", "f16"), **RO),
+       "a float16 scale per channel: 200 KiB per ViT-B keyframe), q4a (4 bits on each "
+       "channel's own range, the same size: lower error, no better re-ranking agreement) or f16 "
+       "(uncompressed float16, 794 KiB); a loaded map keeps its own (docs/performance.md, "
+       "compact keyframes)", choices=("q4", "q4a", "f16"), **RO),
     _p("milvus_uri", "", "index milvus: a milvus-lite file (path ending in .db, created if "
        "missing) or a Milvus server address (http://host:19530)", **RO),
     _p("milvus_collection", "pairvpr_keyframes", "index milvus: the collection (maps of one "
@@ -117,6 +118,9 @@ PARAMS: tuple[ParamSpec, ...] = (
     _p("features", "sift", "keypoints for relative poses: sift (accurate) or orb (cheaper)",
        choices=("sift", "orb"), **RO),
     _p("max_features", 1000, "keypoints per keyframe at most", 50, 100000, **RO),
+    _p("feature_storage", "compact", "how the map stores each keyframe's features: compact "
+       "(the 500 strongest SIFT keypoints, 4-bit descriptors, float16 depth: 36 KB) or full "
+       "(every keypoint as extracted: 140 KB for 1000 SIFT)", choices=("compact", "full"), **RO),
     _p("depth_sigma_a", 0.0012, "depth noise sigma_z = a + b z^2 (m): a; defaults from "
        "published Kinect noise studies (docs/real-cameras.md)", 0.0, 10.0, **RO),
     _p("depth_sigma_b", 0.0019, "depth noise: b (1/m); stereo: sigma_disparity / (f baseline)",

@@ -18,7 +18,7 @@ import numpy as np
 
 from pair_vpr_ros.errors import ConfigError, MapError
 from pair_vpr_ros.place_map.dense_codec import check_codec
-from pair_vpr_ros.place_map.ivf import IvfIndex, Training, check_loaded, omp_threads
+from pair_vpr_ros.place_map.ivf import IvfIndex, Training, check_loaded, omp_threads, read_bounded
 from pair_vpr_ros.place_map.milvus.collection import check_milvus_settings
 
 INDEX_KINDS = ("flat", "hnsw", "ivf", "milvus")
@@ -59,8 +59,9 @@ class IndexConfig:
     milvus_token_env: environment variable holding the Milvus token ("" or unset: none); the
         token itself is never stored, logged or taken as a parameter.
     dense_codec: how the map stores dense tokens (not a search setting, but carried here so the
-        map's settings travel as one): "q4" (4-bit, 200 KiB per ViT-B keyframe) or "f16"
-        (uncompressed, 794 KiB); see dense_codec.py. A loaded map keeps its own.
+        map's settings travel as one): "q4" (4-bit, 200 KiB per ViT-B keyframe), "q4a" (4-bit
+        on each channel's range, same size) or "f16" (uncompressed, 794 KiB); dense_codec.py.
+        A loaded map keeps its own.
     milvus_consistency: how a search sees the map's own latest inserts: "Bounded" (default: no
         wait for the server's time tick; the rows written in the last 10 s are searched in
         the node too), "Session" or "Strong" (the server waits for the tick, ~200 ms).
@@ -108,6 +109,8 @@ class IndexConfig:
 class DescriptorIndex:
     """Wraps a FAISS index of `dim`-d float32 vectors; id i = the i-th vector added."""
 
+    cache_failed = False  # a viewed descriptor cache failed its check (`viewing`)
+
     def __init__(self, dim: int, config: IndexConfig | None = None) -> None:
         if config is not None and config.kind == "milvus":
             raise ConfigError("index kind 'milvus' is a MilvusIndex: use make_index")
@@ -134,7 +137,42 @@ class DescriptorIndex:
         if getattr(self, "_ivf", None) is not None:
             self._ivf.config = config
 
+    @classmethod
+    def viewing(
+        cls, dim: int, config: IndexConfig, index: faiss.Index, backing: tuple, fallback
+    ) -> DescriptorIndex:
+        """A "flat" index over vectors it does not own (a loaded map's descriptor cache,
+        dense_store.open_cache: `backing` = (map, rows, CRC32 check)): its first use makes
+        the check (rows that fail it are replaced by `fallback()` [n, dim], and `cache_failed`
+        says so), its first change copies them."""
+        obj = cls(dim, config)
+        obj._set(index)
+        obj._backing, obj._fallback = backing, fallback
+        return obj
+
+    def _checked(self) -> None:
+        if self._backing is None or self._backing[2] is None:
+            return
+        mm, view, check = self._backing
+        self._backing = (mm, view, None)
+        if not check.ok():
+            self._set(self._new_index())
+            self._index.add(self._fallback())
+            self.cache_failed = True
+
+    def _own(self) -> None:
+        """FAISS cannot grow or cut a view: copy the viewed vectors into an index of its own."""
+        self._checked()
+        if self._backing is None:
+            return
+        view = self._backing[1]  # uint8 [faiss header + rows]: the rows after the header
+        rows = view[view.size - 4 * self.dim * len(self) :].view(np.float32)
+        own = self._new_index()
+        own.add(rows.reshape(-1, self.dim))
+        self._set(own)
+
     def _set(self, index: faiss.Index) -> None:
+        self._backing = None
         self._ivf = IvfIndex(self.dim, self.config, index) if self.config.kind == "ivf" else None
         self._faiss = index
 
@@ -156,6 +194,7 @@ class DescriptorIndex:
         reaches a training size trains the index first (a pause: see ivf.py). `rows` (robot,
         session, stamp per descriptor) are for the "milvus" kind; FAISS kinds ignore them."""
         desc = np.ascontiguousarray(desc, dtype=np.float32).reshape(-1, self.dim)
+        self._own()
         (self._index if self._ivf is None else self._ivf).add(desc)
 
     def reset(self) -> None:
@@ -163,6 +202,7 @@ class DescriptorIndex:
 
     def truncate(self, count: int) -> None:
         """Kind "flat": forget ids >= count (a save that lost its unsaved keyframes)."""
+        self._own()
         self._index.remove_ids(faiss.IDSelectorRange(int(count), len(self)))
 
     def search(
@@ -183,6 +223,7 @@ class DescriptorIndex:
         """
         if exclusion is not None:
             raise MapError("search(exclusion=...) needs index kind 'milvus'; pass allowed=")
+        self._checked()
         limit = len(self) if max_id is None else min(len(self), int(max_id) + 1)
         if exclude is not None and max_id is None and allowed is None:
             count, selector = _not_range(len(self), *exclude)
@@ -249,6 +290,7 @@ class DescriptorIndex:
         """ids [K] (validated) -> descriptors [K, dim] float32."""
         if len(ids) == 0:
             return np.empty((0, self.dim), np.float32)
+        self._checked()
         return self._index.reconstruct_batch(np.asarray(ids, dtype=np.int64))
 
     def write(self, path: Path) -> None:
@@ -257,7 +299,7 @@ class DescriptorIndex:
     @classmethod
     def read(cls, path: Path, dim: int, config: IndexConfig) -> DescriptorIndex:
         """Load a file written by `write`; the stored kind must be `config.kind`."""
-        index = _read_bounded(path)
+        index = read_bounded(path)
         want = {"flat": faiss.IndexFlatIP, "hnsw": faiss.IndexHNSWFlat}.get(config.kind)
         want = want or (faiss.IndexFlatIP, faiss.IndexIVFFlat)  # ivf: before / after training
         if not isinstance(index, want) or index.d != dim:
@@ -296,28 +338,3 @@ def make_index(dim: int, config: IndexConfig, fingerprint: str):
 
         return MilvusIndex(dim, config, fingerprint)
     return DescriptorIndex(dim, config)
-
-
-def _read_bounded(path: Path) -> faiss.Index:
-    """faiss.read_index, but no array it allocates may be larger than the file itself: a damaged
-    size field then fails at once instead of asking for terabytes (MemoryError) or zero-filling
-    gigabytes. The limit is process-wide in FAISS, so it is restored afterwards."""
-    try:
-        size = path.stat().st_size
-    except OSError as err:
-        raise MapError(f"FAISS index {path} cannot be read: {err.strerror}") from err
-    previous = faiss.get_deserialization_vector_byte_limit()
-    # FAISS compares element counts against limit / (4 * itemsize) for some arrays.
-    faiss.set_deserialization_vector_byte_limit(min(previous, 4 * (size + 1)))
-    try:
-        return faiss.read_index(str(path))
-    except (RuntimeError, MemoryError) as err:
-        reason = str(err).splitlines()[-1][:200] if str(err) else type(err).__name__
-        if "deserialization_vector_byte_limit" in str(err):
-            reason = "an array size field exceeds the file size"
-        raise MapError(
-            f"FAISS index {path} could not be read ({reason}); the map is damaged: restore it "
-            "from a backup or rebuild it"
-        ) from err
-    finally:
-        faiss.set_deserialization_vector_byte_limit(previous)

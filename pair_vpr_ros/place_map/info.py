@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from pair_vpr_ros.identity import DEFAULT_ROBOT, LEGACY_SESSION
+from pair_vpr_ros.place_map.dense_store import cache_path
 from pair_vpr_ros.place_map.manifest import MANIFEST_NAME, read_manifest
 from pair_vpr_ros.place_map.place_map import PlaceMap
 
@@ -91,6 +92,8 @@ def map_info(directory: str | os.PathLike) -> MapInfo:
     names = manifest.file_names() | {MANIFEST_NAME}
     if manifest.format_version >= 3:  # and the index snapshot the store names, if any
         names |= {p.name for p in d.iterdir() if p.name.startswith("index-") and p.is_file()}
+        cache = cache_path(d / manifest.files["store"]["name"])  # the flat descriptor cache
+        names |= {cache.name} if cache.is_file() else set()
     for name in sorted(names):
         info.files[name] = (d / name).stat().st_size
     return info

@@ -27,6 +27,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 
 import faiss
 import numpy as np
@@ -202,3 +203,28 @@ def check_loaded(index: faiss.Index, path) -> faiss.Index:
                 "damaged, rebuild it"
             ) from err
     return index
+
+
+def read_bounded(path: Path) -> faiss.Index:
+    """faiss.read_index, but no array it allocates may be larger than the file itself: a damaged
+    size field then fails at once instead of asking for terabytes (MemoryError) or zero-filling
+    gigabytes. The limit is process-wide in FAISS, so it is restored afterwards."""
+    try:
+        size = path.stat().st_size
+    except OSError as err:
+        raise MapError(f"FAISS index {path} cannot be read: {err.strerror}") from err
+    previous = faiss.get_deserialization_vector_byte_limit()
+    # FAISS compares element counts against limit / (4 * itemsize) for some arrays.
+    faiss.set_deserialization_vector_byte_limit(min(previous, 4 * (size + 1)))
+    try:
+        return faiss.read_index(str(path))
+    except (RuntimeError, MemoryError) as err:
+        reason = str(err).splitlines()[-1][:200] if str(err) else type(err).__name__
+        if "deserialization_vector_byte_limit" in str(err):
+            reason = "an array size field exceeds the file size"
+        raise MapError(
+            f"FAISS index {path} could not be read ({reason}); the map is damaged: restore it "
+            "from a backup or rebuild it"
+        ) from err
+    finally:
+        faiss.set_deserialization_vector_byte_limit(previous)

@@ -26,6 +26,7 @@ class MapParts:
     format_version: int = 3  # of the save it was opened from (1, 2: converted by the next save)
     note: str = ""  # what the loader should log (an old format, keyframes named at load)
     generation: int = 0
+    desc_cache: tuple[int, int] | None = None  # (count, CRC32) of the flat descriptor cache
 
 
 def check_count(index: DescriptorIndex, count: int, path: Path) -> DescriptorIndex:

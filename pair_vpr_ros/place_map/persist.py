@@ -12,13 +12,16 @@ previous save is untouched: the dense file may have grown, but only past the row
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
+import numpy as np
+
 from pair_vpr_ros.errors import MapError, MapFingerprintError
-from pair_vpr_ros.place_map.dense_store import DenseStore
+from pair_vpr_ros.place_map.dense_store import DenseStore, cache_path, open_cache
 from pair_vpr_ros.place_map.files import (
     crc32_file,
     fsync_path,
@@ -37,7 +40,7 @@ from pair_vpr_ros.place_map.manifest import (
     write_manifest,
 )
 from pair_vpr_ros.place_map.parts import MapParts, check_count, index_config
-from pair_vpr_ros.place_map.store import KeyframeStore
+from pair_vpr_ros.place_map.store import KeyframeStore, SavedCrcs
 
 SAVE_STEPS = ("dense", "index", "store", "manifest", "committed", "cleaned")
 _SAVE_HOOK: Callable[[str], None] | None = None  # tests: called with each SAVE_STEPS name
@@ -167,31 +170,56 @@ def _open_v3(
     store = KeyframeStore(path, saved=True, read_only=True)  # checked before it is written
     dense = None
     try:
-        descs, crcs = store.scan(m.desc_dim)
+        count = store.count_checked()
+        index, cache = _open_index(d, store, config, m, count, read_only)
         if not read_only:
             store.close()
             store = KeyframeStore(path, saved=True)
         shape = (m.dense_shape[0], m.dense_shape[1])
         dense = DenseStore(
-            d / m.files["dense"]["name"], shape, crcs, writable=not read_only,
-            cache_size=cache_size, verify_reads=verify_reads, codec=m.dense_codec,
+            d / m.files["dense"]["name"], shape, SavedCrcs(store.dense_crc, count),
+            writable=not read_only, cache_size=cache_size, verify_reads=verify_reads,
+            codec=m.dense_codec,
         )  # fmt: skip
-        index = _open_index(d, store, config, m, len(descs), read_only)
-        if config.kind == "flat":
-            index.add(descs)
     except BaseException:
         store.close()
         if dense is not None:
             dense.close()
         raise
-    return MapParts(index, store, dense, m.desc_dim, shape, m.fingerprint, 3, "", m.generation)
+    return MapParts(index, store, dense, m.desc_dim, shape, m.fingerprint, 3, "", m.generation,
+                    cache)  # fmt: skip
 
 
 def _open_index(
     d: Path, store: KeyframeStore, config: IndexConfig, m: Manifest, count: int, read_only: bool
+) -> tuple[object, tuple[int, int] | None]:
+    """-> (the index, (count, CRC32) of the descriptor cache it was read from, or None). Kind
+    "flat": the cache when it holds exactly the store's keyframes, else the store's rows."""
+    if config.kind != "flat":
+        return _open_snapshot(d, store, config, m, count, read_only), None
+    index = DescriptorIndex(m.desc_dim, config)
+    cached = open_cache(cache_path(store.path), m.desc_dim, count) if count else None
+    if cached is not None:
+        view, backing, crc = cached
+        rows = functools.partial(_scan, store.path, m.desc_dim)
+        return DescriptorIndex.viewing(m.desc_dim, config, view, backing, rows), (count, crc)
+    index.add(store.scan(m.desc_dim))
+    return index, None
+
+
+def _scan(path: Path, desc_dim: int) -> np.ndarray:
+    """The descriptors [n, desc_dim] of the last commit of the store `path`, each checked (when
+    a descriptor cache fails its check)."""
+    store = KeyframeStore(path, saved=True, read_only=True)
+    try:
+        return store.scan(desc_dim)
+    finally:
+        store.close()
+
+
+def _open_snapshot(
+    d: Path, store: KeyframeStore, config: IndexConfig, m: Manifest, count: int, read_only: bool
 ):
-    if config.kind == "flat":
-        return DescriptorIndex(m.desc_dim, config)
     name = store.state(INDEX_FILE)
     if name is None or "/" in name or not (d / name).is_file():
         raise MapError(

@@ -43,7 +43,7 @@ class PlaceMap(MapSaving):
     index: "flat" (exact) | "ivf" (exact below 25,000 keyframes, then k-means lists: ~1e6
         keyframes; training pauses an add, see place_map/ivf.py) | "hnsw" | an IndexConfig
         (kind "milvus": a Milvus collection, see place_map/milvus/index.py and docs/milvus.md);
-        its `dense_codec` ("q4" default, "f16") is how dense tokens are stored.
+        its `dense_codec` ("q4" default, "q4a", "f16") is how dense tokens are stored.
     dense_cache_size: dense entries kept in memory (LRU). verify_dense_reads: CRC32-check
     entries read from disk. work_dir: parent of the working folder of a never-saved map (default:
     $TMPDIR); put it on the disk of the map directory so the first save moves the dense file.
@@ -85,6 +85,7 @@ class PlaceMap(MapSaving):
         self._lock: DirLock | None = None
         self._dense_committed = False  # the dense file is the one `_home`'s manifest names
         self._generation = 0  # of `_home` (its store is `_store` when `_store.saved`)
+        self._desc_cache: tuple[int, int] | None = None  # (count, CRC32) of its cache file
         self._read_only = False
         self.load_note = ""  # what a caller should log about the load ("" = nothing)
         self._fresh_count = 0
@@ -171,6 +172,8 @@ class PlaceMap(MapSaving):
         """Metadata of one keyframe; MapError if the id is not in the map."""
         self._check_open()
         found = self._store.get(kf_id)
+        if found is None and 0 <= kf_id < len(self):  # a row gone from a saved store
+            raise self._store.damaged(f"has no row for keyframe {kf_id} (rows are missing)")
         if found is None:
             raise MapError(f"keyframe {kf_id} is not in the map (ids 0..{len(self) - 1})")
         return found

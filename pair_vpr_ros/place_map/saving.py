@@ -12,14 +12,16 @@ import sqlite3
 from pathlib import Path
 from typing import TypeVar
 
+import numpy as np
+
 from pair_vpr_ros.errors import MapError, MapFingerprintError
 from pair_vpr_ros.identity import DEFAULT_ROBOT, LEGACY_SESSION
 from pair_vpr_ros.place_map import persist
-from pair_vpr_ros.place_map.dense_store import DenseStore
+from pair_vpr_ros.place_map.dense_store import CACHE_SUFFIX, DenseStore, cache_path, write_cache
 from pair_vpr_ros.place_map.files import LOCK_NAME, DirLock, fsync_path
 from pair_vpr_ros.place_map.manifest import MANIFEST_NAME, Manifest, read_manifest, remove_stale
 from pair_vpr_ros.place_map.parts import MapParts
-from pair_vpr_ros.place_map.store import KeyframeStore
+from pair_vpr_ros.place_map.store import KeyframeStore, SavedCrcs
 
 # The class `load` is called on (PlaceMap): saving.py never imports place_map.py, which imports it.
 MapT = TypeVar("MapT", bound="MapSaving")
@@ -101,6 +103,7 @@ class MapSaving:
             self._after_increment(target)
         else:
             self._after_commit(target, manifest, copied, new_lock)
+        self._update_desc_cache()
         if checkpoint:
             self._store.checkpoint()
         return target
@@ -123,6 +126,22 @@ class MapSaving:
             f"added since the last save are dropped, the map continues from the last save "
             f"({saved} keyframes): free disk space and save again"
         ) from err
+
+    def _update_desc_cache(self) -> None:
+        """Append the saved keyframes' descriptors to the flat descriptor cache next to the
+        store (dense_store.py; derived data: if this fails, the next load scans the rows)."""
+        if self._index.config.kind != "flat" or not self._store.saved:
+            return
+        count, crc = self._desc_cache or (0, 0)
+        n = len(self._index)
+        if count > n or self._index.cache_failed:  # written again, whole
+            count, crc, self._index.cache_failed = 0, 0, False
+        try:
+            if n > count:
+                rows = self._index.reconstruct(np.arange(count, n))
+                self._desc_cache = (n, write_cache(cache_path(self._store.path), rows, count, crc))
+        except (OSError, RuntimeError):
+            self._desc_cache = None  # the next save writes it whole
 
     def _refuse_other_model(self, target: Path) -> None:
         if not (target / MANIFEST_NAME).is_file():
@@ -154,14 +173,17 @@ class MapSaving:
         """Files of the saved map in `d`: the manifest's, the store's WAL, the index snapshot."""
         store = self._store.path.name
         return names | {MANIFEST_NAME, LOCK_NAME, self._dense.path.name, store,
-                        store + "-wal", store + "-shm", store + "-journal"}  # fmt: skip
+                        store + "-wal", store + "-shm", store + "-journal",
+                        store + CACHE_SUFFIX}  # fmt: skip
 
     def _after_commit(
         self, d: Path, manifest: Manifest, copied: Path | None, lock: DirLock | None
     ) -> None:
         """Bookkeeping once `d` holds the new save; if it fails, the next save copies again."""
-        self._dense_committed = False
+        self._dense_committed, self._desc_cache = False, None  # a new store: a new cache
         old_store = self._store
+        if isinstance(self._dense.crcs, SavedCrcs):  # read through the store closed below
+            self._dense.crcs = self._dense.crcs.materialised()
         if copied is None:
             self._dense.owned = False  # a save names this file now: never move or delete it
         if lock is not None:
@@ -241,7 +263,7 @@ class MapSaving:
         obj.desc_dim, obj.dense_shape = parts.desc_dim, parts.dense_shape
         obj.fingerprint, obj._codec = parts.fingerprint, parts.dense.codec
         obj._home, obj._dense_committed, obj._read_only = d, True, read_only
-        obj._generation = parts.generation
+        obj._generation, obj._desc_cache = parts.generation, parts.desc_cache
         obj.load_note = parts.note
         return obj
 

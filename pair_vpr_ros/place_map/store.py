@@ -201,32 +201,45 @@ class KeyframeStore:
         row = self._one("SELECT value FROM state WHERE key = ?", key)
         return None if row is None else str(row[0])
 
-    def scan(self, desc_dim: int) -> tuple[np.ndarray, array]:
-        """-> (descriptors [n, desc_dim] float32, dense CRC32s [n]), each descriptor checked
-        against its CRC32, ids 0..n-1. The one full read a load makes: two columns, no Python
-        work per row beyond a CRC32 (a row's other values are checked when read: `get`, `all`)."""
-        n, lo, hi = self._one("SELECT COUNT(*), MIN(id), MAX(id) FROM keyframes")
-        if (lo, hi) != ((0, n - 1) if n else (None, None)):
-            raise self.damaged(f"holds {n} keyframe rows with ids {lo}..{hi}: rows are missing")
+    def count_checked(self) -> int:
+        """The number of keyframe rows (ids 0..n-1) and no features row of another id: two
+        lookups of the primary keys (no row is read)."""
+        # one MIN or MAX a subquery: SQLite reads one end of the primary key for each
+        lo, hi = self._one(
+            "SELECT (SELECT MIN(id) FROM keyframes), (SELECT MAX(id) FROM keyframes)"
+        )
+        n = 0 if hi is None else int(hi) + 1
+        if lo not in (0, None):  # rows missing further on: found when read (`get`, `scan`)
+            raise self.damaged(f"holds keyframe rows with ids {lo}..{hi}: rows are missing")
         stray = self._one("SELECT COUNT(*) FROM features WHERE id < 0 OR id >= ?", n)[0]
         if stray:  # a range of the primary key: no feature bytes are read
             raise self.damaged(f"holds {stray} feature rows of no keyframe")
-        sql = "SELECT descriptor, desc_crc, dense_crc FROM keyframes ORDER BY id"
+        return n
+
+    def scan(self, desc_dim: int, start: int = 0) -> np.ndarray:
+        """-> descriptors [n - start, desc_dim] float32 of keyframes start..n-1, each checked
+        against its CRC32 (a row's other values are checked when read: `get`, `all`)."""
+        n = self.count_checked()
+        sql = "SELECT descriptor, desc_crc FROM keyframes WHERE id >= ? ORDER BY id"
         try:
-            rows = self._conn.execute(sql).fetchall()
-            blobs, desc_crcs, dense = zip(*rows, strict=True) if rows else ((), (), ())
-            bad = [
-                i
-                for i, (b, c) in enumerate(zip(blobs, desc_crcs, strict=True))
-                if zlib.crc32(b) != c
-            ]
-            if bad:  # before the shape: a damaged row is named as one
-                raise self.damaged(f"holds keyframe {bad[0]} with a wrong CRC32 (a damaged row)")
-            descs = np.frombuffer(b"".join(blobs), "<f4").reshape(n, desc_dim)
-            crcs = array("I", dense)
+            rows = self._conn.execute(sql, (start,)).fetchall()
+            if len(rows) != n - start:
+                got = f"{len(rows) + start} keyframe rows with ids 0..{n - 1}"
+                raise self.damaged(f"holds {got}: rows are missing")
+            for i, (blob, crc) in enumerate(rows, start):
+                if zlib.crc32(blob) != crc:  # before the shape: a damaged row is named as one
+                    raise self.damaged(f"holds keyframe {i} with a wrong CRC32 (a damaged row)")
+            descs = np.frombuffer(b"".join(r[0] for r in rows), "<f4")
+            return descs.reshape(n - start, desc_dim).astype(np.float32)
         except (sqlite3.Error, TypeError, ValueError, OverflowError) as err:
             raise self.damaged(f"cannot be read ({err})") from err
-        return descs.astype(np.float32), crcs
+
+    def dense_crc(self, kf_id: int) -> int:
+        """The CRC32 of keyframe `kf_id`'s dense entry, as its row holds it."""
+        row = self._one("SELECT dense_crc FROM keyframes WHERE id = ?", int(kf_id))
+        if row is None or not isinstance(row[0], int):
+            raise self.damaged(f"has no dense CRC32 for keyframe {kf_id}")
+        return row[0]
 
     def _rows(self, sql: str) -> Iterator[tuple]:
         try:
@@ -296,3 +309,30 @@ def _meta(row: tuple) -> KeyframeMeta:
     robot, session = row[11], row[12]
     pose_or_none = None if pose[0] is None else tuple(pose)
     return KeyframeMeta(kf_id, stamp, frame_id, pose_or_none, source, robot, session)
+
+
+class SavedCrcs:
+    """The dense CRC32s of a loaded map (DenseStore.crcs): the saved ones read from the store
+    when an entry is read (a load reads none), those of entries added since kept here."""
+
+    def __init__(self, lookup, saved: int) -> None:
+        self._lookup, self._saved, self._new = lookup, int(saved), array("I")
+
+    def __len__(self) -> int:
+        return self._saved + len(self._new)
+
+    def __getitem__(self, i: int) -> int:
+        i = i + len(self) if i < 0 else i
+        return self._new[i - self._saved] if i >= self._saved else self._lookup(i)
+
+    def append(self, crc: int) -> None:
+        self._new.append(crc)
+
+    def pop(self) -> int:
+        if self._new:
+            return self._new.pop()
+        self._saved -= 1
+        return self._lookup(self._saved)
+
+    def materialised(self) -> array:
+        return array("I", (self[i] for i in range(len(self))))

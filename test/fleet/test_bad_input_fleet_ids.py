@@ -103,7 +103,8 @@ def test_bad_names_cannot_be_encoded(owner, robot):
 def features(keypoints: np.ndarray) -> bytes:
     n = len(keypoints)
     desc = np.random.default_rng(3).integers(0, 256, (n, 128)).astype(np.uint8)
-    return pack_features(Features(np.asarray(keypoints, np.float32), desc))
+    # version 1: garbage keypoints arrive as sent (a compact record cannot hold NaN or inf)
+    return pack_features(Features(np.asarray(keypoints, np.float32), desc), compact=False)
 
 
 def request(ex, feats: bytes) -> ScoreRequest:

@@ -81,7 +81,9 @@ def faiss_snapshot(d: Path, index) -> None:
     replace_snapshot(d, tmp.read_bytes())
 
 
-def _sql(d: Path, *statements: str) -> None:
+def _sql(d: Path, *statements: str, cache: bool = True) -> None:
+    if not cache:  # without the descriptor cache a load reads (and checks) every row
+        (d / "map-1.sqlite.desc").unlink()
     conn = sqlite3.connect(d / "map-1.sqlite")
     with conn:
         for sql in statements:
@@ -138,12 +140,12 @@ CORRUPTIONS = {
         _foreign_store,
         r"keyframe store .*map-1.sqlite cannot be read \(no such table: keyframes\)",
     ),
-    "descriptor changed": (
-        lambda d: _sql(d, "UPDATE keyframes SET descriptor = zeroblob(32) WHERE id = 3"),
+    "descriptor changed": (  # without the descriptor cache: see the tests of the cache below
+        lambda d: _sql(d, "UPDATE keyframes SET descriptor = zeroblob(32) WHERE id = 3", cache=0),
         r"map-1.sqlite holds keyframe 3 with a wrong CRC32 \(a damaged row\)",
     ),
     "row missing": (
-        lambda d: _sql(d, "DELETE FROM keyframes WHERE id = 5"),
+        lambda d: _sql(d, "DELETE FROM keyframes WHERE id = 5", cache=0),
         r"map-1.sqlite holds 11 keyframe rows with ids 0..11: rows are missing",
     ),
     "stray feature row": (

@@ -9,6 +9,7 @@ from test_place_map_persist import stored
 
 from pair_vpr_ros.errors import ConfigError, MapError
 from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
+from pair_vpr_ros.place_map.dense_codec import decode, encode, entry_bytes
 from pair_vpr_ros.place_map.index import DescriptorIndex
 
 DIM, SHAPE = 8, (4, 8)
@@ -102,7 +103,7 @@ def test_hnsw_shortcut_and_config_validation() -> None:
         IndexConfig(kind="hnsw", ef_search=0)
 
 
-@pytest.mark.parametrize("codec", ["q4", "f16"])
+@pytest.mark.parametrize("codec", ["q4", "q4a", "f16"])
 def test_dense_round_trip(codec: str) -> None:
     index = IndexConfig(dense_codec=codec)
     with PlaceMap(DIM, SHAPE, "fp", index, dense_cache_size=2) as m:
@@ -113,12 +114,27 @@ def test_dense_round_trip(codec: str) -> None:
             want = dense_for(i).astype(np.float16)
             if codec == "f16":
                 np.testing.assert_array_equal(row, want)
-            else:  # 4 bits: within half a step (max |x| of the channel / 7) of each value
-                step = np.abs(want).max(axis=0) / 7
+            else:  # 4 bits: within half a step of each value (q4: max |x| of the channel / 7;
+                # q4a: (max - min) / 15, up to 2.2 % more as a code of 32 steps an octave)
+                step = np.abs(want).max(axis=0).astype(np.float32) / 7
+                if codec == "q4a":
+                    step = np.ptp(want, axis=0).astype(np.float32) / 15 * 1.03
                 assert (np.abs(row - want) <= 0.5 * step + 1e-2).all()
                 assert not np.array_equal(row, want)
         assert m.get_dense([]).shape == (0, *SHAPE)
         np.testing.assert_allclose(m.get_desc([1, 2]), random_descs(5)[1:3], atol=1e-6)
+
+
+def test_q4a_keeps_constant_channels_and_zeros() -> None:
+    tokens = np.zeros((4, 8), np.float16)
+    tokens[:, 1], tokens[:, 2], tokens[:, 3] = 0.808, -1234.0, np.arange(4)
+    back = decode(encode(tokens, "q4a"), (4, 8), "q4a").astype(np.float32)
+    # half a step: a channel's step reaches its centre from an int8 zero point (|c| / 120) and
+    # spans its range in 15, and is at least 1/251 of the largest step (8 octaves of codes)
+    floor = 1234 / 120 / 251
+    bound = 0.5 * 1.03 * np.array([floor, max(0.808 / 120, floor), 1234 / 120, max(3 / 15, floor)])
+    assert (np.abs(back - tokens).max(axis=0)[:4] <= bound).all()
+    assert (back[:, 4:] == 0).all() and entry_bytes((529, 768), "q4a") == 204_676
 
 
 def test_bytes_per_keyframe(tmp_path) -> None:

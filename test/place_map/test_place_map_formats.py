@@ -42,7 +42,13 @@ def test_an_old_map_loads_with_a_note_and_the_next_save_converts_it(tmp_path: Pa
         m.save(d)  # incremental from here
     manifest = json.loads((d / "manifest.json").read_text())
     assert (manifest["format_version"], manifest["dense_codec"]) == (3, "f16")
-    assert files(d) == ["dense-1.f16", "manifest.json", "map-2.sqlite", "map.lock"]  # kept
+    assert files(d) == [
+        "dense-1.f16",
+        "manifest.json",
+        "map-2.sqlite",
+        "map-2.sqlite.desc",
+        "map.lock",
+    ]  # kept
     with PlaceMap.load(d, verify_dense=True) as m:
         assert_holds(m, list(range(N0 + 3)), "f16") and not m.load_note
         assert m.index_config.dense_codec == "f16"  # a loaded map keeps its own codec

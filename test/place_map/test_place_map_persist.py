@@ -96,7 +96,7 @@ def test_empty_map_round_trip(tmp_path: Path) -> None:
 
 
 def test_continue_after_load_and_save_to_same_dir(saved: Path) -> None:
-    layout = ["dense-1.q4", "manifest.json", "map-1.sqlite", "map.lock"]
+    layout = ["dense-1.q4", "manifest.json", "map-1.sqlite", "map-1.sqlite.desc", "map.lock"]
     assert files(saved) == layout
     manifest = (saved / "manifest.json").read_bytes()
     with PlaceMap.load(saved) as m:
@@ -130,7 +130,13 @@ def test_save_after_clear_replaces_the_dense_file(saved: Path) -> None:
         m.clear()
         assert m.add(desc_for(7), dense_for(7), meta_for(7)) == 0
         m.save(saved)
-    assert files(saved) == ["dense-2.q4", "manifest.json", "map-2.sqlite", "map.lock"]
+    assert files(saved) == [
+        "dense-2.q4",
+        "manifest.json",
+        "map-2.sqlite",
+        "map-2.sqlite.desc",
+        "map.lock",
+    ]
     with PlaceMap.load(saved) as m:
         assert len(m) == 1
         np.testing.assert_array_equal(m.get_dense([0])[0], stored(dense_for(7)))
@@ -158,7 +164,13 @@ def test_fresh_map_saved_over_an_existing_map(saved: Path) -> None:
     with PlaceMap.load(saved) as m:
         assert len(m) == 2
         np.testing.assert_array_equal(m.get_dense([1])[0], stored(dense_for(6)))
-    assert files(saved) == ["dense-2.q4", "manifest.json", "map-2.sqlite", "map.lock"]
+    assert files(saved) == [
+        "dense-2.q4",
+        "manifest.json",
+        "map-2.sqlite",
+        "map-2.sqlite.desc",
+        "map.lock",
+    ]
 
 
 def test_one_writer_per_directory_and_read_only_readers(saved: Path) -> None:
