@@ -23,7 +23,7 @@ from pair_vpr_ros.identity import Identity
 from pair_vpr_ros.loops.detector import LoopRecord
 from pair_vpr_ros.loops.frames import FrameOutcome, match_candidate
 from pair_vpr_ros.place_map import PlaceMap
-from pair_vpr_ros.place_map.growth.policy import GrowthConfig, find_representative
+from pair_vpr_ros.place_map.growth.policy import GrowthConfig, find_representative, is_recent
 from pair_vpr_ros.place_map.growth.tables import Represented
 
 GRID = 4  # cells a side of the signature's grid: 4 x 4 x 3 channels x (mean, spread) = 96
@@ -69,12 +69,24 @@ class MapGrowth:
         self.config = config or GrowthConfig()
 
     def representative(
-        self, place_map: PlaceMap, signature: np.ndarray, posed: list[tuple[int, tuple]]
+        self,
+        place_map: PlaceMap,
+        query: tuple[float, str, str],
+        signature: np.ndarray,
+        posed: list[tuple[int, tuple]],
     ) -> tuple[int, float] | None:
-        """(id, signature distance) of the stored keyframe that represents a new one with
-        `signature` [S] and loops `posed` ((match id, T_match_query) each), None: no such."""
+        """(id, signature distance) of the stored keyframe that represents a new one (`query`:
+        stamp, robot, session) with `signature` [S] and loops `posed` ((match id,
+        T_match_query) each), None: no such."""
         tables = place_map.growth
-        return find_representative(signature, posed, tables.links, tables.signature, self.config)
+
+        def signature_of(kf_id: int) -> np.ndarray | None:
+            meta = place_map.meta(kf_id)
+            if is_recent(query, (meta.stamp, *place_map.identity(meta)), self.config):
+                return None
+            return tables.signature(kf_id)
+
+        return find_representative(signature, posed, tables.links, signature_of, self.config)
 
     def stored(
         self, place_map: PlaceMap, kf_id: int, signature: np.ndarray, posed: list[tuple]

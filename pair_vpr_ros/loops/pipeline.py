@@ -222,7 +222,10 @@ class LoopClosurePipeline(PipelineMaps):
         who, signature = self.identity, appearance_signature(frame.rgb)
         posed = live_posed_loops(outcome)
         if self.config.map_growth == "places" and posed:
-            found = self.growth.representative(self._place_map, signature, posed)
+            recent = self.config.exclude_recent_s  # the detector's window, also for this
+            self.growth.config = replace(self.growth.config, exclude_recent_s=recent)
+            query = (frame.stamp, *self._place_map.identity(who))
+            found = self.growth.representative(self._place_map, query, signature, posed)
             if found is not None:
                 self.growth.represented(self._place_map, frame.stamp, who, found)
                 outcome.represented_by = found[0]

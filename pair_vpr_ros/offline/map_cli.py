@@ -18,6 +18,7 @@ import sys
 from pair_vpr_ros.cli import run_cli
 from pair_vpr_ros.place_map.dense_codec import CODECS
 from pair_vpr_ros.place_map.growth.compact import compact_map
+from pair_vpr_ros.place_map.growth.policy import GrowthConfig
 from pair_vpr_ros.place_map.index import INDEX_KINDS
 from pair_vpr_ros.place_map.info import map_info
 from pair_vpr_ros.place_map.merge import merge_maps
@@ -78,6 +79,11 @@ def _compact_parser(sub) -> None:
         help="keep every keyframe: only re-encode the dense tokens",
     )  # fmt: skip
     compact.add_argument(
+        "--exclude-recent-s", type=float, default=30.0, metavar="S",
+        help="a keyframe never represents one of its own robot-session this close in time "
+        "(the node's exclude_recent_s; default %(default)s)",
+    )  # fmt: skip
+    compact.add_argument(
         "--fingerprint", metavar="FP",
         help="refuse a map of another model (the fingerprint `pairvpr-map info` prints)",
     )  # fmt: skip
@@ -122,8 +128,9 @@ def _run(args: argparse.Namespace) -> int | None:
         print(json.dumps(info.to_dict(), indent=1) if args.json else "\n".join(info.lines()))
         return None
     if args.command == "compact":
+        growth = GrowthConfig(exclude_recent_s=args.exclude_recent_s)
         compacted = compact_map(args.map, args.out, codec=args.codec, policy=not args.no_policy,
-                                fingerprint=args.fingerprint)  # fmt: skip
+                                growth=growth, fingerprint=args.fingerprint)  # fmt: skip
         for note in compacted.notes:
             print(f"note: {note}", file=sys.stderr)
         print(compacted.line())

@@ -124,7 +124,8 @@ def test_compact_applies_the_policy_and_the_codec_and_round_trips(tiny_model, tm
     pipe, _ = drive(tiny_model, "all", order=[0, 1, 2, 3, 0, 1], codec="f16")
     pipe.save_map(tmp_path / "in")
     src = pipe.place_map
-    assert main(["compact", str(tmp_path / "in"), "--out", str(tmp_path / "out")]) == 0
+    args = ["compact", str(tmp_path / "in"), "--out", str(tmp_path / "out")]
+    assert main([*args, "--exclude-recent-s", "2.5"]) == 0  # EXACT_MATCH's window
     assert capsys.readouterr().out.startswith(
         f"compacted 6 keyframes into {tmp_path / 'out'}: 4 stored, 2 represented (2 new), "
         "dense tokens q4; "
@@ -142,6 +143,9 @@ def test_compact_applies_the_policy_and_the_codec_and_round_trips(tiny_model, tm
     pipe.close()
     # again with the policy off: only re-encoded, every keyframe kept
     result = compact_map(tmp_path / "in", tmp_path / "all", codec="q4", policy=False)
+    assert (result.stored, result.represented) == (6, 0)
+    # the default window (30 s): keyframes 0-5 s apart of one session never represent each other
+    result = compact_map(tmp_path / "in", tmp_path / "recent")
     assert (result.stored, result.represented) == (6, 0)
 
 

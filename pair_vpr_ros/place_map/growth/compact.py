@@ -14,6 +14,7 @@ to OUT when complete (merge.py's `publish_map`): a crash leaves no OUT.
 
 from __future__ import annotations
 
+import functools
 import os
 import shutil
 from dataclasses import dataclass, field, replace
@@ -21,7 +22,7 @@ from pathlib import Path
 
 from pair_vpr_ros.errors import ConfigError, MapError, MapFingerprintError
 from pair_vpr_ros.place_map.dense_codec import check_codec
-from pair_vpr_ros.place_map.growth.policy import GrowthConfig, find_representative
+from pair_vpr_ros.place_map.growth.policy import GrowthConfig, find_representative, is_recent
 from pair_vpr_ros.place_map.growth.tables import GrowthTables, Represented
 from pair_vpr_ros.place_map.manifest import read_manifest
 from pair_vpr_ros.place_map.merge import publish_map, remove_stale
@@ -135,15 +136,25 @@ def _dropped(m: PlaceMap, tables: GrowthTables, config: GrowthConfig) -> dict[in
     """{id: (representative id, distance)} of the keyframes the policy drops, in id order."""
     dropped: dict[int, tuple] = {}
 
-    def kept_signature(kf_id: int):
-        return None if kf_id in dropped else tables.signature(kf_id)
+    metas = m.all_meta()
+
+    def stamp_and_identity(kf_id: int) -> tuple[float, str, str]:
+        return (metas[kf_id].stamp, *m.identity(metas[kf_id]))
+
+    def kept_signature(query: tuple, kf_id: int):
+        if kf_id in dropped or is_recent(query, stamp_and_identity(kf_id), config):
+            return None
+        return tables.signature(kf_id)
 
     for q in range(len(m)):
+        query = stamp_and_identity(q)
+
         signature = tables.signature(q)
         posed = [(k, t_k_q) for k, t_k_q in tables.links(q) if k < q]  # its loops, T_K_Q
         if signature is None or not posed:
             continue
-        found = find_representative(signature, posed, tables.links, kept_signature, config)
+        found = find_representative(signature, posed, tables.links,
+                                    functools.partial(kept_signature, query), config)  # fmt: skip
         if found is not None:
             dropped[q] = found
     return dropped

@@ -5,7 +5,8 @@ stored one?
 Q has accepted loops with a confident pose to keyframes K (T_K_Q each). The candidates are each
 K and the keyframes linked to K (one hop). A candidate C represents Q when T_C_Q (the loop's
 pose composed with the link's) lies within `max_translation_m` and `max_rotation_deg` and C's
-appearance signature lies within `max_appearance` of Q's; the closest signature wins.
+appearance signature lies within `max_appearance` of Q's, and C is no recent keyframe of Q's
+own robot-session (`exclude_recent_s`); the closest signature wins.
 """
 
 from __future__ import annotations
@@ -33,9 +34,14 @@ class GrowthConfig:
     max_appearance: float = 0.08  # mean absolute signature difference (values in 0..1)
     max_translation_m: float = 6.0
     max_rotation_deg: float = 30.0
+    # A keyframe of the query's own robot-session this recent never represents it: "already in
+    # the map" means an earlier visit, not the last seconds of the drive (the detector's
+    # exclude_recent_s, which the pipeline passes; the node's default for compact)
+    exclude_recent_s: float = 30.0
 
     def __post_init__(self) -> None:
-        for name in ("max_appearance", "max_translation_m", "max_rotation_deg"):
+        names = ("max_appearance", "max_translation_m", "max_rotation_deg", "exclude_recent_s")
+        for name in names:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f"growth {name}={value!r} must be a finite number >= 0")
@@ -64,7 +70,8 @@ def find_representative(
     """(id, signature distance) of the keyframe that represents Q, None when none does.
 
     signature [S]: Q's; posed: (K, T_K_Q) of Q's confident loops; links(K): (C, T_C_K) of K's
-    links; signature_of(C): C's signature (None: C has none or may not represent)."""
+    links; signature_of(C): C's signature (None: C has none or may not represent it, e.g. a
+    recent keyframe of Q's own session: `is_recent`)."""
     best: tuple[int, float] | None = None
     for match_id, t_match_query in posed:
         for other, t_other_match in [(match_id, IDENTITY_POSE), *links(match_id)]:
@@ -77,3 +84,11 @@ def find_representative(
             if distance <= config.max_appearance and (best is None or distance < best[1]):
                 best = (other, distance)
     return best
+
+
+def is_recent(
+    query: tuple[float, str, str], other: tuple[float, str, str], config: GrowthConfig
+) -> bool:
+    """Is `other` (stamp, robot, session) a recent keyframe of the query's own robot-session?"""
+    same = query[1:] == other[1:]
+    return same and abs(query[0] - other[0]) < config.exclude_recent_s
