@@ -114,3 +114,23 @@ def test_growth_rows_added_after_the_last_save_are_rolled_back_like_keyframes(tm
         m.growth.add_link(1, 0, (0, 0, 0, 0, 0, 0, 1))  # never saved
     with PlaceMap.load(path, read_only=True) as m:
         assert m.growth.counts().links == 1
+
+
+def test_a_full_disk_while_recording_a_growth_row_is_a_map_error(tmp_path):
+    with PlaceMap.load(_with_growth(tmp_path / "a")) as m:
+        tables = m.growth
+        real = tables._conn
+
+        class Full:  # the store's connection, whose writes find the disk full
+            def execute(self, sql, *args):
+                if sql.startswith("INSERT"):
+                    raise sqlite3.OperationalError("database or disk is full")
+                return real.execute(sql, *args)
+
+        tables._conn = Full()
+        with pytest.raises(MapError) as err:
+            tables.add_link(1, 0, (0, 0, 0, 0, 0, 0, 1))
+        assert str(err.value) == (
+            "recording a growth row failed: database or disk is full; free disk space (or load "
+            "the map's last save) and go on"
+        )

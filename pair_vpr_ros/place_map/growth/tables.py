@@ -80,10 +80,16 @@ class GrowthTables:
     def _write(self, sql: str, values: tuple) -> None:
         if not self._writable:
             raise MapError("cannot record growth rows in a map loaded with read_only=True")
-        if not self.present():
-            for statement in GROWTH_SCHEMA:  # inside the open transaction: durable at save
-                self._conn.execute(statement)
-        self._conn.execute(sql, (*values, _crc(values)))
+        try:
+            if not self.present():
+                for statement in GROWTH_SCHEMA:  # inside the open transaction: durable at save
+                    self._conn.execute(statement)
+            self._conn.execute(sql, (*values, _crc(values)))
+        except sqlite3.Error as err:  # a full disk: the keyframe rows' own error, said alike
+            raise MapError(
+                f"recording a growth row failed: {err}; free disk space (or load the map's last "
+                "save) and go on"
+            ) from err
 
     def add_signature(self, kf_id: int, signature: np.ndarray) -> None:
         """signature [S] float (stored float16)."""
