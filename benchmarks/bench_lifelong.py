@@ -33,10 +33,12 @@ from pair_vpr_ros.demo.views import camera_model, render_keyframe
 from pair_vpr_ros.demo.world import World, generate_world
 from pair_vpr_ros.identity import Identity
 from pair_vpr_ros.loops.frames import Frame, FrameOutcome
+from pair_vpr_ros.loops.growth import MapGrowth
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.params.configs import detector_config, geometry_config
 from pair_vpr_ros.params.file import read_params_file
 from pair_vpr_ros.place_map import PlaceMap
+from pair_vpr_ros.place_map.growth.policy import GrowthConfig
 from pair_vpr_ros.weights import load_model
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -95,13 +97,15 @@ def run(args: argparse.Namespace) -> dict:
     world = dataclasses.replace(world, lightings=(DAY, DUSK) * 4)
     out = Path(args.out)
     shutil.rmtree(out, ignore_errors=True)
-    results: dict[str, list] = {p: [] for p in POLICIES}
+    results: dict[str, list] = {p: [] for p in args.policies}
+    growth = GrowthConfig(max_translation_m=args.max_translation_m,
+                          max_rotation_deg=args.max_rotation_deg)  # fmt: skip
     earlier = np.zeros((0, 2))
     for k in range(8):
         t0 = time.perf_counter()
         frames = session_frames(world, k)
         render_s = time.perf_counter() - t0
-        for policy in POLICIES:
+        for policy in args.policies:
             t1 = time.perf_counter()
             directory = out / policy
             config = detector_config(values).updated(map_growth=policy)
@@ -109,6 +113,7 @@ def run(args: argparse.Namespace) -> dict:
             place_map = PlaceMap.load(directory, model.fingerprint) if k else None
             pipe = LoopClosurePipeline(model, config, place_map=place_map,
                                        geometry=geometry_config(values), identity=who)  # fmt: skip
+            pipe.growth = MapGrowth(growth)
             outcomes = list(pipe.process_many(frames, batch_size=8))
             pipe.save_map(directory)
             m = pipe.place_map
@@ -159,6 +164,10 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=7, help="demo world seed (7: make demo's)")
     p.add_argument("--gt-radius", type=float, default=10.0, help="m, as the replay's default")
     p.add_argument("--out", default="/var/tmp/pairvpr-lifelong", help="folder of the two maps")
+    p.add_argument("--policies", nargs="+", choices=POLICIES, default=list(POLICIES))
+    defaults = GrowthConfig()
+    p.add_argument("--max-translation-m", type=float, default=defaults.max_translation_m)
+    p.add_argument("--max-rotation-deg", type=float, default=defaults.max_rotation_deg)
     p.add_argument("--png", type=Path, help="write the map size against time driven here")
     p.add_argument("--json", type=Path, help="write every row here")
     args = p.parse_args()
