@@ -103,7 +103,7 @@ def preset(name: str, **overrides) -> DetectorConfig:
 class LoopRecord:
     """One loop-closure decision; field order is the CSV column order and the topic layout."""
 
-    query_id: int  # -1 in localization mode (the query is not added)
+    query_id: int  # -1: the query is not added (localization mode, or map_growth represented it)
     query_stamp: float
     query_frame_id: str
     match_id: int
