@@ -19,6 +19,7 @@ import numpy as np
 from pair_vpr_ros.errors import ConfigError
 
 MODES = ("mapping", "localization")
+GROWTH = ("places", "all")  # map_growth: represented keyframes not stored / every one stored
 
 
 @dataclass
@@ -45,6 +46,7 @@ class DetectorConfig:
     geometric_verification: bool = False
     min_inliers: int = 15  # with geometric verification
     mode: str = "mapping"  # "mapping": query then add; "localization": query only
+    map_growth: str = "places"  # mapping: "places" stores no represented keyframe (growth.py)
     rerank_budget_ms: float = 0.0  # stop re-ranking once this is spent (0: score all top_k)
     # With prior maps: each map (live, each prior) gives its own top_k and at most one loop of
     # the keyframe; False: one top_k of all maps together, one loop. One map: the same.
@@ -62,6 +64,7 @@ class DetectorConfig:
             ("temporal_tolerance", self.temporal_tolerance >= 0, ">= 0"),
             ("min_inliers", self.min_inliers >= 0, ">= 0"),
             ("mode", self.mode in MODES, f"one of {MODES}"),
+            ("map_growth", self.map_growth in GROWTH, f"one of {GROWTH}"),
             ("loop_per_map", isinstance(self.loop_per_map, bool), "true or false"),
             ("score_threshold", math.isfinite(self.score_threshold), "a finite number"),
             (
@@ -100,7 +103,7 @@ def preset(name: str, **overrides) -> DetectorConfig:
 class LoopRecord:
     """One loop-closure decision; field order is the CSV column order and the topic layout."""
 
-    query_id: int  # -1 in localization mode (the query is not added)
+    query_id: int  # -1: the query is not added (localization mode, or map_growth represented it)
     query_stamp: float
     query_frame_id: str
     match_id: int

@@ -36,6 +36,7 @@ class Frame:
 class FrameOutcome:
     stamp: float
     keyframe_id: int | None = None  # id in the map when the frame was added
+    represented_by: int | None = None  # mapping, not added: the stored keyframe representing it
     skipped: str = ""  # why the frame was not a keyframe ("" when it was)
     loop: LoopRecord | None = None  # the best candidate after re-ranking, accepted or not
     # loop_per_map: one decision per map searched (live map first), `loop` the best of them
@@ -68,6 +69,7 @@ class PipelineCounts:
     encoded: int = 0
     similar_to_keyframe: int = 0  # encoded, but too similar to the last keyframe
     keyframes: int = 0
+    represented: int = 0  # keyframes not stored: a stored one represents them (map_growth)
     loops: int = 0  # accepted loop closures
     rejected: int = 0  # keyframes whose best candidate was not accepted
     pose_metric: int = 0  # accepted loops with a metric relative pose (depth)

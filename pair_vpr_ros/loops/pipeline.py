@@ -45,6 +45,7 @@ from pair_vpr_ros.loops.frames import (
     frame_due,
     match_candidate,
 )
+from pair_vpr_ros.loops.growth import MapGrowth, appearance_signature, live_posed_loops
 from pair_vpr_ros.loops.map_search import MapSearch
 from pair_vpr_ros.loops.pipeline_maps import PipelineMaps
 from pair_vpr_ros.loops.recency import ClockWatch
@@ -91,6 +92,7 @@ class LoopClosurePipeline(PipelineMaps):
         self._reset_tracking()
         self.counts = PipelineCounts()
         self.geometry = KeyframeGeometry(geometry, self.counts)
+        self.growth = MapGrowth()  # which keyframes the map need not store (loops/growth.py)
 
     # ---- state -----------------------------------------------------------------------------
     @property
@@ -207,23 +209,40 @@ class LoopClosurePipeline(PipelineMaps):
                 near = self._scale_neighbours(best)
                 outcome.timings_ms["pose"] += self.geometry.pose(loop, features, match, near)
         if self.config.mode == "mapping":
-            who = self.identity
-            meta = KeyframeMeta(
-                stamp=frame.stamp, frame_id=frame.frame_id, pose=frame.pose, source=frame.source,
-                robot=who.robot, session=who.session,
-            )  # fmt: skip
-            packed = self.geometry.pack(features)
-            outcome.keyframe_id = self._place_map.add(desc, dense, meta, packed)
-            self.maps.added(replace(meta, id=outcome.keyframe_id))
-            pending = self._place_map.index_diagnostics.get("map_keyframes_pending", 0)
-            self.counts.map_keyframes_pending = pending
-            for loop in decisions:
-                loop.query_id = outcome.keyframe_id
+            self._map_keyframe(frame, dense, desc, features, outcome)
         self._last_desc = desc
         self.counts.keyframes += 1
         self.counts.loops += len(accepted)
         self.counts.rejected += int(bool(decisions) and not accepted)
         return outcome
+
+    def _map_keyframe(self, frame: Frame, dense, desc, features, outcome: FrameOutcome) -> None:
+        """Store the keyframe (with its signature and links), or, when a stored keyframe
+        represents it (`map_growth` "places", loops/growth.py), record only that."""
+        who, signature = self.identity, appearance_signature(frame.rgb)
+        posed = live_posed_loops(outcome)
+        if self.config.map_growth == "places" and posed:
+            recent = self.config.exclude_recent_s  # the detector's window, also for this
+            self.growth.config = replace(self.growth.config, exclude_recent_s=recent)
+            query = (frame.stamp, *self._place_map.identity(who))
+            found = self.growth.representative(self._place_map, query, signature, posed)
+            if found is not None:
+                self.growth.represented(self._place_map, frame.stamp, who, found)
+                outcome.represented_by = found[0]
+                self.counts.represented += 1
+                return
+        meta = KeyframeMeta(
+            stamp=frame.stamp, frame_id=frame.frame_id, pose=frame.pose, source=frame.source,
+            robot=who.robot, session=who.session,
+        )  # fmt: skip
+        packed = self.geometry.pack(features)
+        outcome.keyframe_id = self._place_map.add(desc, dense, meta, packed)
+        self.growth.stored(self._place_map, outcome.keyframe_id, signature, posed)
+        self.maps.added(replace(meta, id=outcome.keyframe_id))
+        pending = self._place_map.index_diagnostics.get("map_keyframes_pending", 0)
+        self.counts.map_keyframes_pending = pending
+        for loop in outcome.decisions():
+            loop.query_id = outcome.keyframe_id
 
     def _query(
         self, frame: Frame, dense, desc, outcome: FrameOutcome, features: Features | None

@@ -1,9 +1,11 @@
-"""`pairvpr-map`: look into saved place maps, merge them, prune a Milvus collection (the library:
-`place_map.info`, `place_map.merge`, `place_map.milvus_prune`). Exit codes: `pair_vpr_ros.cli`.
+"""`pairvpr-map`: look into saved place maps, merge or compact them, prune a Milvus collection
+(the library: `place_map.info`, `place_map.merge`, `place_map.growth.compact`,
+`place_map.milvus.prune`). Exit codes: `pair_vpr_ros.cli`.
 
     pairvpr-map info maps/site                 # keyframes per robot/session, model, index, sizes
     pairvpr-map info maps/site --json
     pairvpr-map merge maps/r1 maps/r2 --out maps/site
+    pairvpr-map compact maps/site --out maps/site-compact   # growth policy + dense codec q4
     pairvpr-map prune-milvus maps/site.db --maps maps       # lists stale rows; --yes removes
 """
 
@@ -14,6 +16,9 @@ import json
 import sys
 
 from pair_vpr_ros.cli import run_cli
+from pair_vpr_ros.place_map.dense_codec import CODECS
+from pair_vpr_ros.place_map.growth.compact import compact_map
+from pair_vpr_ros.place_map.growth.policy import GrowthConfig
 from pair_vpr_ros.place_map.index import INDEX_KINDS
 from pair_vpr_ros.place_map.info import map_info
 from pair_vpr_ros.place_map.merge import merge_maps
@@ -52,8 +57,36 @@ def build_parser() -> argparse.ArgumentParser:
         help="index milvus: the collection (default: the first map's)",
     )  # fmt: skip
     merge.add_argument("--quiet", action="store_true", help="no progress bar")
+    _compact_parser(sub)
     _prune_parser(sub)
     return p
+
+
+def _compact_parser(sub) -> None:
+    compact = sub.add_parser(
+        "compact", help="rewrite a map into a new folder without the keyframes its stored "
+        "appearance signatures and links say are represented by another (map_growth places), "
+        "dense tokens in --codec; crash-safe, the input untouched",
+    )  # fmt: skip
+    compact.add_argument("map", metavar="IN", help="folder of a saved place map (format 3)")
+    compact.add_argument("--out", metavar="OUT", required=True, help="new folder (must not exist)")
+    compact.add_argument(
+        "--codec", choices=CODECS, default="q4",
+        help="how OUT stores dense tokens (default %(default)s: 4 bits a value)",
+    )  # fmt: skip
+    compact.add_argument(
+        "--no-policy", action="store_true",
+        help="keep every keyframe: only re-encode the dense tokens",
+    )  # fmt: skip
+    compact.add_argument(
+        "--exclude-recent-s", type=float, default=30.0, metavar="S",
+        help="a keyframe never represents one of its own robot-session this close in time "
+        "(the node's exclude_recent_s; default %(default)s)",
+    )  # fmt: skip
+    compact.add_argument(
+        "--fingerprint", metavar="FP",
+        help="refuse a map of another model (the fingerprint `pairvpr-map info` prints)",
+    )  # fmt: skip
 
 
 def _prune_parser(sub) -> None:
@@ -93,6 +126,14 @@ def _run(args: argparse.Namespace) -> int | None:
     if args.command == "info":
         info = map_info(args.map)
         print(json.dumps(info.to_dict(), indent=1) if args.json else "\n".join(info.lines()))
+        return None
+    if args.command == "compact":
+        growth = GrowthConfig(exclude_recent_s=args.exclude_recent_s)
+        compacted = compact_map(args.map, args.out, codec=args.codec, policy=not args.no_policy,
+                                growth=growth, fingerprint=args.fingerprint)  # fmt: skip
+        for note in compacted.notes:
+            print(f"note: {note}", file=sys.stderr)
+        print(compacted.line())
         return None
     if args.command == "prune-milvus":
         pruned = prune_milvus(args.uri, args.maps, args.collection, args.yes, args.token_env)

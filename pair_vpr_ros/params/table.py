@@ -173,6 +173,11 @@ PARAMS: tuple[ParamSpec, ...] = (
     # ---- detector (run time)
     _p("mode", "mapping", "mapping: query, then add keyframes; localization: query only",
        choices=("mapping", "localization")),
+    _p("map_growth", "places", "mapping: places = a keyframe that an accepted loop with a metric "
+       "pose ties to a stored keyframe of the same appearance (or one linked to it) is not "
+       "stored again, only counted with its representative (its loops are published as "
+       "found): the map grows with places and appearances, not hours; all = store every "
+       "keyframe (docs/map-storage.md, growth)", choices=("places", "all")),
     _p("preset", "speed", "detector preset (speed: top_k 10, min_frame_interval 0.2; "
        "performance: top_k 100, min_frame_interval 0)", choices=("speed", "performance")),
     _p("top_k", 0, "candidates re-ranked per keyframe (0 = the preset's)", 0, 1000),
@@ -211,6 +216,7 @@ PARAMS += tuple(  # fleet exchange: all start-up only; a row may end with keywor
 SPECS: dict[str, ParamSpec] = {p.name: p for p in PARAMS}
 DETECTOR_PARAMS = (
     "mode",
+    "map_growth",
     "preset",
     "top_k",
     "rerank_budget_ms",

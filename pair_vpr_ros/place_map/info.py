@@ -39,6 +39,9 @@ class MapInfo:
     index: dict[str, Any]  # IndexConfig fields
     sessions: list[SessionInfo] = field(default_factory=list)
     with_features: int = 0  # keyframes with stored keypoint features
+    represented: int = 0  # keyframes not stored: a stored one represents each (map_growth)
+    links: int = 0  # posed loops recorded between stored keyframes
+    with_signatures: int = 0  # stored keyframes with an appearance signature
     files: dict[str, int] = field(default_factory=dict)  # file name -> bytes on disk
     notes: list[str] = field(default_factory=list)
 
@@ -46,15 +49,23 @@ class MapInfo:
     def total_bytes(self) -> int:
         return sum(self.files.values())
 
+    @property
+    def bytes_per_keyframe(self) -> float:
+        """Bytes on disk per stored keyframe (0 for an empty map)."""
+        return self.total_bytes / self.keyframes if self.keyframes else 0.0
+
     def to_dict(self) -> dict[str, Any]:
-        return {**asdict(self), "total_bytes": self.total_bytes}
+        extra = {"total_bytes": self.total_bytes, "bytes_per_keyframe": self.bytes_per_keyframe}
+        return {**asdict(self), **extra}
 
     def lines(self) -> list[str]:
         """A human-readable report."""
         index = self.index.get("kind", "?")
         out = [
             f"place map {self.directory} (format version {self.format_version})",
-            f"keyframes: {self.keyframes} ({self.with_features} with features)",
+            f"keyframes: {self.keyframes} stored ({self.with_features} with features, "
+            f"{self.with_signatures} with an appearance signature), {self.represented} "
+            f"represented (not stored), {self.links} links",
             f"model fingerprint: {self.fingerprint}",
             f"descriptors: {self.desc_dim}, dense tokens: {self.dense_shape} float16",
             f"index: {index}",
@@ -65,7 +76,8 @@ class MapInfo:
             f"{s.first_stamp:.3f}..{s.last_stamp:.3f})"
             for s in self.sessions
         ]
-        out.append(f"on disk: {self.total_bytes:,} bytes")
+        out.append(f"on disk: {self.total_bytes:,} bytes, {self.bytes_per_keyframe:,.0f} per "
+                   "stored keyframe")  # fmt: skip
         out += [f"  {name}: {size:,}" for name, size in sorted(self.files.items())]
         return out + [f"note: {n}" for n in self.notes]
 
@@ -89,6 +101,9 @@ def map_info(directory: str | os.PathLike) -> MapInfo:
             with_features=m.feature_stats()[0],
             notes=[m.load_note] if m.load_note else [],
         )
+        counts = m.growth.counts()
+        info.represented, info.links = counts.represented, counts.links
+        info.with_signatures = counts.signatures
     names = manifest.file_names() | {MANIFEST_NAME}
     if manifest.format_version >= 3:  # and the index snapshot the store names, if any
         names |= {p.name for p in d.iterdir() if p.name.startswith("index-") and p.is_file()}

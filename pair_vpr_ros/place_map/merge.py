@@ -70,7 +70,7 @@ def merge_maps(
     target = Path(out).expanduser().resolve()
     dirs = [Path(d).expanduser().resolve() for d in inputs]
     _check_arguments(dirs, target)
-    _remove_stale(target)
+    remove_stale(target)
     work = target.parent / f".{target.name}.merging-{os.getpid()}.work"
     maps: list[PlaceMap] = []
     try:
@@ -83,7 +83,7 @@ def merge_maps(
         result.warnings += [m.load_note for m in maps if m.load_note]
         result.warnings += _shared_sessions(maps)
         merged = _copy(maps, config, result, work, progress)
-        _publish(merged, target)
+        publish_map(merged, target)
     finally:
         for m in maps:
             m.close()
@@ -91,7 +91,7 @@ def merge_maps(
     return result
 
 
-def _remove_stale(target: Path) -> None:
+def remove_stale(target: Path) -> None:
     """The folders beside `target` that a merge into it left when it was killed part-way
     (SIGKILL, power loss: no clean-up ran); a merge whose process still runs keeps its own."""
     for path in target.parent.glob(f".{target.name}.merging-*"):
@@ -216,7 +216,7 @@ def _copy(
     return merged
 
 
-def _publish(merged: PlaceMap, target: Path) -> None:
+def publish_map(merged: PlaceMap, target: Path) -> None:
     """Save `merged` into a temporary folder beside `target`, then rename it to `target`."""
     tmp = target.parent / f".{target.name}.merging-{os.getpid()}"
     closed = False

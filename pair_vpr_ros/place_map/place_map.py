@@ -28,6 +28,7 @@ from pair_vpr_ros.place_map.checks import dense_tokens, keyframe_ids, unit_descr
 from pair_vpr_ros.place_map.dense_codec import entry_bytes
 from pair_vpr_ros.place_map.dense_store import DenseStore
 from pair_vpr_ros.place_map.files import DirLock
+from pair_vpr_ros.place_map.growth.tables import GrowthTables
 from pair_vpr_ros.place_map.index import IndexConfig, make_index
 from pair_vpr_ros.place_map.metadata import KeyframeMeta, validate_meta
 from pair_vpr_ros.place_map.milvus.expr import Exclusion, identity, utc_session
@@ -188,6 +189,13 @@ class PlaceMap(MapSaving):
         """(keyframes with features, bytes of all their features)."""
         self._check_open()
         return self._store.feature_stats()
+
+    @property
+    def growth(self) -> GrowthTables:
+        """Appearance signatures, links and represented keyframes (growth/tables.py), in the
+        store's open transaction: a save commits them with the keyframes."""
+        self._check_open()
+        return self._store.growth(writable=not self._read_only)
 
     def all_meta(self) -> list[KeyframeMeta]:
         """Every keyframe's metadata, by id (for plots and markers)."""

@@ -24,6 +24,7 @@ from urllib.parse import quote
 import numpy as np
 
 from pair_vpr_ros.errors import MapError
+from pair_vpr_ros.place_map.growth.tables import GROWTH_SCHEMA, GROWTH_TABLES, GrowthTables
 from pair_vpr_ros.place_map.metadata import KeyframeMeta
 
 _SCHEMA = (
@@ -35,6 +36,7 @@ _SCHEMA = (
     "CREATE TABLE IF NOT EXISTS features (id INTEGER PRIMARY KEY, crc INTEGER NOT NULL, "
     "data BLOB NOT NULL)",
     "CREATE TABLE IF NOT EXISTS state (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
+    *GROWTH_SCHEMA,
 )
 _META = "id, stamp, frame_id, source, x, y, z, qx, qy, qz, qw, robot, session"
 _COLUMNS = _META + ", descriptor, dense_crc, crc, desc_crc"
@@ -184,7 +186,10 @@ class KeyframeStore:
             for statement in _SCHEMA:
                 dst.execute(statement)
             dst.execute("BEGIN")
-            for table, columns in (("keyframes", _COLUMNS), ("features", "id, crc, data")):
+            tables = [("keyframes", _COLUMNS), ("features", "id, crc, data")]
+            if self.growth().present():  # a store written before them has none to copy
+                tables += list(GROWTH_TABLES.items())
+            for table, columns in tables:
                 marks = ",".join("?" * len(columns.split(", ")))
                 rows = self._conn.execute(f"SELECT {columns} FROM {table} ORDER BY 1")
                 while batch := rows.fetchmany(_CHUNK):
@@ -293,6 +298,10 @@ class KeyframeStore:
         """(keyframes with features, total bytes of their features)."""
         n, size = self._one("SELECT COUNT(*), SUM(LENGTH(data)) FROM features")
         return int(n), int(size or 0)
+
+    def growth(self, writable: bool = True) -> GrowthTables:
+        """The growth tables (signatures, links, represented keyframes) in this store."""
+        return GrowthTables(self._conn, self.damaged, writable and not self.read_only)
 
     def close(self) -> None:
         """Roll back unsaved rows and close (the last connection folds the WAL into the file)."""

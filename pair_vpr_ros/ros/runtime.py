@@ -189,6 +189,7 @@ def diagnostic_values(
         "depth_missing": max(0, c.depth_unmatched - c.depth_late),
         "depth_invalid": c.depth_invalid,
         "map_size": live.keyframes,
+        "keyframes_represented": live.counts.represented,  # not stored: map_growth places
         "bytes_per_keyframe": live.bytes_per_keyframe,
         "map_bytes": live.keyframes * live.bytes_per_keyframe,
         "map_dir": values["map_dir"],

@@ -29,9 +29,8 @@ def test_info_reports_sessions_model_index_and_sizes(tmp_path, capsys):
     assert info.with_features == 1
     assert main(["info", str(a)]) == 0
     text = capsys.readouterr().out
-    assert (
-        "keyframes: 3 (1 with features)" in text and "  r1/mon: 3 (0..2, 10.000..12.000)" in text
-    )
+    assert "keyframes: 3 stored (1 with features, 0 with an appearance signature), 0 " in text
+    assert "  r1/mon: 3 (0..2, 10.000..12.000)" in text
     assert main(["info", str(a), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["total_bytes"] == info.total_bytes
 

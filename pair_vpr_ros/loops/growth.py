@@ -1,0 +1,106 @@
+"""The map's growth policy: a keyframe whose place and appearance the map already holds is not
+stored again (docs/map-storage.md, growth).
+
+Each keyframe gets an appearance signature (`appearance_signature`: per cell of a coarse grid,
+each channel's mean and spread; lighting, season and a large change of view change it, the
+place's identity and small image noise hardly do). A stored keyframe keeps its signature and a
+link to every keyframe it closed a loop with under a confident relative pose. A new keyframe Q
+with such a loop to K is *represented* when K or a keyframe linked to K (one hop: the demo model
+finds revisits in another lighting far better than in the same one, so a day query often lands
+on a dusk keyframe whose day twin is linked to it) lies within `max_translation_m` and
+`max_rotation_deg` of Q (the loop's pose, composed with the link's) and its signature within
+`max_appearance` of Q's. A represented keyframe is not stored (no dense tokens, features or
+index entry), only a row naming its representative; its loops are published as found.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from pair_vpr_ros.identity import Identity
+from pair_vpr_ros.loops.detector import LoopRecord
+from pair_vpr_ros.loops.frames import FrameOutcome, match_candidate
+from pair_vpr_ros.place_map import PlaceMap
+from pair_vpr_ros.place_map.growth.policy import GrowthConfig, find_representative, is_recent
+from pair_vpr_ros.place_map.growth.tables import Represented
+
+GRID = 4  # cells a side of the signature's grid: 4 x 4 x 3 channels x (mean, spread) = 96
+CONFIDENT = ("metric", "metric-odometry")  # pose kinds a link or a representation may use
+
+
+def appearance_signature(rgb: np.ndarray) -> np.ndarray:
+    """RGB uint8 [H, W, 3] -> [2 x G x G x 3] float32 in [0, 1]: each grid cell's per-channel
+    mean, then its per-channel standard deviation (G = GRID, fewer for a tiny image)."""
+    img = np.asarray(rgb, dtype=np.float32) / 255.0
+    g = max(1, min(GRID, img.shape[0], img.shape[1]))
+    rows = np.linspace(0, img.shape[0], g + 1).astype(int)
+    cols = np.linspace(0, img.shape[1], g + 1).astype(int)
+    cells = [img[rows[i] : rows[i + 1], cols[j] : cols[j + 1]].reshape(-1, img.shape[2])
+             for i in range(g) for j in range(g)]  # fmt: skip
+    mean = np.stack([c.mean(axis=0) for c in cells])
+    spread = np.stack([c.std(axis=0) for c in cells])
+    return np.concatenate([mean.ravel(), spread.ravel()]).astype(np.float32)
+
+
+def pose_of(record: LoopRecord) -> tuple[float, ...] | None:
+    """T_match_query of an accepted loop with a confident pose (x y z qx qy qz qw), else None."""
+    pose = (record.tx, record.ty, record.tz, record.qx, record.qy, record.qz, record.qw)
+    ok = record.accepted and record.pose_status in CONFIDENT
+    return pose if ok and all(math.isfinite(v) for v in pose) else None
+
+
+def live_posed_loops(outcome: FrameOutcome) -> list[tuple[int, tuple[float, ...]]]:
+    """(match id, T_match_query) of the outcome's accepted loops into the live map (not a prior
+    map) with a confident pose."""
+    out = []
+    for record in outcome.decisions():
+        pose, match = pose_of(record), match_candidate(outcome, record)
+        if pose is not None and match is not None and match.prior < 0:
+            out.append((record.match_id, pose))
+    return out
+
+
+class MapGrowth:
+    """The policy's decisions and the rows it records in one map (`PlaceMap.growth`)."""
+
+    def __init__(self, config: GrowthConfig | None = None) -> None:
+        self.config = config or GrowthConfig()
+
+    def representative(
+        self,
+        place_map: PlaceMap,
+        query: tuple[float, str, str],
+        signature: np.ndarray,
+        posed: list[tuple[int, tuple]],
+    ) -> tuple[int, float] | None:
+        """(id, signature distance) of the stored keyframe that represents a new one (`query`:
+        stamp, robot, session) with `signature` [S] and loops `posed` ((match id,
+        T_match_query) each), None: no such."""
+        tables = place_map.growth
+
+        def signature_of(kf_id: int) -> np.ndarray | None:
+            meta = place_map.meta(kf_id)
+            if is_recent(query, (meta.stamp, *place_map.identity(meta)), self.config):
+                return None
+            return tables.signature(kf_id)
+
+        return find_representative(signature, posed, tables.links, signature_of, self.config)
+
+    def stored(
+        self, place_map: PlaceMap, kf_id: int, signature: np.ndarray, posed: list[tuple]
+    ) -> None:
+        """Record a stored keyframe's signature and its links (one per posed loop)."""
+        tables = place_map.growth
+        tables.add_signature(kf_id, signature)
+        for match_id, t_match_query in posed:
+            if match_id != kf_id:
+                tables.add_link(kf_id, match_id, t_match_query)
+
+    @staticmethod
+    def represented(
+        place_map: PlaceMap, stamp: float, who: Identity, found: tuple[int, float]
+    ) -> None:
+        row = Represented(float(stamp), who.robot, who.session, int(found[0]), float(found[1]))
+        place_map.growth.add_represented(row)

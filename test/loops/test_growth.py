@@ -1,0 +1,181 @@
+"""The map's growth policy (issue 34 part 3, loops/growth.py, place_map/growth/): a revisit of a
+stored place in its appearance is represented, not stored; a new appearance is stored; links
+and signatures are saved with the map; `info` counts them; `compact` applies the policy to a
+saved map (tiny random network, exact repeats as loops, depth for metric poses)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from bag_fixtures import textured
+from exact_match import EXACT_MATCH
+
+from pair_vpr_ros.geometry.camera import CameraModel
+from pair_vpr_ros.loops import pipeline as pipeline_module
+from pair_vpr_ros.loops.detector import DetectorConfig
+from pair_vpr_ros.loops.frames import Frame
+from pair_vpr_ros.loops.growth import appearance_signature
+from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
+from pair_vpr_ros.offline.map_cli import main
+from pair_vpr_ros.place_map import IndexConfig, PlaceMap
+from pair_vpr_ros.place_map.growth.compact import compact_map
+from pair_vpr_ros.place_map.growth.policy import GrowthConfig, find_representative
+from pair_vpr_ros.place_map.growth.tables import compose, invert
+from pair_vpr_ros.place_map.info import map_info
+
+H, W = 120, 160
+CAMERA = CameraModel(W, H, 100.0, 100.0, 79.5, 59.5)
+DEPTH = np.full((H, W), 4.0, np.float32)  # a wall 4 m in front of the camera
+PLACES = [textured(s) for s in range(4)]
+ROUTE = [0, 1, 2, 3, 0]  # frame 4 revisits place 0
+
+
+def drive(model, growth: str, order=ROUTE, codec: str = "q4", place_map=None):
+    config = DetectorConfig(**{**EXACT_MATCH, "map_growth": growth})
+    pipe = LoopClosurePipeline(model, config, place_map=place_map,
+                               index=IndexConfig(dense_codec=codec))  # fmt: skip
+    frames = [Frame(float(t), PLACES[p], "cam", depth=DEPTH, camera=CAMERA)
+              for t, p in enumerate(order)]  # fmt: skip
+    return pipe, list(pipe.process_many(frames))
+
+
+def test_a_revisit_in_the_same_light_is_represented_not_stored(tiny_model):
+    pipe, out = drive(tiny_model, "places")
+    revisit = out[4]
+    assert revisit.keyframe_id is None and revisit.represented_by == 0
+    assert revisit.loop.accepted and revisit.loop.query_id == -1  # published, as found
+    assert revisit.loop.match_id == 0 and revisit.loop.pose_status == "metric"
+    m = pipe.place_map
+    assert len(m) == 4 and pipe.counts.represented == 1 and pipe.counts.keyframes == 5
+    (row,) = m.growth.represented()
+    assert (row.stamp, row.representative) == (4.0, 0) and row.distance < 1e-3  # float16
+    # a later query of the place finds the representative
+    assert m.search(pipe.encode([PLACES[0]])[1][0], 1)[0][0] == 0
+    pipe.close()
+
+
+def test_a_new_appearance_of_a_known_place_is_stored(tiny_model, monkeypatch):
+    dusk = (PLACES[0] * 0.55).astype(np.uint8)  # the revisit's light, for its signature only
+    real = appearance_signature
+
+    def signature(rgb):
+        return real(dusk) if rgb is PLACES[0] and signature.calls == 4 else real(rgb)
+
+    def counted(rgb):
+        out = signature(rgb)
+        signature.calls += 1
+        return out
+
+    signature.calls = 0
+    monkeypatch.setattr(pipeline_module, "appearance_signature", counted)
+    pipe, out = drive(tiny_model, "places")
+    assert out[4].keyframe_id == 4 and out[4].represented_by is None and out[4].loop.accepted
+    assert pipe.place_map.growth.counts().represented == 0
+    assert [k for k, _ in pipe.place_map.growth.links(4)] == [0]  # the two appearances linked
+    pipe.close()
+
+
+def test_policy_all_stores_every_keyframe_with_signatures_and_links(tiny_model):
+    pipe, out = drive(tiny_model, "all")
+    m = pipe.place_map
+    assert [o.keyframe_id for o in out] == [0, 1, 2, 3, 4] and out[4].loop.query_id == 4
+    counts = m.growth.counts()
+    assert (counts.signatures, counts.links, counts.represented) == (5, 1, 0)
+    ((other, pose),) = m.growth.links(0)  # read from the older end: T_4_0
+    assert other == 4 and np.allclose(pose[:3], 0, atol=1e-3)
+    pipe.close()
+
+
+def test_links_signatures_and_represented_rows_survive_save_and_load(tiny_model, tmp_path):
+    pipe, _ = drive(tiny_model, "places", order=[0, 1, 2, 3, 0, 1])
+    pipe.save_map(tmp_path / "m")
+    before = [(k, pipe.place_map.growth.links(k)) for k in range(4)]
+    pipe.close()
+    with PlaceMap.load(tmp_path / "m", read_only=True) as m:
+        assert m.growth.counts().represented == 2 and len(m) == 4
+        assert [(k, m.growth.links(k)) for k in range(4)] == before
+        np.testing.assert_allclose(m.growth.signature(1), appearance_signature(PLACES[1]),
+                                   atol=1e-3)  # fmt: skip
+    # continued after a load: the loaded map's signatures represent the next revisit
+    loaded = PlaceMap.load(tmp_path / "m")
+    pipe, out = drive(tiny_model, "places", order=[2], place_map=loaded)
+    assert out[0].represented_by is None  # one frame: no loop, so stored
+    pipe.close()
+
+
+def test_info_counts_stored_represented_and_bytes(tiny_model, tmp_path, capsys):
+    pipe, _ = drive(tiny_model, "places")
+    pipe.save_map(tmp_path / "m")
+    pipe.close()
+    info = map_info(tmp_path / "m")
+    assert (info.keyframes, info.represented, info.links, info.with_signatures) == (4, 1, 0, 4)
+    assert info.bytes_per_keyframe == info.total_bytes / 4
+    assert main(["info", str(tmp_path / "m"), "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert (data["represented"], data["bytes_per_keyframe"]) == (1, info.bytes_per_keyframe)
+    assert main(["info", str(tmp_path / "m")]) == 0
+    assert "keyframes: 4 stored (4 with features, 4 with an appearance signature), 1 " \
+        "represented (not stored), 0 links" in capsys.readouterr().out  # fmt: skip
+
+
+def test_compact_applies_the_policy_and_the_codec_and_round_trips(tiny_model, tmp_path, capsys):
+    pipe, _ = drive(tiny_model, "all", order=[0, 1, 2, 3, 0, 1], codec="f16")
+    pipe.save_map(tmp_path / "in")
+    src = pipe.place_map
+    args = ["compact", str(tmp_path / "in"), "--out", str(tmp_path / "out")]
+    assert main([*args, "--exclude-recent-s", "2.5"]) == 0  # EXACT_MATCH's window
+    assert capsys.readouterr().out.startswith(
+        f"compacted 6 keyframes into {tmp_path / 'out'}: 4 stored, 2 represented (2 new), "
+        "dense tokens q4; "
+    )
+    with PlaceMap.load(tmp_path / "out", read_only=True) as m:
+        assert len(m) == 4 and m.index_config.dense_codec == "q4"
+        assert [r.representative for r in m.growth.represented()] == [0, 1]
+        for i in range(4):
+            assert m.meta(i) == src.meta(i) and m.features(i) == src.features(i)
+            np.testing.assert_allclose(m.get_desc([i]), src.get_desc([i]), atol=1e-6)
+            ref = src.get_dense([i]).astype(np.float32)
+            assert (
+                np.abs(m.get_dense([i]).astype(np.float32) - ref).max() < 0.2 * np.abs(ref).max()
+            )
+    pipe.close()
+    # again with the policy off: only re-encoded, every keyframe kept
+    result = compact_map(tmp_path / "in", tmp_path / "all", codec="q4", policy=False)
+    assert (result.stored, result.represented) == (6, 0)
+    # the default window (30 s): keyframes 0-5 s apart of one session never represent each other
+    result = compact_map(tmp_path / "in", tmp_path / "recent")
+    assert (result.stored, result.represented) == (6, 0)
+
+
+def test_compact_of_a_map_without_signatures_only_re_encodes(tmp_path, capsys):
+    m = PlaceMap(desc_dim=8, dense_shape=(2, 3), fingerprint="fp", index=IndexConfig(
+        dense_codec="f16"))  # fmt: skip
+    from pair_vpr_ros.place_map import KeyframeMeta
+
+    for i in range(3):
+        m.add(np.eye(8)[i], np.ones((2, 3)), KeyframeMeta(stamp=float(i), frame_id="cam"))
+    m.save(tmp_path / "in")
+    m.close()
+    assert main(["compact", str(tmp_path / "in"), "--out", str(tmp_path / "out")]) == 0
+    captured = capsys.readouterr()
+    assert captured.err == (
+        f"note: {tmp_path / 'in'} has no appearance signatures (saved before map_growth): its "
+        "keyframes are only re-encoded\n"
+    )
+    assert "3 stored, 0 represented (0 new), dense tokens q4" in captured.out
+
+
+def test_the_rule_follows_one_link_and_checks_pose_and_appearance():
+    sig = np.zeros(96, np.float32)
+    turn = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)  # 1 m to the side
+    links = {7: [(3, invert(turn))]}.get  # keyframe 3 is linked to 7 (T_3_7)
+    signatures = {3: sig, 7: sig + 0.5}.get  # 7: other light; 3: Q's light
+    config = GrowthConfig()
+    found = find_representative(sig, [(7, turn)], lambda k: links(k, []), signatures, config)
+    assert found == (3, 0.0)  # via the link; T_3_Q = T_3_7 T_7_Q = identity
+    assert compose(invert(turn), turn) == pytest.approx((0, 0, 0, 0, 0, 0, 1))
+    far = (9.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+    assert find_representative(sig, [(3, far)], lambda k: [], signatures, config) is None
+    assert find_representative(sig + 0.5, [(3, turn)], lambda k: [], signatures, config) is None
