@@ -124,6 +124,11 @@ def test_two_robots_find_each_other_in_one_collection_and_after_a_restart(
 def test_milvus_peer_search_needs_a_milvus_map(tiny_model):
     pipe = LoopClosurePipeline(tiny_model, DetectorConfig(**EXACT_MATCH))
     config = FleetConfig(robot="a", session=S1, peer_search="milvus")
-    with pytest.raises(ConfigError, match="fleet_peer_search milvus searches the Milvus"):
+    with pytest.raises(ConfigError) as err:
         FleetExchange(pipe, config, LocalBus().sender("a"))
+    assert str(err.value) == (
+        "fleet_peer_search milvus searches the Milvus collection the robots' maps share, but "
+        "robot 'a''s place map is of index kind 'flat': set index to milvus with one milvus_uri "
+        "and milvus_collection for every robot, or fleet_peer_search to broadcast"
+    )
     pipe.place_map.close()
