@@ -9,15 +9,21 @@
 #   MILVUS_VENV=.venv-milvus      the server's venv (created on first start)
 #   MILVUS_DATA=.milvus-data      its data; the first start unpacks ~400 MB into DATA/bin
 #   MILVUS_START_TIMEOUT=180      seconds to wait for the health check
-#   MILVUS_HEALTH=http://127.0.0.1:9091/healthz   its health check
-# Client URI: http://127.0.0.1:19530; health: http://127.0.0.1:9091/healthz. One server per
-# machine: a second one while one runs panics (all ports bind to every address).
+#   MILVUS_PORT_SHIFT=0           added to every port: a second server beside the first needs
+#                                 its own ports and MILVUS_DATA (e.g. 100: client 19630)
+#   MILVUS_AUTH=0                 1: authorization on (user root, password Milvus)
+#   MILVUS_HEALTH                 the health check (default from the shift)
+# Client URI: http://127.0.0.1:19530 (+ shift); health: http://127.0.0.1:9091/healthz (+ shift).
+# Every port is bound exactly (scripts/milvus_launch.py): a start right after a kill -9 keeps
+# its ports instead of moving to the next free ones.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 VENV=${MILVUS_VENV:-.venv-milvus}
 DATA=${MILVUS_DATA:-.milvus-data}
 TIMEOUT=${MILVUS_START_TIMEOUT:-180}
-HEALTH=${MILVUS_HEALTH:-http://127.0.0.1:9091/healthz}
+SHIFT=${MILVUS_PORT_SHIFT:-0}
+HEALTH_PORT=$((9091 + SHIFT))
+HEALTH=${MILVUS_HEALTH:-http://127.0.0.1:$HEALTH_PORT/healthz}
 PIDFILE="$DATA/server.pid"
 
 healthy() { [ "$(curl -s -m 2 "$HEALTH" 2>/dev/null)" = "OK" ]; }
@@ -45,8 +51,25 @@ start() {
         "$VENV/bin/python" -m pip --disable-pip-version-check -q install milvus==2.3.5
     fi
     mkdir -p "$DATA"
-    setsid "$VENV/bin/milvus-server" --data "$(realpath "$DATA")" \
-        --extra-config common.gracefulStopTimeout=10 >"$DATA/server.log" 2>&1 &
+    # the embedded etcd's ports come from its own config file (milvus-server cannot set them)
+    cat >"$DATA/etcd.yaml" <<EOF
+name: pairvpr
+listen-client-urls: http://127.0.0.1:$((2379 + SHIFT))
+advertise-client-urls: http://127.0.0.1:$((2379 + SHIFT))
+listen-peer-urls: http://127.0.0.1:$((2380 + SHIFT))
+initial-advertise-peer-urls: http://127.0.0.1:$((2380 + SHIFT))
+initial-cluster: pairvpr=http://127.0.0.1:$((2380 + SHIFT))
+EOF
+    ports=()
+    for pair in proxy:19530 proxy-internal:19529 etcd:2379 root-coord:53100 query-coord:19531 \
+        query-node:21123 index-coord:22930 index-node:21121 data-coord:13333 data-node:21124; do
+        ports+=("--${pair%%:*}-port" "$((${pair#*:} + SHIFT))")
+    done
+    auth=()
+    [ "${MILVUS_AUTH:-0}" = 1 ] && auth=(--authorization-enabled true)
+    ETCD_CONFIG_PATH="$(realpath "$DATA/etcd.yaml")" setsid "$VENV/bin/python" \
+        scripts/milvus_launch.py "$HEALTH_PORT" --data "$(realpath "$DATA")" "${ports[@]}" \
+        "${auth[@]}" --extra-config common.gracefulStopTimeout=10 >"$DATA/server.log" 2>&1 &
     echo $! >"$PIDFILE"
     start_s=$SECONDS
     until healthy; do
@@ -66,7 +89,7 @@ start() {
         sleep 1
     done
     echo "milvus: healthy after $((SECONDS - start_s)) s (pid $(cat "$PIDFILE"))," \
-        "client URI http://127.0.0.1:19530"
+        "client URI http://127.0.0.1:$((19530 + SHIFT))"
 }
 
 case "${1:-}" in

@@ -30,8 +30,8 @@ from pair_vpr_ros.fleet.messages import (
     decode,
 )
 from pair_vpr_ros.fleet.messages import encode as encode_message
-from pair_vpr_ros.fleet.owner import InterRobotLoop, score_request
-from pair_vpr_ros.fleet.peers import SELECTIONS, PeerStore, Proposal, RequestBudget
+from pair_vpr_ros.fleet.owner import InterRobotLoop, check_own_keyframes, score_request
+from pair_vpr_ros.fleet.peers import PEER_SEARCHES, SELECTIONS, Proposal, RequestBudget, peer_store
 from pair_vpr_ros.fleet.wire import model_tag
 from pair_vpr_ros.identity import name_problem
 from pair_vpr_ros.loops.frames import FrameOutcome
@@ -48,7 +48,9 @@ class FleetConfig:
     unanswered this long is counted lost; peers: robots listened to (empty: any);
     send_features: add the query's keyframe features to requests (owner computes the pose);
     select: "best" (a period's most similar candidates, sent when it ends) or "first" (sent
-    at once while the budget lasts), see peers.RequestBudget."""
+    at once while the budget lasts), see peers.RequestBudget; peer_search: "broadcast" (publish
+    descriptors, search those heard) or "milvus" (search the peers' rows in the Milvus
+    collection the robots' maps share; no descriptor is published)."""
 
     robot: str
     session: str
@@ -59,6 +61,7 @@ class FleetConfig:
     peers: tuple[str, ...] = ()
     send_features: bool = True
     select: str = "best"
+    peer_search: str = "broadcast"
 
     def __post_init__(self) -> None:
         names = [("fleet robot", self.robot), ("fleet session", self.session)]
@@ -72,6 +75,7 @@ class FleetConfig:
             "period_s": math.isfinite(self.period_s) and self.period_s > 0,
             "timeout_s": math.isfinite(self.timeout_s) and self.timeout_s > 0,
             "select": self.select in SELECTIONS,
+            "peer_search": self.peer_search in PEER_SEARCHES,
         }
         for name, ok in checks.items():
             if not ok:
@@ -135,9 +139,8 @@ class FleetExchange:
     ) -> None:
         self.pipe, self.config, self.send, self.clock = pipeline, config, send, clock
         self.tag = model_tag(pipeline.model.fingerprint)
-        self.store = PeerStore(
-            config.robot, pipeline.model.config.desc_dim, self.tag, config.peers
-        )
+        self.store = peer_store(config, pipeline.model.config.desc_dim, self.tag,
+                                lambda: self.pipe.place_map)  # fmt: skip
         self.budget = RequestBudget(config.budget, config.period_s, config.select)
         self.counts = FleetCounts()
         self._next_id = secrets.randbits(31) if first_request_id is None else first_request_id
@@ -155,8 +158,9 @@ class FleetExchange:
             return 0
         c = self.config
         desc = self.pipe.place_map.get_desc([kf_id])[0]
-        msg = KeyframeDescriptor(c.robot, c.session, self.tag, kf_id, outcome.stamp, desc)
-        self._send("keyframes", "", msg)
+        if c.peer_search == "broadcast":  # "milvus": the peers find its row in the collection
+            msg = KeyframeDescriptor(c.robot, c.session, self.tag, kf_id, outcome.stamp, desc)
+            self._send("keyframes", "", msg)
         self._published[kf_id] = outcome.stamp
         self.counts.keyframes += 1
         hits = self.store.search(desc, c.top_k, self.pipe.config.global_floor)
@@ -278,9 +282,14 @@ class FleetExchange:
         key = (req.robot, req.session, req.request_id)
         if key in self._scored:
             raise FleetMessageError("duplicate", f"request {req.request_id} of {req.robot!r}")
-        self._check_published(req.candidate_ids)
+        session = self.config.session  # "milvus": any keyframe of the map, of its own session
+        if self.config.peer_search == "milvus":
+            check_own_keyframes(self.pipe, req, self.config.robot)
+            session = req.owner_session
+        else:
+            self._check_published(req.candidate_ids)
         try:
-            loop, response = score_request(self.pipe, req, self.config.robot, self.config.session)
+            loop, response = score_request(self.pipe, req, self.config.robot, session)
         except FleetMessageError:
             raise
         except (PairVPRError, ValueError, RuntimeError) as err:
@@ -335,5 +344,6 @@ class FleetExchange:
         """Counts, bytes and the peer store (keyframes per robot/session, estimated missing)."""
         out = self.counts.summary()
         out.update(peer_keyframes=self.store.owners(), peer_missing=self.store.missing(),
-                   peer_reordered=self.store.reordered, pending=self.pending)  # fmt: skip
+                   peer_reordered=self.store.reordered, pending=self.pending,
+                   peer_searches_skipped=self.store.skipped)  # fmt: skip
         return out

@@ -56,6 +56,21 @@ def check_request(pipe: LoopClosurePipeline, req: ScoreRequest, robot: str, sess
         raise FleetMessageError("unknown keyframe", f"ids {bad or req.candidate_ids} of {size}")
 
 
+def check_own_keyframes(pipe: LoopClosurePipeline, req: ScoreRequest, robot: str) -> None:
+    """fleet_peer_search "milvus": the requester found the candidates as rows of the shared
+    collection, which name the keyframe's robot and session. Each must be a keyframe of this
+    robot's map of that session (one of an earlier run is fine: the map was loaded); anything
+    else ("stale keyframe": a row of a run never saved, of another copy of the map) is refused
+    before any scoring."""
+    pm = pipe.place_map
+    for kf_id in req.candidate_ids:
+        ok = 0 <= kf_id < len(pm) and pm.identity(pm.meta(kf_id)) == (robot, req.owner_session)
+        if not ok:
+            raise FleetMessageError(
+                "stale keyframe", f"id {kf_id} is no keyframe of {robot}/{req.owner_session} here"
+            )
+
+
 def score_request(
     pipe: LoopClosurePipeline, req: ScoreRequest, robot: str, session: str
 ) -> tuple[InterRobotLoop, ScoreResponse]:

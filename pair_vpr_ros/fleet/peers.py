@@ -1,18 +1,23 @@
 """Other robots' keyframe descriptors, searched in this robot's process, and the per-period
 budget that bounds how many score requests (each carrying ~0.8 MB of dense tokens) go out.
 
-One `DescriptorIndex` (exact inner product) holds every peer keyframe; row i belongs to
-`owners[i]` (robot, session) and is that robot's keyframe `keyframe_ids[i]`.
+`PeerStore` (fleet_peer_search "broadcast", the default): one `DescriptorIndex` (exact inner
+product) holds every peer keyframe heard; row i belongs to `owners[i]` (robot, session) and is
+that robot's keyframe `keyframe_ids[i]`. `SharedPeers` (fleet_peer_search "milvus"): the peers'
+rows are already in the Milvus collection this robot's map shares with them, so they are found
+there (place_map/milvus/peers.py) and nothing is kept or broadcast.
 """
 
 from __future__ import annotations
 
 from collections import Counter, defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from pair_vpr_ros.errors import FleetMessageError
+from pair_vpr_ros.errors import ConfigError, FleetMessageError, MapError
 from pair_vpr_ros.fleet.messages import KeyframeDescriptor
 from pair_vpr_ros.place_map.index import DescriptorIndex
 
@@ -41,6 +46,7 @@ class PeerStore:
         self._newest: dict[tuple[str, str], int] = {}
         self._count: Counter[tuple[str, str]] = Counter()
         self.reordered = 0  # arrived after a newer keyframe of the same robot-session (kept)
+        self.skipped = 0  # searches that could not be made (SharedPeers only)
 
     def __len__(self) -> int:
         return len(self.rows)
@@ -95,6 +101,65 @@ class PeerStore:
                 robot, session, kf_id, stamp = self.rows[i]
                 out[(robot, session)].append(PeerHit(robot, session, kf_id, stamp, sim))
         return dict(out)
+
+
+class SharedPeers:
+    """fleet_peer_search "milvus": other robots' keyframes searched in the Milvus collection
+    that the place map `place_map()` (the pipeline's current one) shares with them."""
+
+    def __init__(self, robot: str, place_map: Callable[[], Any], peers: tuple[str, ...] = ()):
+        self.robot, self.place_map, self.peers = robot, place_map, tuple(peers)
+        self.reordered = 0
+        self.skipped = 0  # searches skipped: Milvus did not answer
+        self._found: Counter[tuple[str, str]] = Counter()  # hits passed on, per owner
+
+    def __len__(self) -> int:
+        return 0  # nothing is kept here
+
+    def add(self, msg: KeyframeDescriptor) -> None:
+        raise FleetMessageError(
+            "not kept", f"descriptor of {msg.robot!r}: fleet_peer_search is milvus here"
+        )
+
+    def missing(self) -> int:
+        return 0
+
+    def owners(self) -> dict[str, int]:
+        """{"robot/session": candidates found and passed on}."""
+        return {f"{r}/{s}": n for (r, s), n in sorted(self._found.items())}
+
+    def search(self, desc: np.ndarray, k: int, floor: float) -> dict[tuple[str, str], list]:
+        """As `PeerStore.search`, in the shared collection; {} (counted in `skipped`) when
+        Milvus does not answer (or a map of another kind was loaded since)."""
+        try:
+            rows = self.place_map().search_peers(desc, k, self.robot, self.peers)
+        except MapError:
+            self.skipped += 1
+            return {}
+        out: dict[tuple[str, str], list[PeerHit]] = defaultdict(list)
+        for row in rows:
+            if row.similarity >= floor:
+                hit = PeerHit(row.robot, row.session, row.keyframe_id, row.stamp, row.similarity)
+                out[(row.robot, row.session)].append(hit)
+                self._found[(row.robot, row.session)] += 1
+        return dict(out)
+
+
+PEER_SEARCHES = ("broadcast", "milvus")
+
+
+def peer_store(config: Any, dim: int, tag: bytes, place_map: Callable[[], Any]):
+    """The store a FleetConfig's `peer_search` asks for: PeerStore or SharedPeers."""
+    if config.peer_search == "milvus":
+        if not place_map().filters_in_index:
+            raise ConfigError(
+                "fleet_peer_search milvus searches the Milvus collection the robots' maps "
+                f"share, but robot {config.robot!r}'s place map is of index kind "
+                f"{place_map().index_config.kind!r}: set index to milvus with one milvus_uri "
+                "and milvus_collection for every robot, or fleet_peer_search to broadcast"
+            )
+        return SharedPeers(config.robot, place_map, config.peers)
+    return PeerStore(config.robot, dim, tag, config.peers)
 
 
 @dataclass(frozen=True)

@@ -24,6 +24,11 @@ FLEET_PARAMS: tuple[tuple, ...] = (
     ("fleet_select", "best", "which candidates the budget lets through: best (a period's most "
        "similar, sent when the period ends) or first (sent at once while the budget lasts)",
        {"choices": ("best", "first")}),
+    ("fleet_peer_search", "broadcast", "how other robots' keyframes are found: broadcast "
+       "(publish each keyframe's descriptor, search those heard) or milvus (search the other "
+       "robots' rows of the Milvus collection every robot's map shares: index milvus, one "
+       "milvus_uri and milvus_collection; nothing is broadcast)",
+       {"choices": ("broadcast", "milvus")}),
     ("fleet_top_k", 3, "peer keyframes searched per own keyframe (those at or above "
        "global_floor are sent to their owner for scoring)", 1, 64),
     ("fleet_timeout", 10.0, "a request unanswered this many seconds is counted lost",
@@ -51,4 +56,5 @@ def fleet_config(values: Mapping[str, Any], robot: str, session: str) -> FleetCo
         peers=peers,
         send_features=values["fleet_send_features"],
         select=values["fleet_select"],
+        peer_search=values["fleet_peer_search"],
     )

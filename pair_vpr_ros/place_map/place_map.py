@@ -161,6 +161,22 @@ class PlaceMap(MapSaving):
         ids, sims = self._index.search(query, int(k), max_id, allowed, exclude, exclusion)
         return [(int(i), float(s)) for i, s in zip(ids, sims, strict=True)]
 
+    def search_peers(self, desc: np.ndarray, k: int, robot: str, peers: tuple[str, ...] = ()):
+        """desc [desc_dim] -> up to k keyframes of robots other than `robot` (of `peers`, when
+        given) in this map's shared Milvus collection, best first: [milvus.peers.PeerRow]
+        (fleet_peer_search "milvus"). MapError for another index kind; MapUnavailableError
+        when the server does not answer."""
+        self._check_open()
+        if not self.filters_in_index:
+            raise MapError(
+                f"searching other robots' keyframes needs a place map of index kind 'milvus', "
+                f"this one is {self._index.config.kind!r}: set index to milvus (a shared "
+                "collection) or fleet_peer_search to broadcast"
+            )
+        from pair_vpr_ros.place_map.milvus.peers import search_peers  # pymilvus when used
+
+        return search_peers(self._index, unit_descriptor(desc, self.desc_dim), k, robot, peers)
+
     def get_dense(self, ids: Iterable[int]) -> np.ndarray:
         """ids [K] -> dense tokens [K, N, D] float16."""
         return self._dense.read(keyframe_ids(ids, len(self)))

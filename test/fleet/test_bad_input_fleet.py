@@ -223,6 +223,7 @@ def test_a_late_response_is_counted_late(owner):
         (dict(top_k=0), "fleet top_k=0 is out of range"),
         (dict(period_s=float("nan")), "fleet period_s=nan is out of range"),
         (dict(timeout_s=0.0), "fleet timeout_s=0.0 is out of range"),
+        (dict(peer_search="kafka"), "fleet peer_search='kafka' is out of range"),
         (
             dict(peers=("a", "b")),
             "fleet_peers ['a', 'b'] name this robot 'a': list the other "

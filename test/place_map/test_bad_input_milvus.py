@@ -117,6 +117,29 @@ def test_a_server_of_an_unsupported_version(monkeypatch, tmp_path: Path) -> None
     )
 
 
+def test_a_server_that_refuses_the_token(monkeypatch, tmp_path: Path) -> None:
+    """A server that answers (its port accepts connections) but refuses the connection: with
+    authorization on, pymilvus says the same as for a server that is gone; the message names
+    the token. (test_place_map_milvus_server.py checks it on a real server with authorization.)"""
+    import socket
+
+    import pymilvus
+
+    def refuse(*args, **kwargs):
+        raise pymilvus.MilvusException(code=2, message="Fail connecting to server")
+
+    monkeypatch.setattr(pymilvus, "MilvusClient", refuse)
+    monkeypatch.setenv("PAIRVPR_MILVUS_TOKEN", "root:wrong")
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        uri = f"http://127.0.0.1:{server.getsockname()[1]}"
+        assert _refused_at_start(uri, tmp_path) == (
+            f"Milvus server {uri} answers but refused the connection with the token in "
+            "$PAIRVPR_MILVUS_TOKEN (Fail connecting to server): a server with authorization "
+            "needs a valid 'user:password' or API key in $PAIRVPR_MILVUS_TOKEN; check it (and "
+            "that milvus_uri is a Milvus server)"
+        )
+
+
 def test_a_collection_of_another_dimension(milvus) -> None:
     PlaceMap(DIM, SHAPE, "fp", index=milvus).close()
     with pytest.raises(MapError) as err:

@@ -1,10 +1,12 @@
-"""Index kind "milvus" on a Milvus server only (the test server of milvus_fixtures.py): two
-processes writing one collection at once and both restarting, a kill -9 of the server during a
-run, and scripts/milvus_server.sh when the server never comes up."""
+"""Index kind "milvus" on a Milvus server only: two processes writing one collection of the
+test server (milvus_fixtures.py) at once and both restarting; on a second server of its own
+(other ports, authorization on), a wrong token and a kill -9 of the server during a run; and
+scripts/milvus_server.sh when the server never comes up."""
 
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -13,7 +15,7 @@ from pathlib import Path
 import pytest
 from test_place_map_persist import DIM, SHAPE, add_range, desc_for
 
-from pair_vpr_ros.errors import MapUnavailableError
+from pair_vpr_ros.errors import MapError, MapUnavailableError
 from pair_vpr_ros.place_map import IndexConfig, PlaceMap
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -76,7 +78,7 @@ def _writers(config: IndexConfig, tmp_path: Path, start: int, stop: int) -> list
 def _keys(config: IndexConfig) -> list[int]:
     from pymilvus import MilvusClient
 
-    client = MilvusClient(config.milvus_uri)
+    client = MilvusClient(config.milvus_uri, token=os.environ.get(config.milvus_token_env, ""))
     rows = client.query(config.milvus_collection, filter="pk >= 0", output_fields=["pk"],
                         limit=16384, consistency_level="Strong")  # fmt: skip
     client.close()
@@ -117,32 +119,81 @@ def _answers(m: PlaceMap, i: int) -> bool:
         return False
 
 
-@pytest.mark.slow  # kills and restarts the test server (~20-40 s)
-def test_a_server_killed_and_restarted_during_a_run(server_milvus, tmp_path):
-    """kill -9 of the server mid-run: keyframes are kept, searches skipped and counted; after
-    the restart the kept keyframes go in, and a load of the saved map holds every keyframe
-    once (the server may lose rows it acknowledged just before the kill: the load re-inserts
-    them from the map's own copy)."""
-    if os.environ.get("PAIRVPR_MILVUS_KILL_TEST") != "1":
-        # three times on the busy development machine (load 15-30) the restart was not
-        # healthy within 3-7 min, which would fail every server test after this one: opt in
-        pytest.skip("kills the shared test server: set PAIRVPR_MILVUS_KILL_TEST=1 to run it")
-    pid_file = ROOT / ".milvus-data" / "server.pid"
-    if not pid_file.is_file():
-        pytest.skip("the test server was not started by scripts/milvus_server.sh (no pid file)")
-    m = PlaceMap(DIM, SHAPE, "fp", index=server_milvus)
+FAULT_SHIFT = 100  # the fault server's ports: client 19630, health 9191
+FAULT_URI = f"http://127.0.0.1:{19530 + FAULT_SHIFT}"
+TOKEN = "root:Milvus"  # the default user of a Milvus server with authorization
+
+
+def _fault_script(action: str, timeout_s: int = 600) -> subprocess.CompletedProcess:
+    """scripts/milvus_server.sh on the fault server's own ports and data folder."""
+    env = {
+        **os.environ,
+        "MILVUS_PORT_SHIFT": str(FAULT_SHIFT),
+        "MILVUS_AUTH": "1",
+        "MILVUS_DATA": str(ROOT / ".milvus-data-faults"),
+        "MILVUS_START_TIMEOUT": "300",
+    }
+    return subprocess.run(["bash", str(SCRIPT), action], env=env, capture_output=True,
+                          text=True, timeout=timeout_s)  # fmt: skip
+
+
+@pytest.fixture
+def fault_server():
+    """A second Milvus server of this test's own (authorization on, other ports, its own
+    data folder, emptied first): killing it leaves the shared test server alone."""
+    venv = Path(os.environ.get("MILVUS_VENV", ROOT / ".venv-milvus"))
+    if not (venv / "bin" / "milvus-server").is_file():
+        why = f"no Milvus server venv at {venv} (scripts/milvus_server.sh start makes it)"
+        if os.environ.get("CI") == "true":
+            pytest.fail(f"CI=true needs the fault server: {why}")
+        pytest.skip(why)
+    shutil.rmtree(ROOT / ".milvus-data-faults" / "data", ignore_errors=True)
+    proc = _fault_script("start")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    yield IndexConfig(
+        kind="milvus",
+        milvus_uri=FAULT_URI,
+        milvus_collection="faults",
+        milvus_index="FLAT",
+        milvus_token_env="PAIRVPR_TEST_FAULT_TOKEN",
+    )
+    _fault_script("stop")
+
+
+@pytest.mark.slow  # its own server: start, kill -9, restart (~40-60 s on the 2-core VM)
+def test_a_server_killed_and_restarted_during_a_run(fault_server, monkeypatch, tmp_path):
+    """A wrong or missing token is a clear error. kill -9 of the server mid-run: keyframes
+    are kept, searches skipped and counted; after the restart the kept keyframes go in, and a
+    load of the saved map holds every keyframe once (the server may lose rows it acknowledged
+    just before the kill: the load re-inserts them from the map's own copy)."""
+    for token, given in (("root:wrong", "the token in $PAIRVPR_TEST_FAULT_TOKEN"),
+                         (None, "no token ($PAIRVPR_TEST_FAULT_TOKEN is unset)")):  # fmt: skip
+        if token is None:
+            monkeypatch.delenv("PAIRVPR_TEST_FAULT_TOKEN", raising=False)
+        else:
+            monkeypatch.setenv("PAIRVPR_TEST_FAULT_TOKEN", token)
+        with pytest.raises(MapError) as err:
+            PlaceMap(DIM, SHAPE, "fp", index=fault_server)
+        assert str(err.value) == (
+            f"Milvus server {FAULT_URI} answers but refused the connection with {given} (Fail "
+            f"connecting to server on 127.0.0.1:{19530 + FAULT_SHIFT}, illegal connection "
+            "params or server unavailable): a server with authorization needs a valid "
+            "'user:password' or API key in $PAIRVPR_TEST_FAULT_TOKEN; check it (and that "
+            "milvus_uri is a Milvus server)"
+        )
+    monkeypatch.setenv("PAIRVPR_TEST_FAULT_TOKEN", TOKEN)
+    m = PlaceMap(DIM, SHAPE, "fp", index=fault_server)
     add_range(m, 0, 20)
     m.save(tmp_path / "map")
-    subprocess.run(["bash", str(SCRIPT), "stop"], check=True, capture_output=True)
+    proc = _fault_script("stop")  # kill -9 of its process group
+    assert proc.returncode == 0, proc.stdout + proc.stderr
     try:
         add_range(m, 20, 23)  # kept: the server is gone
         with pytest.raises(MapUnavailableError):
             m.search(desc_for(21), 1)
         assert m.index_diagnostics["map_keyframes_pending"] == 3
-    finally:  # a restart after kill -9 took 50 s to be healthy on a busy 2-core machine
-        env = {**os.environ, "MILVUS_START_TIMEOUT": "600"}
-        proc = subprocess.run(["bash", str(SCRIPT), "start"], env=env, capture_output=True,
-                              text=True)  # fmt: skip
+    finally:  # at once: the ports of the killed server are bound again (milvus_launch.py)
+        proc = _fault_script("start")
         assert proc.returncode == 0, proc.stdout + proc.stderr
     _wait(lambda: _answers(m, 21), 300, "the restarted server did not answer a search")
     assert m.index_diagnostics["map_keyframes_pending"] == 0
@@ -151,7 +202,7 @@ def test_a_server_killed_and_restarted_during_a_run(server_milvus, tmp_path):
     m.close()
     with PlaceMap.load(tmp_path / "map", "fp") as again:
         assert len(again) == 23 and all(_answers(again, i) for i in (0, 19, 22))
-    keys = _keys(server_milvus)
+    keys = _keys(fault_server)
     assert len(keys) == len(set(keys)) == 23
 
 
@@ -160,9 +211,10 @@ def _fake_server(tmp_path: Path, body: str) -> dict:
     answers, so the real server (if any) is not touched."""
     venv = tmp_path / "venv"
     (venv / "bin").mkdir(parents=True)
-    binary = venv / "bin" / "milvus-server"
-    binary.write_text(f"#!/bin/sh\necho starting\n{body}\n")
-    binary.chmod(0o755)
+    for name in ("milvus-server", "python"):  # the script runs its launcher with the venv's
+        binary = venv / "bin" / name
+        binary.write_text(f"#!/bin/sh\necho starting\n{body}\n")
+        binary.chmod(0o755)
     fake = {"MILVUS_VENV": str(venv), "MILVUS_DATA": str(tmp_path / "data")}
     fake.update(MILVUS_HEALTH="http://127.0.0.1:9/healthz", MILVUS_START_TIMEOUT="2")
     return {**os.environ, **fake}

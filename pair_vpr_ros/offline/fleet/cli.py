@@ -100,7 +100,7 @@ def _run(args: argparse.Namespace) -> int:
     options = fleet_config({**values, "fleet_peers": ""}, robots[0].robot, robots[0].session)
     fleet = dict(budget=options.budget, period_s=options.period_s, top_k=options.top_k,
                  timeout_s=options.timeout_s, send_features=options.send_features,
-                 select=options.select,
+                 select=options.select, peer_search=options.peer_search,
                  peers=fleet_peers(values["fleet_peers"], robots))  # fmt: skip
     out = check_fleet_out(args.out, args.overwrite)
     model = load_model(args.weights, device=args.device)

@@ -14,6 +14,7 @@ import json
 import logging
 import os
 import re
+import socket
 from pathlib import Path
 from typing import Any
 
@@ -145,6 +146,13 @@ def connect(uri: str, token_env: str) -> Any:
             f"check milvus_uri, that the server runs and can be reached, and the token in "
             f"${token_env}"
         )
+        if not is_lite(uri) and answers(uri):  # it runs: pymilvus says the same for a bad token
+            given = f"the token in ${token_env}" if token else f"no token (${token_env} is unset)"
+            raise MapError(
+                f"{where(uri)} answers but refused the connection with {given} "
+                f"({_reason(err)}): a server with authorization needs a valid 'user:password' "
+                f"or API key in ${token_env}; check it (and that milvus_uri is a Milvus server)"
+            ) from err
         if is_lite(uri):  # pymilvus drops milvus-lite's reason; its file lock is the usual one
             hint = (
                 "milvus-lite lets one process open a file at a time: if another process holds "
@@ -154,6 +162,18 @@ def connect(uri: str, token_env: str) -> Any:
         raise MapError(f"cannot connect to {where(uri)} ({_reason(err)}): {hint}") from err
     check_version(version, uri)
     return client
+
+
+def answers(uri: str) -> bool:
+    """Something accepts TCP connections at the server address `uri` (within 2 s)."""
+    rest = uri.partition("://")[2].rpartition("@")[2].rstrip("/")
+    host, _, port = rest.rpartition(":")
+    default = 443 if uri.startswith("https") else 19530
+    try:
+        with socket.create_connection((host or rest, int(port) if host else default), 2.0):
+            return True
+    except (OSError, ValueError):
+        return False
 
 
 def check_version(version: str, uri: str) -> None:
