@@ -37,6 +37,7 @@ class MapInfo:
     desc_dim: int
     dense_shape: list[int]
     index: dict[str, Any]  # IndexConfig fields
+    dense_codec: str = "f16"  # how the dense tokens are stored (dense_codec.py)
     sessions: list[SessionInfo] = field(default_factory=list)
     with_features: int = 0  # keyframes with stored keypoint features
     represented: int = 0  # keyframes not stored: a stored one represents each (map_growth)
@@ -67,7 +68,8 @@ class MapInfo:
             f"{self.with_signatures} with an appearance signature), {self.represented} "
             f"represented (not stored), {self.links} links",
             f"model fingerprint: {self.fingerprint}",
-            f"descriptors: {self.desc_dim}, dense tokens: {self.dense_shape} float16",
+            f"descriptors: {self.desc_dim}, dense tokens: {self.dense_shape} as "
+            f"{self.dense_codec}",
             f"index: {index}",
             "robot/session: keyframes (ids, stamps in s)",
         ]
@@ -97,6 +99,7 @@ def map_info(directory: str | os.PathLike) -> MapInfo:
             desc_dim=m.desc_dim,
             dense_shape=list(m.dense_shape),
             index=asdict(m.index_config),
+            dense_codec=manifest.dense_codec,
             sessions=_sessions(m),
             with_features=m.feature_stats()[0],
             notes=[m.load_note] if m.load_note else [],
