@@ -78,8 +78,14 @@ def pytest_runtest_makereport(item, call):
     outcome = yield
     report = outcome.get_result()
     error = call.excinfo.value if call.excinfo is not None else None
-    while error is not None and not isinstance(error, ModuleNotFoundError):
+    seen = set()  # an exception's chain can loop back (A's context B, B's context A)
+    while (
+        error is not None and not isinstance(error, ModuleNotFoundError) and id(error) not in seen
+    ):
+        seen.add(id(error))
         error = error.__cause__ or error.__context__
+    if not isinstance(error, ModuleNotFoundError):
+        error = None
     if report.failed and error is not None and not in_ci():
         reason = reason_in(f"ModuleNotFoundError: No module named '{error.name}'")
         if reason:
