@@ -46,29 +46,29 @@ TUM_STAMP_DELAY_S = 0.010
 CHESS_MAX_DISPARITY = 192  # the board is 11-24 squares away: disparities up to ~160 px
 
 
+def _associations() -> list[list[str]]:
+    """associations.txt's rows: rgb stamp, rgb file, depth stamp, depth file, ..."""
+    return [line.split() for line in (TUM / "associations.txt").read_text().splitlines()
+            if line.strip() and not line.startswith("#")]  # fmt: skip
+
+
 @functools.cache
 def tum_frames() -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]:
     """-> ((rgb [480, 640, 3] uint8, depth [480, 640] float32 m (NaN: none), T_world_camera
-    [4, 4] when the colour image was taken: its stamp - TUM_STAMP_DELAY_S), ...) in
-    associations.txt order."""
+    [4, 4] when the colour image was taken: `tum_poses`), ...) in associations.txt order."""
     out = []
-    for line in (TUM / "associations.txt").read_text().splitlines():
-        if line.startswith("#") or not line.strip():
-            continue
-        f = line.split()
+    for f, pose in zip(_associations(), tum_poses(), strict=True):
         rgb = cv2.cvtColor(cv2.imread(str(TUM / f[1])), cv2.COLOR_BGR2RGB)
         raw = cv2.imread(str(TUM / f[3]), cv2.IMREAD_UNCHANGED).astype(np.float32)
         depth = np.where(raw > 0, raw / 5000.0, np.nan).astype(np.float32)
-        out.append((rgb, depth, _ground_truth_at(float(f[0]) - TUM_STAMP_DELAY_S)))
+        out.append((rgb, depth, pose))
     return tuple(out)
 
 
 def tum_poses(delay_s: float = TUM_STAMP_DELAY_S) -> list[np.ndarray]:
     """T_world_camera [4, 4] of the 8 frames from the ground truth `delay_s` before each colour
     stamp."""
-    return [_ground_truth_at(float(line.split()[0]) - delay_s)
-            for line in (TUM / "associations.txt").read_text().splitlines()
-            if line.strip() and not line.startswith("#")]  # fmt: skip
+    return [_ground_truth_at(float(f[0]) - delay_s) for f in _associations()]
 
 
 @functools.cache
@@ -105,9 +105,9 @@ def tum_features(kind: str = "sift", depth: bool = True, distortion: bool = True
                  for rgb, d, _ in tum_frames())  # fmt: skip
 
 
-def tum_truths() -> dict[tuple[int, int], np.ndarray]:
-    """(query i, match j < i) -> true T_match_query [4, 4]."""
-    poses = [f[2] for f in tum_frames()]
+def tum_truths(delay_s: float = TUM_STAMP_DELAY_S) -> dict[tuple[int, int], np.ndarray]:
+    """(query i, match j < i) -> true T_match_query [4, 4] (ground truth: `tum_poses`)."""
+    poses = tum_poses(delay_s)
     return {(i, j): np.linalg.inv(poses[j]) @ poses[i] for i in range(8) for j in range(i)}
 
 
