@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from pair_vpr_ros.place_map import IndexConfig
 from pair_vpr_ros.place_map.index import DescriptorIndex
-from pair_vpr_ros.place_map.milvus.expr import Exclusion
+from pair_vpr_ros.place_map.milvus.expr import ID_BITS, Exclusion
 from pair_vpr_ros.place_map.milvus.index import MilvusIndex
 
 KINDS = ("flat", "hnsw", "ivf", "milvus-HNSW", "milvus-IVF_FLAT", "milvus-FLAT")
@@ -44,11 +44,15 @@ def make_index(kind: str, n: int, db: str, dim: int, args):
         return DescriptorIndex(dim, IndexConfig(kind=kind, train_at=min(25_000, n // 2)))
     config = IndexConfig(
         kind="milvus", milvus_uri=db, milvus_collection=f"bench_{kind[7:]}_{n}",
-        milvus_index=kind[7:], nprobe=args.nprobe, ef_search=args.ef_search,
+        milvus_index=kind[7:], nprobe=args.nprobe[-1], ef_search=args.ef_search,
         hnsw_m=args.hnsw_m, ef_construction=args.ef_construction,
     )  # fmt: skip
     index = MilvusIndex(dim, config, "bench")
     if index.client.has_collection(config.milvus_collection):  # a previous run's rows
+        kept = index.client.query(config.milvus_collection, filter="pk >= 0", limit=1)
+        if args.keep and kept and index._count("pk >= 0") >= n:
+            index.unrecorded = False  # --keep: search that run's collection again
+            return MilvusIndex(dim, config, "bench", writer=int(kept[0]["pk"]) >> ID_BITS)
         index.client.drop_collection(config.milvus_collection)
         index = MilvusIndex(dim, config, "bench")
     return index
@@ -73,6 +77,10 @@ def build(kind: str, descs: np.ndarray, db: str, args) -> tuple:
     """-> (index, bulk rows/s, ms per single add, s to seal + index (Milvus))."""
     n, single = len(descs), min(args.single_adds, len(descs) // 10)
     index = make_index(kind, n, db, descs.shape[1], args)
+    if isinstance(index, MilvusIndex) and not index.unrecorded:  # --keep: an earlier run's
+        index._desc, index._synced = descs.copy(), n  # the map's own copy, as if it added them
+        index._rows = [(*identity(i), float(i)) for i in range(n)]
+        return index, np.nan, np.nan, settle(index, n)
     t0 = time.perf_counter()
     for lo in tqdm(range(0, n - single, BULK), desc=f"{kind} add", leave=False):
         add(index, descs[lo : min(lo + BULK, n - single)], lo)
@@ -81,17 +89,25 @@ def build(kind: str, descs: np.ndarray, db: str, args) -> tuple:
     for i in range(n - single, n):
         add(index, descs[i : i + 1], i)
     single_ms = (time.perf_counter() - t1) / max(single, 1) * 1e3
-    seal_s = 0.0
-    if isinstance(index, MilvusIndex):  # seal the segments and wait for their vector index
-        t2 = time.perf_counter()
-        index.client.flush(index.collection)
-        while True:
-            info = index.client.describe_index(index.collection, "desc")
-            if int(info.get("indexed_rows", 0)) >= n or time.perf_counter() - t2 > 1800:
-                break
-            time.sleep(1.0)
-        seal_s = time.perf_counter() - t2
+    seal_s = settle(index, n) if isinstance(index, MilvusIndex) else 0.0
     return index, bulk_rate, single_ms, seal_s
+
+
+def settle(index, n: int, timeout_s: float = 3600.0) -> float:
+    """Seal the segments, compact them and wait until every row is indexed and no index build
+    is pending (else queries scan the unindexed rows brute force) -> seconds it took."""
+    t0 = time.perf_counter()
+    index.client.flush(index.collection)
+    job = index.client.compact(index.collection)
+    while time.perf_counter() - t0 < timeout_s:
+        info = index.client.describe_index(index.collection, "desc")
+        done = index.client.get_compaction_state(job) == "Completed"
+        if done and int(info.get("indexed_rows", 0)) >= n and not int(
+            info.get("pending_index_rows", 0)
+        ):  # fmt: skip
+            break
+        time.sleep(2.0)
+    return time.perf_counter() - t0
 
 
 def search_all(index, queries, k: int, rules) -> tuple[np.ndarray, np.ndarray]:
@@ -119,6 +135,9 @@ def after_add_ms(index, descs: np.ndarray, queries, rules, k: int, reps: int = 2
         t0 = time.perf_counter()
         index.search(queries[i % len(queries)], k, exclusion=rules[i % len(rules)][1])
         ms.append((time.perf_counter() - t0) * 1e3)
+    n = len(descs)  # the copies go again: the collection stays the map (--keep searches it)
+    index.client.delete(index.collection, filter=f"pk >= {index.base + n}")
+    index._rows, index._synced = index._rows[:n], n
     return float(np.median(ms))
 
 
@@ -161,35 +180,39 @@ def bench_size(n: int, args, db: str) -> list[dict]:
     out = []
     for kind in args.kinds:
         index, rate, single_ms, seal_s = build(kind, descs, db, args)
-        levels = args.consistency if isinstance(index, MilvusIndex) else ["-"]
+        levels = args.consistency
         rows = []
-        for level in levels:  # a Milvus index: each consistency level on the same collection
-            set_level(index, level)
+        sweeps = [(lv, p) for lv in levels for p in args.nprobe]  # on the same collection
+        for level, nprobe in sweeps if isinstance(index, MilvusIndex) else [("-", 0)]:
+            set_level(index, level, nprobe)
+            label = f"{kind} nprobe {nprobe}" if "IVF" in kind and len(args.nprobe) > 1 else kind
             plain, plain_ms = search_all(index, queries, args.k, [None] * len(queries))
             filt, filt_ms = search_all(index, queries, args.k, rules)
             rows.append(dict(
-                n=n, kind=kind, level=level, rate=rate, single_ms=single_ms, seal_s=seal_s,
+                n=n, kind=label, level=level, nprobe=nprobe, rate=rate, single_ms=single_ms,
+                seal_s=seal_s,
                 p50=np.median(plain_ms), p95=np.percentile(plain_ms, 95),
                 rec=recall(plain, exact[0]), fp50=np.median(filt_ms),
                 fp95=np.percentile(filt_ms, 95), frec=recall(filt, exact[1]), add_ms=np.nan,
             ))  # fmt: skip
         for row in rows:  # after every level's queries: the adds change the map a little
             if isinstance(index, MilvusIndex):
-                set_level(index, row["level"])
+                set_level(index, row["level"], row["nprobe"])
                 row["add_ms"] = after_add_ms(index, descs, queries, rules, args.k)
             print_row(row, args.k)
         out += rows
         if isinstance(index, MilvusIndex):
             index.unrecorded = False  # its rows go with the collection
-            index.client.drop_collection(index.collection)
+            if not args.keep:
+                index.client.drop_collection(index.collection)
             index.close()
         del index
     return out
 
 
-def set_level(index, level: str) -> None:
+def set_level(index, level: str, nprobe: int) -> None:
     if isinstance(index, MilvusIndex):
-        index.config = replace(index.config, milvus_consistency=level)
+        index.config = replace(index.config, milvus_consistency=level, nprobe=nprobe)
 
 
 def print_row(r: dict, k: int) -> None:
@@ -208,7 +231,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--queries", type=int, default=100, help="queries per size (default 100)")
     p.add_argument("--k", type=int, default=10, help="top-k (default 10)")
     p.add_argument("--single-adds", type=int, default=200, help="last adds one at a time")
-    p.add_argument("--nprobe", type=int, default=32, help="milvus IVF_FLAT nprobe (default 32)")
+    p.add_argument(
+        "--nprobe", default="32", help="milvus IVF_FLAT nprobe, comma-separated values are "
+        "each timed on the same collection (default 32)",
+    )  # fmt: skip
     p.add_argument("--ef-search", type=int, default=64, help="milvus HNSW ef (default 64)")
     p.add_argument("--hnsw-m", type=int, default=32, help="milvus HNSW M (default 32)")
     p.add_argument(
@@ -223,11 +249,17 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--consistency", default="Bounded,Session,Strong",
         help="milvus_consistency levels to time queries with (default all three)",
     )  # fmt: skip
+    p.add_argument(
+        "--keep", action="store_true",
+        help="keep each Milvus collection after the run, and search a kept one of the right "
+        "size again instead of rebuilding it (a 1e6 build takes ~20-40 min on 2 cores)",
+    )  # fmt: skip
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     args.sizes = [int(float(s)) for s in args.sizes.split(",")]
     args.kinds = args.kinds.split(",")
     args.consistency = args.consistency.split(",")
+    args.nprobe = [int(v) for v in args.nprobe.split(",")]
     if not set(args.kinds) <= set(KINDS):
         p.error(f"--kinds must be among {KINDS}")
     return args
