@@ -3,7 +3,8 @@
 `verify_pair` is the detector's optional geometric verification (inliers of a fundamental-matrix
 RANSAC on the same matches the pose uses). `essential_pose` gives the rotation and the
 translation direction of T_match_query from ideal (undistorted) pixels; `centre_rim_chi2` checks
-a monocular pose for a camera model that bends the rim (distortion left out).
+a monocular pose for a camera model that bends the rim (distortion left out), and
+`row_split_variance` for a rolling shutter that bends it row by row.
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ import numpy as np
 from pair_vpr_ros.geometry import covariance as cv
 from pair_vpr_ros.geometry.features import Features, match_features
 from pair_vpr_ros.geometry.rotations import log_so3
+
+CHI2_3DOF_95 = 7.815  # 95 % point of a chi-square with 3 degrees of freedom
 
 
 def verify_pair(
@@ -109,21 +112,50 @@ def centre_rim_chi2(
     centre = radius <= np.median(radius)
     if min(centre.sum(), (~centre).sum()) < 8:
         return 0.0, 0.0
-    ends = [_refined_rotation(px_q[sel], px_m[sel], k, *pose) for sel in (centre, ~centre)]
+    ends = [_refine(px_q[sel], px_m[sel], k, *pose)[0] for sel in (centre, ~centre)]
     d = log_so3(ends[0] @ ends[1].T)
     return float(d @ np.linalg.solve(4 * cov_rot, d)), math.degrees(float(np.linalg.norm(d)))
 
 
-def _refined_rotation(px_q, px_m, k, r, t, iterations: int = 5) -> np.ndarray:
-    """R after Gauss-Newton on the Sampson residuals of these matches from (R, unit t)."""
+def row_split_variance(
+    px_q: np.ndarray, px_m: np.ndarray, k: np.ndarray, pose: tuple, min_sigma_px: float
+) -> tuple[float, float]:
+    """(variance, rad^2 per axis; angle, deg) for a camera that bends its images row by row:
+    the pose (R, unit t) is refined on the inliers [N, 2] (ideal pixels) in the upper rows and
+    on those in the lower rows alone (as `centre_rim_chi2`); when the two rotations differ by
+    more than their own Gauss-Newton covariances explain (chi-square, 3 dof, above its 95 %
+    point), half their angle is added on each axis, else nothing. A rolling shutter reads the
+    rows out at different times, so a camera that turns meanwhile bends each image by its own
+    turn rate; the essential matrix absorbs that with a small residual and a wrong pose (TUM
+    fr1/rpy, up to 83 deg/s: errors of 1-7 deg at a stated 0.2-0.3 deg; docs/real-cameras.md)."""
+    rows = px_q[:, 1] + px_m[:, 1]
+    low = rows <= np.median(rows)
+    if min(low.sum(), (~low).sum()) < 8:
+        return 0.0, 0.0
+    (ra, ca), (rb, cb) = (_refine(px_q[s], px_m[s], k, *pose, min_sigma_px) for s in (low, ~low))
+    d = log_so3(ra @ rb.T)
+    angle = math.degrees(float(np.linalg.norm(d)))
+    if ca is None or cb is None or float(d @ np.linalg.solve(ca + cb, d)) <= CHI2_3DOF_95:
+        return 0.0, angle
+    return float(d @ d) / 4.0, angle
+
+
+def direction_basis(t: np.ndarray) -> np.ndarray:
+    """[3, 2]: the two unit directions orthogonal to t (how its direction can change)."""
+    return np.linalg.svd(t[None])[2][1:].T
+
+
+def _refine(px_q, px_m, k, r, t, min_sigma_px: float = 0.5, iterations: int = 5) -> tuple:
+    """(R, its covariance [3, 3] or None when degenerate) after Gauss-Newton on the Sampson
+    residuals of these matches from (R, unit t)."""
     res = sampson_residuals(px_q, px_m, k)
     basis = np.zeros((6, 5))  # the two directions that turn t, then the rotation
-    basis[:3, :2] = np.linalg.svd(t[None])[2][1:].T
-    basis[3:, 2:] = np.eye(3)
+    basis[:3, :2], basis[3:, 2:] = direction_basis(t), np.eye(3)
     for _ in range(iterations):
         jac = cv.jacobian(res, r, t) @ basis
         step = np.linalg.lstsq(jac, -res(r, t), rcond=None)[0]
         r, t = cv.perturbed(r, t, basis @ step)
         t = t / np.linalg.norm(t)
-        basis[:3, :2] = np.linalg.svd(t[None])[2][1:].T
-    return r
+        basis[:3, :2] = direction_basis(t)
+    fit = cv.gauss_newton_covariance(cv.jacobian(res, r, t) @ basis, res(r, t), min_sigma_px)
+    return r, None if fit is None else fit[0][2:, 2:]

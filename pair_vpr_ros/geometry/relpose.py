@@ -29,8 +29,10 @@ from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.geometry import covariance as cv
 from pair_vpr_ros.geometry.epipolar import (
     centre_rim_chi2,
+    direction_basis,
     essential_pose,
     parallax_deg,
+    row_split_variance,
     sampson_residuals,
 )
 from pair_vpr_ros.geometry.features import Features, match_features
@@ -251,6 +253,7 @@ def _monocular(q, m, pairs, c: PoseConfig, neighbours, why: str) -> RelativePose
     k = q.camera.k  # the check's ideal pixels, as _essential_fit's
     px_q, px_m = (project(k, f.camera.rays(f.keypoints[pairs[idx, col]]))
                   for f, col in ((q, 0), (m, 1)))  # fmt: skip
+    rows_var, rows_angle = row_split_variance(px_q, px_m, k, (r, t), c.min_sigma_px)
     chi2, angle = centre_rim_chi2(px_q, px_m, k, (r, t), cov5[2:, 2:])
     if chi2 > c.max_model_disagreement_chi2:  # as PnP vs essential matrix: a weaker pose
         cov5 = cov5 * (chi2 / c.max_model_disagreement_chi2)
@@ -259,6 +262,9 @@ def _monocular(q, m, pairs, c: PoseConfig, neighbours, why: str) -> RelativePose
         why += (f"; covariance x{chi2 / c.max_model_disagreement_chi2:.1f}: rotations of "
                 f"the image centre and rim disagree by {angle:.2f} deg (distortion left "
                 "out?)")  # fmt: skip
+    if rows_var > 0.0:  # a rolling shutter bends the rows: the pose is off by about as much
+        cov5[2:, 2:] += np.eye(3) * rows_var
+        why += f"; the upper and lower rows disagree by {rows_angle:.2f} deg (rolling shutter?)"
     scaled: RelativePose | str = "switched off (odometry_scale false)"
     if c.odometry_scale:
         scaled = _odometry_scaled(q, m, pairs[idx], (r, t, cov5), c, neighbours)
@@ -290,7 +296,7 @@ def _odometry_scaled(q, m, inliers, fit, c: PoseConfig, neighbours) -> RelativeP
     s = float(np.median(s_i))
     lam, vec = np.linalg.eigh(cov5)
     sq = vec * np.sqrt(np.clip(lam, 0.0, None))  # [5, 5]: column k is L_k
-    basis = _direction_basis(t)
+    basis = direction_basis(t)
     jac = np.empty(5)
     for k in range(5):
         ends = []
@@ -313,11 +319,6 @@ def _odometry_scaled(q, m, inliers, fit, c: PoseConfig, neighbours) -> RelativeP
     return RelativePose(METRIC_ODOMETRY, why, len(inliers), r, t * s, (cov + cov.T) / 2)
 
 
-def _direction_basis(t: np.ndarray) -> np.ndarray:
-    """[3, 2]: the two unit directions orthogonal to t (how its direction can change)."""
-    return np.linalg.svd(t[None])[2][1:].T
-
-
 def _essential_fit(q, m, pairs, c: PoseConfig):
     """-> (R, unit t, inlier indices, covariance [5, 5] of (direction [2], rotation [3])) or a
     failed RelativePose."""
@@ -335,8 +336,7 @@ def _essential_fit(q, m, pairs, c: PoseConfig):
                      "translation direction", len(idx))  # fmt: skip
     residuals = sampson_residuals(px_q[idx], px_m[idx], k)
     basis = np.zeros((6, 5))  # directions of t that change it, then the rotation
-    basis[:3, :2] = _direction_basis(t)
-    basis[3:, 2:] = np.eye(3)
+    basis[:3, :2], basis[3:, 2:] = direction_basis(t), np.eye(3)
     jac = cv.jacobian(residuals, r, t) @ basis
     fit = cv.gauss_newton_covariance(jac, residuals(r, t), c.min_sigma_px)
     if fit is None:

@@ -99,15 +99,12 @@ def test_tum_distortion_left_out_never_gives_a_tight_wrong_pose(kind, depth):
         assert any("image centre and rim disagree" in r["reason"] for r in _posed(wrong))
 
 
-MONO_XFAIL = pytest.mark.xfail(
-    strict=True,
-    reason="issue 36: SIFT monocular rotation covariances on TUM fr1/rpy are too tight "
-    "(rotation chi-square median 14.7; target 0.8-6; ORB: 3.26)",
-)
-
-
-@pytest.mark.parametrize("kind", [pytest.param("sift", marks=MONO_XFAIL), "orb"])
+@pytest.mark.parametrize("kind", ["sift", "orb"])
 def test_tum_monocular_rotation_covariance_is_calibrated(kind):
+    """TUM's Kinect reads its rows out while it turns at up to 83 deg/s: the essential matrix
+    absorbs the bend (residuals 0.3-0.5 px) with rotation errors of 1-7 deg, so the upper and
+    lower rows' rotations are compared (epipolar.row_split_variance). Without that: SIFT 14.7
+    (over 300 inliers state 0.2 deg), ORB 3.26."""
     rows = pose_rows(tum_features(kind, depth=False), tum_truths())
     assert len(_posed(rows)) >= 15
     assert 0.8 <= median(rows, "chi2_rot") <= 6.0
