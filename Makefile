@@ -27,7 +27,7 @@ demo-fleet: setup
 	@bash scripts/demo_fleet.sh $(VENV)
 
 test: setup
-	$(PY) -m pytest -q test
+	$(PY) -m pytest -q --durations=25 test
 
 test-quick: setup
 	$(PY) -m pytest -q -m "not slow" test
