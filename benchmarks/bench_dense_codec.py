@@ -8,7 +8,11 @@ stored before and once with the same tokens through each 4-bit codec (what a map
 
 Reported: top-1 agreement (the same candidate wins), the same place (top-1 within the replay's
 ground-truth radius of float16's), and the AP / recall at precision 0.9 of the re-ranked top-1 as
-a loop detection (correct: the winner lies within that radius of the query), per codec.
+a loop detection (correct: the winner lies within that radius of the query), per codec; each
+query whose winner changes (float16's margin over the codec's winner, the codec's margin the
+other way, how far apart the two winners are); and each codec's encode and decode time for one
+ViT-B/322 keyframe [529, 768] of random tokens (median of 20).
+Transforms before quantising that might keep more winners: bench_dense_routes.py.
 Targets (issue 34): agreement >= 99 %, AP within 0.005 of float16's.
 
     python benchmarks/bench_dense_codec.py --queries 300 --k 5 --global-weight 100
@@ -18,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 
 import numpy as np
 import torch
@@ -55,21 +60,32 @@ def loop_ap(model, images, places, k: int, weight: float) -> tuple[float, float]
         sims = (desc @ desc.T).fill_diagonal_(-2.0)
         nearest = sims.topk(k, dim=1).indices
         scores = rerank_scores(model, dense, desc, nearest, weight)
+    return top1_ap(scores, nearest, places)
+
+
+def top1_ap(scores: torch.Tensor, nearest: torch.Tensor, places) -> tuple[float, float]:
+    """AP and recall@P90 of each query's top-1 by scores [Q, k] of its candidates nearest
+    [Q, k], as a loop (correct: within SAME_PLACE_M of the query, places [Q, 2] m)."""
     top, pick = scores.max(1)
     chosen = places[nearest.gather(1, pick[:, None])[:, 0].numpy()]
     correct = np.linalg.norm(chosen - places, axis=1) <= SAME_PLACE_M
     return average_precision(top.numpy(), correct)
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def setup(argv: list[str] | None, doc: str):
+    """The demo model and its frames: -> (args, model, images [Q, 3, S, S], places [Q, 2])."""
+    p = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     p.add_argument("--queries", type=int, default=300, help="demo-world frames (default 300)")
     p.add_argument("--k", type=int, default=5, help="candidates re-ranked (config/demo.yaml: 5)")
     p.add_argument("--global-weight", type=float, default=100.0, help="(config/demo.yaml: 100)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     model = load_pairvpr(default_demo_weights())
-    images, places = agreement_images(model.config.image_size, args.queries)
+    return (args, model, *agreement_images(model.config.image_size, args.queries))
+
+
+def main(argv: list[str] | None = None) -> int:
+    args, model, images, places = setup(argv, __doc__)
     paths = {"fp32": StoredAs(model, "f16")} | {c: StoredAs(model, c) for c in ("q4", "q4a")}
     found = agreement(paths, images, args.k, places, args.global_weight)
     for codec in ("q4", "q4a"):
@@ -77,10 +93,30 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{codec} vs f16 tokens, {args.queries} queries, top {args.k}, global weight "
               f"{args.global_weight:g}: top-1 agreement {f['top1']:.4f}, same place "
               f"{f['same_place']:.4f}, largest score lost {f['regret_max']:.3f}")  # fmt: skip
+        for i, lost, gap, apart in f["flips"]:  # which queries change winner, and by how much
+            print(f"  query {i}: float16's margin over the {codec} winner {lost:.3f}, "
+                  f"{codec}'s {gap:.3f} the other way, winners {apart:.2f} m apart")  # fmt: skip
     for name, m in (("f16", paths["fp32"]), ("q4", paths["q4"]), ("q4a", paths["q4a"])):
         ap, r90 = loop_ap(m, images, places, args.k, args.global_weight)
         print(f"{name}: re-ranked top-1 AP {ap:.4f}, recall at precision 0.9 {r90:.4f}")
+    print_speed()
     return 0
+
+
+def print_speed(shape: tuple[int, int] = (529, 768), repeats: int = 20) -> None:
+    """Median encode and decode time of one ViT-B/322 keyframe's tokens per codec."""
+    tokens = np.random.default_rng(0).standard_normal(shape).astype(np.float16)
+    for codec in ("f16", "q4", "q4a"):
+        enc, dec = [], []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            data = encode(tokens, codec)
+            t1 = time.perf_counter()
+            decode(data, shape, codec)
+            enc.append(t1 - t0)
+            dec.append(time.perf_counter() - t1)
+        print(f"{codec} [{shape[0]}, {shape[1]}]: {len(data):,} B, encode "
+              f"{1e3 * np.median(enc):.2f} ms, decode {1e3 * np.median(dec):.2f} ms")  # fmt: skip
 
 
 if __name__ == "__main__":
