@@ -25,6 +25,7 @@ from pair_vpr_ros.place_map.growth.compact import compact_map
 from pair_vpr_ros.place_map.growth.policy import GrowthConfig, find_representative
 from pair_vpr_ros.place_map.growth.tables import compose, invert
 from pair_vpr_ros.place_map.info import map_info
+from pair_vpr_ros.place_map.merge import merge_maps
 
 H, W = 120, 160
 CAMERA = CameraModel(W, H, 100.0, 100.0, 79.5, 59.5)
@@ -233,3 +234,9 @@ def test_compact_keeps_a_keyframe_that_lends_its_features(tmp_path):
         return compact_map(tmp_path / name, tmp_path / f"{name}-out")
 
     assert (saved(True, "lent").stored, saved(False, "own").stored) == (3, 2)
+    # merge carries the links, ids shifted: keyframe 2 of the second input keeps its lender
+    merge_maps([tmp_path / "own", tmp_path / "lent"], tmp_path / "merged")
+    with PlaceMap.load(tmp_path / "merged", read_only=True) as m:
+        assert len(m) == 6 and m.features(5) == b""
+        assert [k for k, _ in m.growth.links(5)] == [4] and m.growth.links(1)[0][0] == 0
+        assert m.growth.counts().signatures == 6
