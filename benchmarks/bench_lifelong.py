@@ -6,7 +6,8 @@ The world is `generate_world(seed, laps=8)` (its lap offsets: every lap 1-3 m to
 10-25 deg off the first lap's heading); session k is lap k, a day after session k-1, rendered
 with depth and the demo camera, posed by ground truth. Detector and geometry settings: the
 demo's (config/demo.yaml: relative poses from depth, as `make demo`). Per session: map bytes
-on disk after its save, keyframes stored and represented, and inter-session recall and
+on disk after its save, keyframes stored (and of those, stored without features: another
+keyframe lends them its features) and represented, and inter-session recall and
 precision: a query keyframe is a positive when a frame of an earlier session lies within
 `--gt-radius` of it (every frame driven, stored or represented: every place must stay
 findable), an accepted loop is true when its match lies within `--gt-radius` of the query.
@@ -120,11 +121,12 @@ def run(args: argparse.Namespace) -> dict:
             counts = m.growth.counts()
             sessions = score(outcomes, m, earlier, args.gt_radius, frames)
             stored = len(m)
+            shared = sum(not m.features(i) for i in range(stored))
             pipe.close()  # folds the WAL into the store: the bytes a robot keeps
             row = {
                 "session": k + 1, "lighting": world.lightings[k].name,
                 "hours": (k + 1) * len(frames) / world.config.rate_hz / 3600.0,
-                "map_bytes": map_bytes(directory), "stored": stored,
+                "map_bytes": map_bytes(directory), "stored": stored, "lent_features": shared,
                 "represented": counts.represented, "links": counts.links,
                 "session_stored": sum(o.keyframe_id is not None for o in outcomes),
                 "session_represented": pipe.counts.represented,

@@ -11,6 +11,13 @@ on a dusk keyframe whose day twin is linked to it) lies within `max_translation_
 `max_rotation_deg` of Q (the loop's pose, composed with the link's) and its signature within
 `max_appearance` of Q's. A represented keyframe is not stored (no dense tokens, features or
 index entry), only a row naming its representative; its loops are published as found.
+
+A keyframe that is not represented but has such a loop to a stored keyframe with features
+within the (wider) share limits is a known place in another light or from another view: it is
+stored, its descriptor and dense tokens with it, but without features. A loop found to it is
+verified and posed with the features of its nearest linked keyframe that has them
+(`feature_source`), and the pose composed with the link's (`shift_pose`), so the loop still
+names it and its pose is T_it_query.
 """
 
 from __future__ import annotations
@@ -24,7 +31,7 @@ from pair_vpr_ros.loops.detector import LoopRecord
 from pair_vpr_ros.loops.frames import FrameOutcome, match_candidate
 from pair_vpr_ros.place_map import PlaceMap
 from pair_vpr_ros.place_map.growth.policy import GrowthConfig, find_representative, is_recent
-from pair_vpr_ros.place_map.growth.tables import Represented
+from pair_vpr_ros.place_map.growth.tables import Represented, compose, invert
 
 GRID = 4  # cells a side of the signature's grid: 4 x 4 x 3 channels x (mean, spread) = 96
 CONFIDENT = ("metric", "metric-odometry")  # pose kinds a link or a representation may use
@@ -88,6 +95,26 @@ class MapGrowth:
 
         return find_representative(signature, posed, tables.links, signature_of, self.config)
 
+    def lender(self, place_map: PlaceMap, posed: list[tuple[int, tuple]]) -> int | None:
+        """The stored keyframe with features, one of the loops `posed` ((match id,
+        T_match_query) each) within the share limits, that lends a new keyframe its features
+        (module docstring); None: the new keyframe keeps its own."""
+        for match_id, t_match_query in posed:
+            if self.config.shares(t_match_query) and place_map.features(match_id):
+                return match_id
+        return None
+
+    def feature_source(self, place_map: PlaceMap, kf_id: int) -> tuple[int, tuple] | None:
+        """(id, T_kf_source) of the keyframe whose features serve `kf_id`, stored without its
+        own: the nearest linked keyframe with features within the share limits; None: none."""
+        best = None
+        for other, t_other_kf in place_map.growth.links(kf_id):
+            if self.config.shares(t_other_kf) and place_map.features(other):
+                distance = math.dist(t_other_kf[:3], (0.0, 0.0, 0.0))
+                if best is None or distance < best[0]:
+                    best = (distance, other, invert(t_other_kf))
+        return None if best is None else (best[1], best[2])
+
     def stored(
         self, place_map: PlaceMap, kf_id: int, signature: np.ndarray, posed: list[tuple]
     ) -> None:
@@ -104,3 +131,20 @@ class MapGrowth:
     ) -> None:
         row = Represented(float(stamp), who.robot, who.session, int(found[0]), float(found[1]))
         place_map.growth.add_represented(row)
+
+
+def shift_pose(record: LoopRecord, t_match_source: tuple[float, ...]) -> None:
+    """A loop posed with the features of the match's feature source (T_source_query) ->
+    T_match_query = T_match_source T_source_query. A scale-free pose has no translation to
+    compose: the record keeps no pose then, and says why. The covariance stays the source
+    loop's (the link's own error is not added)."""
+    pose = pose_of(record)
+    if pose is None:
+        if record.pose_status:
+            record.pose_status, record.tx, record.ty, record.tz = "", *(math.nan,) * 3
+            record.qx, record.qy, record.qz, record.qw = (math.nan,) * 4
+            record.covariance = ()
+            record.pose_reason = "scale-free pose to the features of a linked keyframe"
+        return
+    shifted = compose(t_match_source, pose)
+    record.tx, record.ty, record.tz, record.qx, record.qy, record.qz, record.qw = shifted

@@ -45,7 +45,12 @@ from pair_vpr_ros.loops.frames import (
     frame_due,
     match_candidate,
 )
-from pair_vpr_ros.loops.growth import MapGrowth, appearance_signature, live_posed_loops
+from pair_vpr_ros.loops.growth import (
+    MapGrowth,
+    appearance_signature,
+    live_posed_loops,
+    shift_pose,
+)
 from pair_vpr_ros.loops.map_search import MapSearch
 from pair_vpr_ros.loops.pipeline_maps import PipelineMaps
 from pair_vpr_ros.loops.recency import ClockWatch
@@ -205,9 +210,11 @@ class LoopClosurePipeline(PipelineMaps):
             outcome.timings_ms["pose"] = 0.0
             for loop in accepted:  # each with its own match's features, from its own map
                 best = match_candidate(outcome, loop)
-                match = self._stored_features(best)
+                match, lent = self._match_features(best)
                 near = self._scale_neighbours(best)
                 outcome.timings_ms["pose"] += self.geometry.pose(loop, features, match, near)
+                if lent is not None:  # posed to the lender: T_match_query (growth.py)
+                    shift_pose(loop, lent)
         if self.config.mode == "mapping":
             self._map_keyframe(frame, dense, desc, features, outcome)
         self._last_desc = desc
@@ -236,6 +243,9 @@ class LoopClosurePipeline(PipelineMaps):
             robot=who.robot, session=who.session,
         )  # fmt: skip
         packed = self.geometry.pack(features)
+        places = self.config.map_growth == "places" and posed
+        if places and self.growth.lender(self._place_map, posed) is not None:
+            packed = b""  # a known place anew: a linked keyframe lends its features
         outcome.keyframe_id = self._place_map.add(desc, dense, meta, packed)
         self.growth.stored(self._place_map, outcome.keyframe_id, signature, posed)
         self.maps.added(replace(meta, id=outcome.keyframe_id))
@@ -303,7 +313,17 @@ class LoopClosurePipeline(PipelineMaps):
         outcome.loops = records if len(records) > 1 else []
 
     def _stored_features(self, match: Candidate) -> Features | None:
-        return self.geometry.unpack(self.maps.map_of(match).features(match.id))
+        return self._match_features(match)[0]
+
+    def _match_features(self, match: Candidate) -> tuple[Features | None, tuple | None]:
+        """The match's features, and None; for one stored without (map_growth), its feature
+        source's and T_match_source (`MapGrowth.feature_source`)."""
+        m = self.maps.map_of(match)
+        own = m.features(match.id)
+        source = None if own else self.growth.feature_source(m, match.id)
+        if source is None:
+            return self.geometry.unpack(own), None
+        return self.geometry.unpack(m.features(source[0])), source[1]
 
     def _scale_neighbours(self, match: Candidate) -> list[Neighbour]:
         """Keyframes recorded next to the match, with an odometry baseline, for the scale of a

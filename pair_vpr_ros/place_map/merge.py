@@ -201,7 +201,7 @@ def _copy(
                 result.inputs.append(
                     {"dir": str(m.directory), "keyframes": len(m), "first_id": len(merged)}
                 )
-                metas = m.all_meta()
+                metas, offset = m.all_meta(), len(merged)
                 for start in range(0, len(m), CHUNK):
                     ids = list(range(start, min(start + CHUNK, len(m))))
                     dense, desc = m.get_dense(ids), m.get_desc(ids)
@@ -209,11 +209,27 @@ def _copy(
                         meta = replace(metas[kf_id], id=-1)
                         merged.add(desc[row], dense[row], meta, m.features(kf_id))
                     bar.update(len(ids))
+                _copy_growth(m, merged, offset)
         result.keyframes = len(merged)
     except BaseException:
         merged.close()  # milvus: deletes its rows, which no saved record names
         raise
     return merged
+
+
+def _copy_growth(m: PlaceMap, merged: PlaceMap, offset: int) -> None:
+    """An input map's signatures and links, ids shifted by `offset`: a keyframe stored without
+    features (map_growth) finds its lender's through its links (loops/growth.py)."""
+    tables = m.growth
+    if not tables.present():
+        return
+    for kf_id in range(len(m)):
+        signature = tables.signature(kf_id)
+        if signature is not None:
+            merged.growth.add_signature(kf_id + offset, signature)
+        for other, t_other_kf in tables.links(kf_id):
+            if other < kf_id:
+                merged.growth.add_link(kf_id + offset, other + offset, t_other_kf)
 
 
 def publish_map(merged: PlaceMap, target: Path) -> None:

@@ -6,6 +6,7 @@ saved map (tiny random network, exact repeats as loops, depth for metric poses).
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -14,9 +15,9 @@ from exact_match import EXACT_MATCH
 
 from pair_vpr_ros.geometry.camera import CameraModel
 from pair_vpr_ros.loops import pipeline as pipeline_module
-from pair_vpr_ros.loops.detector import DetectorConfig
+from pair_vpr_ros.loops.detector import Candidate, DetectorConfig, LoopRecord
 from pair_vpr_ros.loops.frames import Frame
-from pair_vpr_ros.loops.growth import appearance_signature
+from pair_vpr_ros.loops.growth import appearance_signature, shift_pose
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.offline.map_cli import main
 from pair_vpr_ros.place_map import IndexConfig, PlaceMap
@@ -24,6 +25,7 @@ from pair_vpr_ros.place_map.growth.compact import compact_map
 from pair_vpr_ros.place_map.growth.policy import GrowthConfig, find_representative
 from pair_vpr_ros.place_map.growth.tables import compose, invert
 from pair_vpr_ros.place_map.info import map_info
+from pair_vpr_ros.place_map.merge import merge_maps
 
 H, W = 120, 160
 CAMERA = CameraModel(W, H, 100.0, 100.0, 79.5, 59.5)
@@ -72,9 +74,37 @@ def test_a_new_appearance_of_a_known_place_is_stored(tiny_model, monkeypatch):
     monkeypatch.setattr(pipeline_module, "appearance_signature", counted)
     pipe, out = drive(tiny_model, "places")
     assert out[4].keyframe_id == 4 and out[4].represented_by is None and out[4].loop.accepted
-    assert pipe.place_map.growth.counts().represented == 0
-    assert [k for k, _ in pipe.place_map.growth.links(4)] == [0]  # the two appearances linked
+    m = pipe.place_map
+    assert m.growth.counts().represented == 0
+    assert [k for k, _ in m.growth.links(4)] == [0]  # the two appearances linked
+    # stored with its descriptor and dense tokens, but keyframe 0 lends it its features
+    assert m.features(4) == b"" and m.features(0) != b""
+    source, t_4_0 = pipe.growth.feature_source(m, 4)
+    assert source == 0 and t_4_0 == pytest.approx((0, 0, 0, 0, 0, 0, 1), abs=1e-2)
+    lent, shift = pipe._match_features(Candidate(4, 4.0, "cam", 1.0, 1))
+    assert shift == t_4_0 and lent is not None
+    assert lent.keypoints.shape == pipe._match_features(Candidate(0, 0.0, "cam", 1.0, 1))[
+        0].keypoints.shape  # fmt: skip
+    assert pipe._match_features(Candidate(1, 1.0, "cam", 1.0, 1))[1] is None  # its own
     pipe.close()
+    # with the policy off every keyframe keeps its own features
+    pipe, out = drive(tiny_model, "all")
+    assert pipe.place_map.features(4) != b""
+    pipe.close()
+
+
+def test_a_loop_posed_with_lent_features_is_composed_into_the_match_s_frame():
+    quarter = (0.0, 0.0, math.sin(math.pi / 4), math.cos(math.pi / 4))  # 90 deg about z
+    record = LoopRecord(-1, 9.0, "cam", 4, 4.0, "cam", pair_score=1.0, global_similarity=1.0,
+                        rank_before=1, rank_after=1, accepted=True, pose_status="metric",
+                        tx=1.0, ty=0.0, tz=0.0, qx=0.0, qy=0.0, qz=0.0, qw=1.0)  # fmt: skip
+    shift_pose(record, (0.0, 0.0, 2.0, *quarter))  # T_match_source
+    assert (record.tx, record.ty, record.tz) == pytest.approx((0.0, 1.0, 2.0))
+    assert (record.qx, record.qy, record.qz, record.qw) == pytest.approx((0, 0, *quarter[2:]))
+    record.pose_status = "scale-free"  # a direction cannot be composed: no pose then
+    shift_pose(record, (0.0, 0.0, 2.0, *quarter))
+    assert record.pose_status == "" and math.isnan(record.tx) and record.covariance == ()
+    assert record.pose_reason == "scale-free pose to the features of a linked keyframe"
 
 
 def test_policy_all_stores_every_keyframe_with_signatures_and_links(tiny_model):
@@ -179,3 +209,34 @@ def test_the_rule_follows_one_link_and_checks_pose_and_appearance():
     far = (9.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
     assert find_representative(sig, [(3, far)], lambda k: [], signatures, config) is None
     assert find_representative(sig + 0.5, [(3, turn)], lambda k: [], signatures, config) is None
+    yaw = math.radians(20.0) / 2  # 20 deg: beyond a representative, within a lender
+    view = (1.0, 0.0, 0.0, 0.0, math.sin(yaw), 0.0, math.cos(yaw))
+    assert find_representative(sig, [(3, view)], lambda k: [], signatures, config) is None
+    assert config.shares(view) and not config.near(view) and not config.shares(far)
+
+
+def test_compact_keeps_a_keyframe_that_lends_its_features(tmp_path):
+    """Keyframe 1 is represented by 0 (same place, light and view), but 2, stored without
+    features, takes its geometry from 1: compact keeps 1; with 2 gone it would drop it."""
+    from pair_vpr_ros.place_map import KeyframeMeta
+
+    def saved(lending: bool, name: str):
+        m = PlaceMap(desc_dim=8, dense_shape=(2, 3), fingerprint="fp")
+        sig, same = np.zeros(96, np.float32), (0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+        for i, session in enumerate(("a", "b", "c")):
+            meta = KeyframeMeta(stamp=100.0 * i, frame_id="cam", session=session)
+            m.add(np.eye(8)[i], np.ones((2, 3)), meta, b"" if i == 2 and lending else b"FEAT")
+            m.growth.add_signature(i, sig + (0.5 if i == 2 else 0.0))  # 2: another light
+        m.growth.add_link(1, 0, same)
+        m.growth.add_link(2, 1, same)
+        m.save(tmp_path / name)
+        m.close()
+        return compact_map(tmp_path / name, tmp_path / f"{name}-out")
+
+    assert (saved(True, "lent").stored, saved(False, "own").stored) == (3, 2)
+    # merge carries the links, ids shifted: keyframe 2 of the second input keeps its lender
+    merge_maps([tmp_path / "own", tmp_path / "lent"], tmp_path / "merged")
+    with PlaceMap.load(tmp_path / "merged", read_only=True) as m:
+        assert len(m) == 6 and m.features(5) == b""
+        assert [k for k, _ in m.growth.links(5)] == [4] and m.growth.links(1)[0][0] == 0
+        assert m.growth.counts().signatures == 6

@@ -17,6 +17,7 @@ from pair_vpr_ros.offline.report.loop_truth import (
     is_true_loop,
     pr_curve,
     queries_with_true_match,
+    true_match_mask,
 )
 
 try:
@@ -152,6 +153,32 @@ def test_precision_recall_exact():
     assert summary["global_only"]["average_precision"] == pytest.approx(7 / 18, abs=1e-15)
     assert summary["reranked"]["recall_at_90_precision"] == pytest.approx(1 / 3, abs=1e-15)
     json.dumps(summary, allow_nan=False)
+
+
+def test_queries_the_map_did_not_store_are_labelled_by_stamp():
+    """map_growth places: a represented query (query_id -1, stored=False, id = keyframes
+    stored before it) is a query with true matches among those, never a match itself."""
+    kfs = [
+        KeyframeInfo(0, 0.0, _pose(0, 0)),
+        KeyframeInfo(1, 10.0, _pose(50, 0)),
+        KeyframeInfo(2, 20.0, _pose(1, 0), stored=False),  # near 0, stored after 0 and 1
+        KeyframeInfo(2, 30.0, _pose(51, 0)),  # the next stored one: the same id
+        KeyframeInfo(3, 40.0, _pose(2, 0)),  # near 0 and near the represented one at 20 s
+        KeyframeInfo(1, 45.0, _pose(300, 0), stored=False),  # alone
+    ]
+    assert true_match_mask(kfs, **GT).tolist() == [False, False, True, True, True, False]
+    assert queries_with_true_match(kfs, **GT) == {2, 3}  # stored ids only
+    records = [
+        _record(-1, 0, 5.0, 0.9, True, query_stamp=20.0),  # true: 1 m from keyframe 0
+        _record(-1, 1, 4.0, 0.9, True, query_stamp=45.0),  # false: 250 m away
+        _record(3, 0, 3.0, 0.9, True),  # true (its query stamp is 30 here: looked up by id)
+        _record(-1, 0, 2.0, 0.9, True, query_stamp=99.0),  # a stamp no keyframe has
+    ]
+    ev = evaluate_loops(records, kfs, **GT)
+    assert ev.labels == [True, False, True, None]
+    assert ev.positives == 3 and ev.true_accepted == 2 and ev.false_accepted == 1
+    represented = KeyframeInfo(2, 20.0, _pose(1, 0), stored=False)
+    assert is_true_loop(kfs[4], represented, **GT) is False  # never a match
 
 
 def test_reranked_curve_scores_by_the_detector_s_re_rank_score():

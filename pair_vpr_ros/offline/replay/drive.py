@@ -30,6 +30,9 @@ class ReplayRun:
     records: list[LoopRecord] = field(default_factory=list)
     global_top1: list[LoopRecord] = field(default_factory=list)  # global-only baseline
     stamps: list[float] = field(default_factory=list)  # of every image read: the plotted path
+    # keyframes the map did not store (map_growth places): (stamp, keyframes stored before it),
+    # queries all the same for the evaluation (report.loop_truth.KeyframeInfo)
+    represented: list[tuple[float, int]] = field(default_factory=list)
 
     def frames(self, read: Iterator[BagFrame], source: str) -> Iterator[Frame]:
         """Usable frames for the pipeline, each kept in ``pending`` until its outcome comes;
@@ -71,9 +74,12 @@ def drive(
             assert abs(bf.stamp - outcome.stamp) < 1e-9, "outcomes must come in frame order"
             if outcome.keyframe_id is not None:
                 summary.keyframes += 1
+            elif outcome.represented_by is not None:
+                run.represented.append((outcome.stamp, len(pipe.place_map)))
             if writer is not None and bf.cdr is not None:
                 writer.write_image(bf.cdr, bf.log_time_ns)
-            if outcome.loop is not None and outcome.loop.query_id >= 0:
+            mapped = outcome.keyframe_id is not None or outcome.represented_by is not None
+            if outcome.loop is not None and mapped:  # a query of the map (not localization)
                 run.global_top1.append(global_top1_record(outcome.loop, outcome.candidates[0]))
             for loop in outcome.reported():  # each accepted loop (one per map), or the best
                 run.records.append(loop)

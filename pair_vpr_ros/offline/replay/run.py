@@ -48,13 +48,17 @@ from pair_vpr_ros.weights import Weights, check_runtime, load_model
 
 
 def _keyframes(
-    pipe: LoopClosurePipeline, truth: PoseTrack | None, tolerance: float
+    pipe: LoopClosurePipeline, run: ReplayRun, truth: PoseTrack | None, tolerance: float
 ) -> list[KeyframeInfo]:
-    """Every keyframe with its ground-truth pose (not the odometry the map keeps)."""
-    out = []
-    for meta in pipe.place_map.all_meta():
-        pose = truth.nearest(meta.stamp, tolerance) if truth is not None else None
-        out.append(KeyframeInfo(meta.id, meta.stamp, tuple(pose) if pose is not None else None))
+    """Every keyframe with its ground-truth pose (not the odometry the map keeps), those the
+    map did not store (map_growth places) too: queries all the same (loop_truth)."""
+
+    def pose_at(stamp: float) -> tuple | None:
+        pose = truth.nearest(stamp, tolerance) if truth is not None else None
+        return tuple(pose) if pose is not None else None
+
+    out = [KeyframeInfo(m.id, m.stamp, pose_at(m.stamp)) for m in pipe.place_map.all_meta()]
+    out += [KeyframeInfo(n, t, pose_at(t), stored=False) for t, n in run.represented]
     return out
 
 
@@ -195,7 +199,7 @@ def _finish(
     try:
         if o.save_map:
             summary.map_dir = str(pipe.save_map(o.map_path(out), overwrite=o.overwrite))
-        keyframes = _keyframes(pipe, truth, o.pose_tolerance)
+        keyframes = _keyframes(pipe, run, truth, o.pose_tolerance)
         has_poses = any(k.pose is not None for k in keyframes)
         global_top1 = run.global_top1 if has_poses else None
         evaluation = write_report(

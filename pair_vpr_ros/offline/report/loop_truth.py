@@ -9,7 +9,11 @@ Ground truth, when keyframes carry poses (positions ``x, y, z`` in metres):
 * a loop record is **true** when its match is a true match for its query, **false** otherwise,
   and **unlabelled** when either keyframe has no pose or the match is of another robot or
   session (a prior map: its keyframes are not this run's; unlabelled records are left out);
-* **positives** = the number of query keyframes that have at least one true match;
+* a query the map did not store (`map_growth` places: a stored keyframe represents it, its
+  records carry ``query_id`` -1) is a query all the same: its ``KeyframeInfo`` has
+  ``stored=False`` and as ``id`` the number of keyframes stored before it, so exactly those
+  can be its true matches; its records are found by their ``query_stamp``. It is never a match;
+* **positives** = the number of query keyframes (stored or not) with at least one true match;
 * **precision** = true accepted loops / labelled accepted loops;
   **recall** = query keyframes whose accepted loop is true / positives.
 
@@ -36,11 +40,31 @@ from pair_vpr_ros.types import Pose
 
 @dataclass(frozen=True)
 class KeyframeInfo:
-    """A keyframe as the report needs it: map id, header stamp (s) and pose (or None)."""
+    """A keyframe as the report needs it: map id, header stamp (s) and pose (or None).
+    stored False: a query the map did not store (map_growth), ``id`` = keyframes stored before
+    it (module docstring)."""
 
     id: int
     stamp: float
     pose: Pose | None
+    stored: bool = True
+
+
+class KeyframeLookup:
+    """A record's query and match among the run's keyframes: a stored query by its
+    ``query_id``, one the map did not store (``query_id`` -1) by its ``query_stamp``."""
+
+    def __init__(self, keyframes: Sequence[KeyframeInfo]) -> None:
+        self.by_id = {k.id: k for k in keyframes if k.stored}
+        self.by_stamp = {k.stamp: k for k in keyframes if not k.stored}
+
+    def query(self, record: Any) -> KeyframeInfo | None:
+        if record.query_id >= 0:
+            return self.by_id.get(record.query_id)
+        return self.by_stamp.get(record.query_stamp)
+
+    def match(self, record: Any) -> KeyframeInfo | None:
+        return self.by_id.get(record.match_id)
 
 
 @dataclass(frozen=True)
@@ -121,6 +145,8 @@ def is_true_loop(
     """Whether ``match`` is a true match for ``query`` (module docstring); None without poses."""
     if query is None or match is None or query.pose is None or match.pose is None:
         return None
+    if not match.stored:  # never a match: the map has no such keyframe
+        return False
     distance = float(np.linalg.norm(np.subtract(query.pose[:3], match.pose[:3])))
     return (
         match.id < query.id
@@ -136,21 +162,36 @@ def queries_with_true_match(
     tile: int = 256,
     chunk: int = 2048,
 ) -> set[int]:
-    """Ids of the keyframes that have at least one true match among the posed keyframes.
+    """Ids of the stored keyframes that have at least one true match (`true_match_mask`)."""
+    hit = true_match_mask(keyframes, gt_radius, exclusion_s, tile, chunk)
+    return {k.id for k, h in zip(keyframes, hit, strict=True) if h and k.stored}
+
+
+def true_match_mask(
+    keyframes: Sequence[KeyframeInfo],
+    gt_radius: float,
+    exclusion_s: float,
+    tile: int = 256,
+    chunk: int = 2048,
+) -> np.ndarray:
+    """[K] bool: which of ``keyframes`` have at least one true match among the posed stored
+    keyframes (one the map did not store is a query, never a match).
 
     A sweep along x: keyframes sorted by x are taken `tile` at a time, and only those within
     `gt_radius` in x of a tile are compared with it, `chunk` at a time, so memory stays at a
     few [tile, chunk] tables (about 20 MB) for any number of keyframes, and the work is about
     N x (keyframes in a 2 * gt_radius wide slab) instead of N^2.
     """
+    where = np.array([k.pose is not None for k in keyframes], dtype=bool)
     posed = [k for k in keyframes if k.pose is not None]
     if not posed:
-        return set()
+        return where
     xyz = np.array([k.pose[:3] for k in posed], dtype=np.float64)
     order = np.argsort(xyz[:, 0], kind="stable")
     xyz = xyz[order]
     ids = np.array([k.id for k in posed], dtype=np.int64)[order]
     stamps = np.array([k.stamp for k in posed], dtype=np.float64)[order]
+    stored = np.array([k.stored for k in posed], dtype=bool)[order]
     found = np.zeros(len(posed), dtype=bool)
     for start in range(0, len(posed), tile):
         rows = slice(start, min(start + tile, len(posed)))
@@ -163,9 +204,14 @@ def queries_with_true_match(
                 squared += np.square(xyz[rows, axis, None] - xyz[None, cols, axis])
             hit = np.sqrt(squared) <= gt_radius
             hit &= ids[None, cols] < ids[rows, None]
+            hit &= stored[None, cols]
             hit &= np.abs(stamps[rows, None] - stamps[None, cols]) >= exclusion_s
             found[rows] |= hit.any(axis=1)
-    return {int(i) for i in ids[found]}
+    hit = np.zeros(len(posed), dtype=bool)
+    hit[order] = found  # back from x order to the order of `posed`
+    out = np.zeros(len(keyframes), dtype=bool)
+    out[where] = hit
+    return out
 
 
 def share(part: int, whole: int) -> float | None:
@@ -214,15 +260,13 @@ class LoopEvaluation:
 
 def _labelled_curve(
     records: Sequence[Any],
-    by_id: dict[int, KeyframeInfo],
+    lookup: KeyframeLookup,
     positives: int,
     score: Callable[[Any], float],
     **gt: float,
 ) -> tuple[PRCurve, list[bool | None]]:
     labels = [
-        is_true_loop(by_id.get(r.query_id), by_id.get(r.match_id), **gt)
-        if same_session(r)
-        else None
+        is_true_loop(lookup.query(r), lookup.match(r), **gt) if same_session(r) else None
         for r in records
     ]
     keep = [i for i, label in enumerate(labels) if label is not None]
@@ -248,17 +292,17 @@ def evaluate_loops(
         if not (math.isfinite(value) and value >= 0):
             raise ConfigError(f"{name} must be a finite number >= 0, got {value}")
     gt = {"gt_radius": gt_radius, "exclusion_s": exclusion_s}
-    by_id = {k.id: k for k in keyframes}
-    positives = len(queries_with_true_match(keyframes, **gt))
+    lookup = KeyframeLookup(keyframes)
+    positives = int(true_match_mask(keyframes, **gt).sum())
 
     def reranked_score(r: Any) -> float:
         return rerank_score(r.pair_score, r.global_similarity, global_weight)
 
-    reranked, labels = _labelled_curve(records, by_id, positives, reranked_score, **gt)
+    reranked, labels = _labelled_curve(records, lookup, positives, reranked_score, **gt)
     global_only = None
     if global_records is not None:
         global_only, _ = _labelled_curve(
-            global_records, by_id, positives, lambda r: r.global_similarity, **gt
+            global_records, lookup, positives, lambda r: r.global_similarity, **gt
         )
     accepted = [label for r, label in zip(records, labels, strict=True) if r.accepted]
     return LoopEvaluation(

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from pair_vpr_ros.messages.loop import same_session
-from pair_vpr_ros.offline.report.loop_truth import KeyframeInfo, LoopEvaluation
+from pair_vpr_ros.offline.report.loop_truth import KeyframeInfo, KeyframeLookup, LoopEvaluation
 
 
 def _pyplot() -> Any:
@@ -60,7 +60,8 @@ def plot_trajectory(
     plt = _pyplot()
     from matplotlib.collections import LineCollection
 
-    by_id = {k.id: k.pose for k in keyframes if k.pose is not None}
+    lookup = KeyframeLookup(keyframes)
+    by_id = {k.id: k.pose for k in keyframes if k.pose is not None and k.stored}
     fig, ax = plt.subplots(figsize=(6, 6))
     if len(positions):
         ax.plot(positions[:, 0], positions[:, 1], "-", color="0.6", lw=1, label="path")
@@ -71,7 +72,7 @@ def plot_trajectory(
     names = {True: "true loop", False: "false loop", None: "loop (no pose)"}
     segments: dict[bool | None, list] = {True: [], False: [], None: []}
     for record, label in zip(records, labels, strict=True):
-        q, m = by_id.get(record.query_id), by_id.get(record.match_id)
+        q, m = (getattr(lookup.query(record), "pose", None), by_id.get(record.match_id))
         if record.accepted and q is not None and m is not None and same_session(record):
             segments[label].append(((q[0], q[1]), (m[0], m[1])))
     for label, lines in segments.items():  # one artist per kind: thousands of loops stay cheap

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from pair_vpr_ros.messages.loop import same_session
-from pair_vpr_ros.offline.report.loop_truth import KeyframeInfo, share
+from pair_vpr_ros.offline.report.loop_truth import KeyframeInfo, KeyframeLookup, share
 from pair_vpr_ros.types import Pose, PoseTrack
 
 PriorKey = tuple[str, str, int]  # robot, session, keyframe id
@@ -98,18 +98,18 @@ def evaluate_prior_loops(
     gt_radius: float = 10.0,
 ) -> PriorEvaluation:
     """Label the accepted loops of ``records`` whose match is another robot or session."""
-    by_id = {k.id: k.pose for k in live}
+    lookup = KeyframeLookup(live)  # a query the map did not store: by its stamp
     into_prior = [r for r in records if r.accepted and not same_session(r)]
     labels = [
-        _near(by_id.get(r.query_id), prior.get((r.match_robot, r.match_session, r.match_id)),
-              gt_radius)
+        _near(getattr(lookup.query(r), "pose", None),
+              prior.get((r.match_robot, r.match_session, r.match_id)), gt_radius)
         for r in into_prior
     ]  # fmt: skip
-    true_queries = {r.query_id for r, label in zip(into_prior, labels, strict=True) if label}
+    true_queries = {r.query_stamp for r, label in zip(into_prior, labels, strict=True) if label}
     positives = 0
     if prior:
         xyz = np.array([p[:3] for p in prior.values()], dtype=np.float64)
-        for pose in by_id.values():
+        for pose in (k.pose for k in live):
             if pose is not None:
                 gaps = np.linalg.norm(xyz - np.asarray(pose[:3]), axis=1)
                 positives += bool((gaps <= gt_radius).any())

@@ -1,15 +1,16 @@
-"""`compact_map`: a saved map rewritten into a new folder with the growth policy applied from
-its stored signatures and links, and its dense tokens in another codec (`pairvpr-map compact IN
---out OUT`).
+"""`compact_map`: a saved map rewritten into a new folder with the growth policy applied from its
+stored signatures and links, and its dense tokens in another codec (`pairvpr-map compact IN --out
+OUT`).
 
 Keyframes are visited in id order, as the pipeline met them. A keyframe whose links to earlier
 keyframes (its loops with a confident pose) lead to a kept keyframe of its appearance
-(`find_representative`, the pipeline's rule) is dropped and recorded as represented; the others
-are copied (descriptor, dense tokens re-encoded, metadata, features, signature) with new ids
-0, 1, 2, ... The links between kept keyframes and the represented rows (their representatives
-renumbered, or followed to a kept one) are copied too. A map without signatures (saved before
-them) is only re-encoded, and the result says so. The new map is written beside OUT and renamed
-to OUT when complete (merge.py's `publish_map`): a crash leaves no OUT.
+(`find_representative`, the pipeline's rule) is dropped and recorded as represented; the others are
+copied (descriptor, dense tokens re-encoded, metadata, features, signature) with new ids 0, 1, 2,
+...; a keyframe linked to one stored without features (its lender) is never dropped. The links
+between kept keyframes and the represented rows (their representatives renumbered, or followed to a
+kept one) are copied too. A map without signatures (saved before them) is only re-encoded, and the
+result says so. The new map is written beside OUT and renamed to OUT when complete (merge.py's
+`publish_map`): a crash leaves no OUT.
 """
 
 from __future__ import annotations
@@ -146,7 +147,11 @@ def _dropped(m: PlaceMap, tables: GrowthTables, config: GrowthConfig) -> dict[in
             return None
         return tables.signature(kf_id)
 
+    # a keyframe that lends its features to one stored without them is kept (its geometry)
+    lenders = {k for q in range(len(m)) if not m.features(q) for k, _ in tables.links(q)}
     for q in range(len(m)):
+        if q in lenders:
+            continue
         query = stamp_and_identity(q)
 
         signature = tables.signature(q)
