@@ -26,6 +26,7 @@ import math
 
 import numpy as np
 
+from pair_vpr_ros.geometry.rotations import quaternion_matrix
 from pair_vpr_ros.identity import Identity
 from pair_vpr_ros.loops.detector import LoopRecord
 from pair_vpr_ros.loops.frames import FrameOutcome, match_candidate
@@ -136,8 +137,8 @@ class MapGrowth:
 def shift_pose(record: LoopRecord, t_match_source: tuple[float, ...]) -> None:
     """A loop posed with the features of the match's feature source (T_source_query) ->
     T_match_query = T_match_source T_source_query. A scale-free pose has no translation to
-    compose: the record keeps no pose then, and says why. The covariance stays the source
-    loop's (the link's own error is not added)."""
+    compose: the record keeps no pose then, and says why. The covariance (`lent_covariance`)
+    is turned into the match's frame, and the link's own error added."""
     pose = pose_of(record)
     if pose is None:
         if record.pose_status:
@@ -148,3 +149,24 @@ def shift_pose(record: LoopRecord, t_match_source: tuple[float, ...]) -> None:
         return
     shifted = compose(t_match_source, pose)
     record.tx, record.ty, record.tz, record.qx, record.qy, record.qz, record.qw = shifted
+    if len(record.covariance) == 36:
+        cov = np.asarray(record.covariance, np.float64).reshape(6, 6)
+        cov = lent_covariance(cov, quaternion_matrix(t_match_source[3:7]), np.asarray(pose[:3]))
+        record.covariance = tuple(float(v) for v in cov.ravel())
+
+
+def lent_covariance(cov: np.ndarray, r_link: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """cov [6, 6] of T_source_query (d_t, d_rot along the source camera's axes, covariance.py)
+    -> that of T_match_query = T_match_source T_source_query, with r_link [3, 3] the link's
+    rotation and t [3] T_source_query's translation. The loop's error turns with the link:
+    B cov B^T, B = diag(R_link, R_link). The link is a loop between views of the same place
+    like this one, and its covariance is not stored: its error is taken as the loop's own,
+    entering as d_t = e_t - [R_link t]x e_rot, d_rot = e_rot."""
+    b = np.zeros((6, 6))
+    b[:3, :3] = b[3:, 3:] = r_link
+    turned = b @ cov @ b.T
+    x, y, z = r_link @ t
+    lever = np.eye(6)
+    lever[:3, 3:] = -np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    out = turned + lever @ turned @ lever.T
+    return (out + out.T) / 2

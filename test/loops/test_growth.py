@@ -14,10 +14,11 @@ from bag_fixtures import textured
 from exact_match import EXACT_MATCH
 
 from pair_vpr_ros.geometry.camera import CameraModel
+from pair_vpr_ros.geometry.rotations import exp_so3, log_so3
 from pair_vpr_ros.loops import pipeline as pipeline_module
 from pair_vpr_ros.loops.detector import Candidate, DetectorConfig, LoopRecord
 from pair_vpr_ros.loops.frames import Frame
-from pair_vpr_ros.loops.growth import appearance_signature, shift_pose
+from pair_vpr_ros.loops.growth import appearance_signature, lent_covariance, shift_pose
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.offline.map_cli import main
 from pair_vpr_ros.place_map import IndexConfig, PlaceMap
@@ -101,10 +102,41 @@ def test_a_loop_posed_with_lent_features_is_composed_into_the_match_s_frame():
     shift_pose(record, (0.0, 0.0, 2.0, *quarter))  # T_match_source
     assert (record.tx, record.ty, record.tz) == pytest.approx((0.0, 1.0, 2.0))
     assert (record.qx, record.qy, record.qz, record.qw) == pytest.approx((0, 0, *quarter[2:]))
+    assert record.covariance == ()  # none given, none made up
+    record.covariance = tuple(np.diag([1e-4, 2e-4, 3e-4, 1e-5, 2e-5, 3e-5]).ravel())
+    shift_pose(record, (0.0, 0.0, 0.0, *quarter))  # from (0, 1, 2): T_source_query's t
+    cov = np.asarray(record.covariance).reshape(6, 6)
+    # turned by 90 deg about z (x <-> y), the link's error added: [v]x e_rot with v = (-1, 0, 2)
+    assert np.diag(cov)[3:] == pytest.approx([4e-5, 2e-5, 6e-5])
+    assert cov[2, 2] == pytest.approx(
+        2 * 3e-4 + 1e-5
+    )  # z: its own twice, and the lever v x e_rot: e_ry
     record.pose_status = "scale-free"  # a direction cannot be composed: no pose then
     shift_pose(record, (0.0, 0.0, 2.0, *quarter))
     assert record.pose_status == "" and math.isnan(record.tx) and record.covariance == ()
     assert record.pose_reason == "scale-free pose to the features of a linked keyframe"
+
+
+def test_lent_covariance_matches_sampled_link_and_loop_errors():
+    """Loop errors drawn from the loop's covariance (along the source camera's axes), link
+    errors from the same turned into the match's frame (the link's is taken as the loop's),
+    composed exactly: their spread is what lent_covariance says."""
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(6, 6)) * np.r_[0.02, 0.02, 0.02, 0.01, 0.01, 0.01][:, None]
+    cov = a @ a.T
+    r_link, t_link = exp_so3(np.array([0.3, -0.2, 1.1])), np.array([0.5, -1.0, 2.0])
+    r, t = exp_so3(np.array([0.1, 0.4, -0.2])), np.array([1.5, 0.3, -0.7])
+    b = np.kron(np.eye(2), r_link)
+    loops = rng.multivariate_normal(np.zeros(6), cov, 20000)
+    links = rng.multivariate_normal(np.zeros(6), b @ cov @ b.T, 20000)
+    true_r, true_t = r_link @ r, t_link + r_link @ t
+    errors = []
+    for loop, link in zip(loops, links, strict=True):
+        r_l, t_l = exp_so3(link[3:]) @ r_link, t_link + link[:3]
+        r_q, t_q = exp_so3(loop[3:]) @ r, t + loop[:3]
+        errors.append(np.r_[t_l + r_l @ t_q - true_t, log_so3(r_l @ r_q @ true_r.T)])
+    got = np.cov(np.array(errors).T)
+    assert np.allclose(got, lent_covariance(cov, r_link, t), atol=0.03 * np.abs(got).max())
 
 
 def test_policy_all_stores_every_keyframe_with_signatures_and_links(tiny_model):
