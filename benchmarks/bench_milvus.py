@@ -80,7 +80,7 @@ def build(kind: str, descs: np.ndarray, db: str, args) -> tuple:
     if isinstance(index, MilvusIndex) and not index.unrecorded:  # --keep: an earlier run's
         index._desc, index._synced = descs.copy(), n  # the map's own copy, as if it added them
         index._rows = [(*identity(i), float(i)) for i in range(n)]
-        return index, np.nan, np.nan, settle(index, n)
+        return index, np.nan, np.nan, settle(index, n, compact=False)
     t0 = time.perf_counter()
     for lo in tqdm(range(0, n - single, BULK), desc=f"{kind} add", leave=False):
         add(index, descs[lo : min(lo + BULK, n - single)], lo)
@@ -93,15 +93,16 @@ def build(kind: str, descs: np.ndarray, db: str, args) -> tuple:
     return index, bulk_rate, single_ms, seal_s
 
 
-def settle(index, n: int, timeout_s: float = 3600.0) -> float:
-    """Seal the segments, compact them and wait until every row is indexed and no index build
-    is pending (else queries scan the unindexed rows brute force) -> seconds it took."""
+def settle(index, n: int, timeout_s: float = 3600.0, compact: bool = True) -> float:
+    """Seal the segments, compact them (a kept collection: already done) and wait until every
+    row is indexed and no index build is pending (else queries scan the unindexed rows brute
+    force) -> seconds it took."""
     t0 = time.perf_counter()
     index.client.flush(index.collection)
-    job = index.client.compact(index.collection)
+    job = index.client.compact(index.collection) if compact else None
     while time.perf_counter() - t0 < timeout_s:
         info = index.client.describe_index(index.collection, "desc")
-        done = index.client.get_compaction_state(job) == "Completed"
+        done = job is None or index.client.get_compaction_state(job) == "Completed"
         if done and int(info.get("indexed_rows", 0)) >= n and not int(
             info.get("pending_index_rows", 0)
         ):  # fmt: skip

@@ -23,7 +23,13 @@ from pair_vpr_ros.loops.frames import Frame
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.loops.recency import eligible_keyframes
 from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
-from pair_vpr_ros.place_map.milvus.expr import Exclusion, exclusion_expr, ids_expr, mask_runs
+from pair_vpr_ros.place_map.milvus.expr import (
+    Exclusion,
+    IdentityRuns,
+    exclusion_expr,
+    ids_expr,
+    mask_runs,
+)
 
 N = 40
 
@@ -103,6 +109,29 @@ def test_filter_expressions():
     )
     assert "stamp != 50.0" in exclusion_expr(0, 9, Exclusion(50.0, 0.0, 9, "r", "s"))
     assert exclusion_expr(0, 0, rule) is None
+    # the robot-session's id runs known: numbers only (Milvus compares strings row by row)
+    assert exclusion_expr(8, 9, rule, [(2, 4), (6, 9)]) == (
+        "(pk >= 8 and pk < 17) and (not ((pk >= 10 and pk < 12) or (pk >= 14 and pk < 17)) or "
+        "(pk < 15 and (stamp <= 40.0 or stamp >= 60.0)))"
+    )
+    assert exclusion_expr(8, 9, rule, []) == "(pk >= 8 and pk < 17)"  # none of it: all eligible
+    many = [(i, i + 1) for i in range(0, 18, 2)]  # 9 runs: the fields again
+    assert exclusion_expr(8, 9, rule, many) == exclusion_expr(8, 9, rule)
+
+
+def test_identity_runs_follow_the_rows_as_they_grow_or_are_replaced():
+    runs = IdentityRuns()
+    rows = [("a", "s1", 0.0), ("a", "s1", 1.0), ("b", "s1", 2.0)]
+    assert runs.of(rows, "a", "s1") == [(0, 2)]
+    rows += [("a", "s1", 3.0), ("a", "s1", 4.0)]
+    assert runs.of(rows, "a", "s1") == [(0, 2), (3, 5)]
+    assert runs.of(rows, "b", "s1") == [(2, 3)]
+    assert runs.of(rows, "c", "s1") == []
+    assert runs.of([("c", "s1", 0.0)], "c", "s1") == [(0, 1)]  # another list: counted anew
+    shorter = rows[:2]
+    assert runs.of(shorter, "a", "s1") == [(0, 2)]
+    shorter[1] = ("b", "s1", 1.0)  # changed in place below what was counted: counted anew
+    assert runs.of(shorter, "a", "s1") == [(0, 1)]
 
 
 def test_save_and_load_reattach_the_collection(milvus, tmp_path):

@@ -77,9 +77,14 @@ def ids_expr(base: int, limit: int, allowed: np.ndarray | None) -> str | None:
     return "(" + " or ".join(id_range(base, lo, hi) for lo, hi in runs) + ")"
 
 
-def exclusion_expr(base: int, count: int, ex: Exclusion) -> str | None:
+def exclusion_expr(
+    base: int, count: int, ex: Exclusion, own_runs: list | None = None
+) -> str | None:
     """The filter of `ex` over ids < count of the map keyed `base`; None when nothing is
-    eligible for certain (an empty map)."""
+    eligible for certain (an empty map). own_runs: the id runs [lo, hi) of the map's rows of
+    `ex`'s robot and session (`IdentityRuns`), so the filter compares numbers only; None: it
+    compares the robot and session fields (Milvus 2.3 does that row by row: at 1e6 rows
+    ~8 ms of a filtered search's ~23 ms, docs/milvus.md)."""
     if count <= 0:
         return None
     q, s = float(ex.stamp), float(ex.exclude_s)
@@ -87,6 +92,38 @@ def exclusion_expr(base: int, count: int, ex: Exclusion) -> str | None:
         raise ValueError(f"exclusion stamp and window must be finite, got {q}, {s}")
     far = f"(stamp <= {q - s!r} or stamp >= {q + s!r})" if s > 0 else f"stamp != {q!r}"
     own = f"(robot == {quote(ex.robot)} and session == {quote(ex.session)})"
+    if own_runs is not None and len(own_runs) <= MAX_RUNS:
+        if not own_runs:  # none of this map's rows is the query's robot-session
+            return id_range(base, 0, count)
+        own = "(" + " or ".join(id_range(base, lo, hi) for lo, hi in own_runs) + ")"
     limit = min(int(ex.limit), count)
     mine = f"(pk < {base + max(limit, 0)} and {far})"  # limit 0: pk < base, none of them
     return f"{id_range(base, 0, count)} and (not {own} or {mine})"
+
+
+MAX_RUNS = 8  # an identity in more runs than this is filtered by its fields instead
+
+
+class IdentityRuns:
+    """Where each (robot, session) lies among a map's rows: id runs [lo, hi), brought up to
+    date from the rows list as it grows (a map's rows of one session are one run, unless
+    maps were merged)."""
+
+    def __init__(self) -> None:
+        self._runs: dict[tuple[str, str], list[list[int]]] = {}
+        self._seen, self._list, self._last = 0, None, None
+
+    def of(self, rows: list, robot: str, session: str) -> list[tuple[int, int]]:
+        """rows: the map's (robot, session, stamp) each -> the runs of (robot, session)."""
+        replaced = rows is not self._list or len(rows) < self._seen
+        if replaced or (self._seen and rows[self._seen - 1] != self._last):
+            self._runs, self._seen, self._list = {}, 0, rows
+        for i in range(self._seen, len(rows)):
+            runs = self._runs.setdefault((rows[i][0], rows[i][1]), [])
+            if runs and runs[-1][1] == i:
+                runs[-1][1] = i + 1
+            else:
+                runs.append([i, i + 1])
+        self._seen = len(rows)
+        self._last = rows[-1] if rows else None
+        return [(lo, hi) for lo, hi in self._runs.get((robot, session), [])]

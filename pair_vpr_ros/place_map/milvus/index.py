@@ -32,6 +32,7 @@ from pair_vpr_ros.place_map.milvus.expr import (
     ID_BITS,
     MAX_WRITER,
     Exclusion,
+    IdentityRuns,
     exclusion_expr,
     id_range,
     ids_expr,
@@ -70,6 +71,7 @@ class MilvusIndex:
             )  # fmt: skip
         self._desc = np.zeros((1024, self.dim), np.float32)
         self._rows: list[Row] = []
+        self._runs = IdentityRuns()  # where each robot-session lies among them
         self._synced = 0  # rows [0, _synced) are in the collection
         self._unsure = 0  # rows below this may be in it already (a failed call): upsert them
         self.down = False  # the last call to Milvus failed
@@ -218,7 +220,8 @@ class MilvusIndex:
         if exclude is not None and max_id is None and allowed is None:
             allowed = np.ones(n, bool)
             allowed[max(0, int(exclude[0])) : max(0, int(exclude[1]))] = False
-        expr = exclusion_expr(self.base, limit, exclusion) if exclusion else None
+        own = self._runs.of(self._rows, exclusion.robot, exclusion.session) if exclusion else None
+        expr = exclusion_expr(self.base, limit, exclusion, own) if exclusion else None
         expr = expr if exclusion else ids_expr(self.base, limit, allowed)
         if expr is None or k <= 0:
             return np.empty(0, np.int64), np.empty(0, np.float32)
