@@ -211,10 +211,11 @@ class LoopClosurePipeline(PipelineMaps):
             for loop in accepted:  # each with its own match's features, from its own map
                 best = match_candidate(outcome, loop)
                 match, lent = self._match_features(best)
-                near = self._scale_neighbours(best)
+                # a lent match is posed from its lender's features, camera and odometry
+                near = self._scale_neighbours(best if lent is None else replace(best, id=lent[0]))
                 outcome.timings_ms["pose"] += self.geometry.pose(loop, features, match, near)
                 if lent is not None:  # posed to the lender: T_match_query (growth.py)
-                    shift_pose(loop, lent)
+                    shift_pose(loop, lent[1])
         if self.config.mode == "mapping":
             self._map_keyframe(frame, dense, desc, features, outcome)
         self._last_desc = desc
@@ -317,19 +318,20 @@ class LoopClosurePipeline(PipelineMaps):
 
     def _match_features(self, match: Candidate) -> tuple[Features | None, tuple | None]:
         """The match's features, and None; for one stored without (map_growth), its feature
-        source's and T_match_source (`MapGrowth.feature_source`)."""
+        source's and (source id, T_match_source) (`MapGrowth.feature_source`)."""
         m = self.maps.map_of(match)
         own = m.features(match.id)
         source = None if own else self.growth.feature_source(m, match.id)
         if source is None:
             return self.geometry.unpack(own), None
-        return self.geometry.unpack(m.features(source[0])), source[1]
+        return self.geometry.unpack(m.features(source[0])), source
 
     def _scale_neighbours(self, match: Candidate) -> list[Neighbour]:
         """Keyframes recorded next to the match, with an odometry baseline, for the scale of a
         monocular loop (`MapSearch.near`)."""
         meta, near = self.maps.near(match, self.geometry.config.pose.scale_neighbours)
-        load = lambda i: self._stored_features(replace(match, id=i))  # noqa: E731
+        # each neighbour's own features (lent ones would not fit its odometry pose)
+        load = lambda i: self.geometry.unpack(self.maps.map_of(match).features(i))  # noqa: E731
         return self.geometry.neighbours(meta, near, load)
 
     def match_meta(

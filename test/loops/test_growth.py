@@ -83,7 +83,7 @@ def test_a_new_appearance_of_a_known_place_is_stored(tiny_model, monkeypatch):
     source, t_4_0 = pipe.growth.feature_source(m, 4)
     assert source == 0 and t_4_0 == pytest.approx((0, 0, 0, 0, 0, 0, 1), abs=1e-2)
     lent, shift = pipe._match_features(Candidate(4, 4.0, "cam", 1.0, 1))
-    assert shift == t_4_0 and lent is not None
+    assert shift == (0, t_4_0) and lent is not None  # (source id, T_match_source)
     assert lent.keypoints.shape == pipe._match_features(Candidate(0, 0.0, "cam", 1.0, 1))[
         0].keypoints.shape  # fmt: skip
     assert pipe._match_features(Candidate(1, 1.0, "cam", 1.0, 1))[1] is None  # its own
