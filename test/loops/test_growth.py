@@ -13,6 +13,7 @@ import pytest
 from bag_fixtures import textured
 from exact_match import EXACT_MATCH
 
+from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.geometry.camera import CameraModel
 from pair_vpr_ros.geometry.rotations import exp_so3, log_so3
 from pair_vpr_ros.loops import pipeline as pipeline_module
@@ -272,3 +273,14 @@ def test_compact_keeps_a_keyframe_that_lends_its_features(tmp_path):
         assert len(m) == 6 and m.features(5) == b""
         assert [k for k, _ in m.growth.links(5)] == [4] and m.growth.links(1)[0][0] == 0
         assert m.growth.counts().signatures == 6
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("max_rotation_deg", -1.0), ("share_rotation_deg", math.nan),
+     ("share_translation_m", math.inf), ("max_appearance", -0.1)],
+)  # fmt: skip
+def test_growth_config_refuses_negative_or_non_finite_limits(field, value):
+    with pytest.raises(ConfigError) as err:
+        GrowthConfig(**{field: value})
+    assert str(err.value) == f"growth {field}={value!r} must be a finite number >= 0"
