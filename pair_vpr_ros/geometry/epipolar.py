@@ -145,9 +145,10 @@ def direction_basis(t: np.ndarray) -> np.ndarray:
     return np.linalg.svd(t[None])[2][1:].T
 
 
-def _refine(px_q, px_m, k, r, t, min_sigma_px: float = 0.5, iterations: int = 5) -> tuple:
-    """(R, its covariance [3, 3] or None when degenerate) after Gauss-Newton on the Sampson
-    residuals of these matches from (R, unit t)."""
+def _refine(px_q, px_m, k, r, t, min_sigma_px: float | None = None, iterations: int = 5) -> tuple:
+    """(R, its covariance [3, 3]) after Gauss-Newton on the Sampson residuals of these matches
+    from (R, unit t); the covariance is None without `min_sigma_px` (not wanted) or when
+    degenerate."""
     res = sampson_residuals(px_q, px_m, k)
     basis = np.zeros((6, 5))  # the two directions that turn t, then the rotation
     basis[:3, :2], basis[3:, 2:] = direction_basis(t), np.eye(3)
@@ -157,5 +158,7 @@ def _refine(px_q, px_m, k, r, t, min_sigma_px: float = 0.5, iterations: int = 5)
         r, t = cv.perturbed(r, t, basis @ step)
         t = t / np.linalg.norm(t)
         basis[:3, :2] = direction_basis(t)
+    if min_sigma_px is None:
+        return r, None
     fit = cv.gauss_newton_covariance(cv.jacobian(res, r, t) @ basis, res(r, t), min_sigma_px)
     return r, None if fit is None else fit[0][2:, 2:]

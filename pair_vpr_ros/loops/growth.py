@@ -26,6 +26,7 @@ import math
 
 import numpy as np
 
+from pair_vpr_ros.geometry.epipolar import skew
 from pair_vpr_ros.geometry.rotations import quaternion_matrix
 from pair_vpr_ros.identity import Identity
 from pair_vpr_ros.loops.detector import LoopRecord
@@ -165,8 +166,7 @@ def lent_covariance(cov: np.ndarray, r_link: np.ndarray, t: np.ndarray) -> np.nd
     b = np.zeros((6, 6))
     b[:3, :3] = b[3:, 3:] = r_link
     turned = b @ cov @ b.T
-    x, y, z = r_link @ t
     lever = np.eye(6)
-    lever[:3, 3:] = -np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    lever[:3, 3:] = -skew(r_link @ t)
     out = turned + lever @ turned @ lever.T
     return (out + out.T) / 2
