@@ -5,6 +5,8 @@ module); tests of an optional extra skip where it is not installed (test/extras.
 
 from __future__ import annotations
 
+import hashlib
+import importlib.util
 import itertools
 import os
 from pathlib import Path
@@ -41,6 +43,34 @@ def _user_cache(tmp_path_factory):
         os.environ.pop("XDG_CACHE_HOME", None)
     else:
         os.environ["XDG_CACHE_HOME"] = before
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _openvino_graphs_once():
+    """Exporting and converting a network for OpenVINO takes 10-30 s on 2 cores, and a dozen
+    tests start the back end on the same tiny weights: within this process the graphs of one
+    set of weights are built once and each start gets its own copy. What the tests check (cache
+    entries written and read, int8 calibration, outputs) is unchanged; a test that must see a
+    start build nothing patches `openvino_backend.build_graphs` itself, over this memo."""
+    if importlib.util.find_spec("openvino") is None:
+        yield
+        return
+    from pair_vpr_ros.model import openvino_backend
+
+    build, built = openvino_backend.build_graphs, {}
+
+    def memo(ov, model, chunk):
+        digest = hashlib.sha256(repr(model.config).encode())
+        for name, value in model.state_dict().items():
+            digest.update(name.encode() + value.detach().cpu().contiguous().numpy().tobytes())
+        key = (digest.hexdigest(), chunk)
+        if key not in built:
+            built[key] = build(ov, model, chunk)
+        return {name: graph.clone() for name, graph in built[key].items()}
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(openvino_backend, "build_graphs", memo)
+        yield
 
 
 @pytest.fixture(scope="session")

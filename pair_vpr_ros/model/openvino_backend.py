@@ -119,7 +119,7 @@ class OpenVINOModel:
             if converted is not None:
                 self.from_cache = True
                 return converted
-        converted = convert(ov, export_graphs(model, self.chunk_size), model)
+        converted = build_graphs(ov, model, self.chunk_size)
         if self.precision == "int8":
             converted = quantize(converted, model, calibration, self.chunk_size)
         if entry is not None and entry.save(ov, converted):
@@ -181,6 +181,12 @@ class OpenVINOModel:
         request = self._requests[name]
         request.infer([np.ascontiguousarray(x.detach().cpu().numpy()) for x in inputs])
         return [torch.from_numpy(out.data.copy()) for out in request.output_tensors]
+
+
+def build_graphs(ov: ModuleType, model: PairVPR, chunk: int) -> dict:
+    """The network as OpenVINO graphs {"encoder", "query", "chunk"}, float: exported with
+    `torch.export`, then converted (the slow part of a start without a cache entry)."""
+    return convert(ov, export_graphs(model, chunk), model)
 
 
 def convert(ov: ModuleType, graphs: Graphs, model: PairVPR) -> dict:

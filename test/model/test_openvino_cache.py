@@ -53,7 +53,7 @@ def test_second_start_reads_the_cache(tiny_model, tmp_path, monkeypatch):
         [f"{first.cache_path.name}/manifest.json"]
         + [f"{first.cache_path.name}/{n}{s}" for n in names for s in (".bin", ".xml")]
     )
-    monkeypatch.setattr(openvino_backend, "export_graphs", refuse("export"))
+    monkeypatch.setattr(openvino_backend, "build_graphs", refuse("export"))
     second = OpenVINOModel(tiny_model, "fp32", cache_dir=tmp_path)
     assert second.from_cache and second.cache_path == first.cache_path
     for got, want in zip(outputs(second), outputs(first), strict=True):
