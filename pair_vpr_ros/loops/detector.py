@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import math
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields, replace
 
 import numpy as np
 
 from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.loops.sequence import DecisionTracks
 
 MODES = ("mapping", "localization")
 GROWTH = ("places", "all")  # map_growth: represented keyframes not stored / every one stored
@@ -43,6 +43,10 @@ class DetectorConfig:
     exclude_recent_keyframes: int = 10  # ... or among the newest this many
     temporal_consistency: int = 1  # accept after N consecutive agreeing queries (1: off)
     temporal_tolerance: int = 5  # "agreeing": matched ids within this many keyframes
+    # > 0: when the best candidate scores below score_threshold, a candidate that continues the
+    # previous query's accepted loop (same map, robot and session, id within temporal_tolerance)
+    # is accepted at score_threshold - sequence_margin (verification still applies)
+    sequence_margin: float = 0.0
     geometric_verification: bool = False
     min_inliers: int = 15  # with geometric verification
     mode: str = "mapping"  # "mapping": query then add; "localization": query only
@@ -62,6 +66,11 @@ class DetectorConfig:
             ("exclude_recent_keyframes", self.exclude_recent_keyframes >= 0, ">= 0"),
             ("temporal_consistency", self.temporal_consistency >= 1, ">= 1"),
             ("temporal_tolerance", self.temporal_tolerance >= 0, ">= 0"),
+            (
+                "sequence_margin",
+                math.isfinite(self.sequence_margin) and self.sequence_margin >= 0,
+                "a finite number >= 0 (0: off)",
+            ),
             ("min_inliers", self.min_inliers >= 0, ">= 0"),
             ("mode", self.mode in MODES, f"one of {MODES}"),
             ("map_growth", self.map_growth in GROWTH, f"one of {GROWTH}"),
@@ -202,21 +211,14 @@ class LoopDetector:
     clock: Callable[[], float] = time.perf_counter  # s, for the re-rank budget (tests fake it)
 
     def __post_init__(self) -> None:
-        # recent matches per track (the map a decision is about with loop_per_map, else None)
-        self._tracks: dict[int | None, deque[tuple]] = {}
+        self._tracks = DecisionTracks(self.config)
 
     def reset(self) -> None:
-        self._tracks.clear()
+        self._tracks.reset()
 
     def set_config(self, config: DetectorConfig) -> None:
         self.config = config
-        n = config.temporal_consistency
-        self._tracks = {key: deque(old, maxlen=n) for key, old in self._tracks.items()}
-
-    def _recent(self, track: int | None) -> deque[tuple]:
-        if track not in self._tracks:
-            self._tracks[track] = deque(maxlen=self.config.temporal_consistency)
-        return self._tracks[track]
+        self._tracks.set_config(config)
 
     def is_new_keyframe(self, similarity_to_last: float | None) -> bool:
         """A frame becomes a keyframe unless it nearly repeats the previous keyframe."""
@@ -236,15 +238,24 @@ class LoopDetector:
         query_identity: tuple[str, str] = ("", ""),
         track: int | None = None,
     ) -> LoopRecord | None:
-        """Re-rank `candidates` (global order) and accept or reject the best one. `rerank`
+        """Re-rank `candidates` (global order) and accept or reject the best one (or, with
+        `sequence_margin`, one that continues the last accepted loop: sequence.py). `rerank`
         scores a list of candidates ([k] scores); with a budget it is called for the first
         `first`, then `step` at a time. `query_identity`: (robot, session) of the query.
         `track`: whose temporal consistency this decision counts in (one per map searched on
         its own, `loop_per_map`; None: the one stream of decisions)."""
-        recent = self._recent(track)
+        record, match = self._decide(query_stamp, query_frame_id, candidates, rerank, verify,
+                                     step, first, query_identity, track)  # fmt: skip
+        self._tracks.decided(track, match, record is not None and record.accepted)
+        return record
+
+    def _decide(self, query_stamp, query_frame_id, candidates, rerank, verify, step, first,
+                query_identity, track) -> tuple[LoopRecord | None, Candidate | None]:  # fmt: skip
+        """`decide` without the sequence bookkeeping: (record, the candidate it is about)."""
+        recent = self._tracks.recent(track)
         if not candidates:
             recent.clear()
-            return None
+            return None, None
         c = self.config
         query = (query_stamp, query_frame_id, *query_identity)
         best_global = candidates[0]
@@ -252,30 +263,33 @@ class LoopDetector:
             recent.clear()
             record = self._record(*query, best_global, "below global floor")
             record.candidates = len(candidates)
-            return record
+            return record, best_global
         scored = self.score(candidates, rerank, step, first)
-        best = scored[0]
+        best, rank = scored[0], 1
         below = best.rerank_score(c.global_weight) < c.score_threshold
+        if below and (follower := self._tracks.follower(track, scored)) is not None:
+            rank, best = follower
+            below = False
         reason = "score below threshold" if below else ""
         record = self._record(*query, best, reason)
-        record.candidates, record.scored = len(candidates), len(scored)
+        record.candidates, record.scored, record.rank_after = len(candidates), len(scored), rank
         if reason:
             recent.clear()
-            return record
-        if not self._temporally_consistent(recent, best):
+            return record, best
+        if not self._tracks.consistent(track, best):
             seen = len(recent)
             record.reason = f"awaiting temporal consistency ({seen}/{c.temporal_consistency})"
-            return record
+            return record, best
         if c.geometric_verification and verify is not None:
             record.inliers, record.inlier_ratio = verify(best)
             if record.inliers < 0:
                 record.reason = "geometric verification impossible (no features for the match)"
-                return record
+                return record, best
             if record.inliers < c.min_inliers:
                 record.reason = f"geometric verification failed ({record.inliers} inliers)"
-                return record
+                return record, best
         record.accepted = True
-        return record
+        return record, best
 
     def score(
         self,
@@ -306,16 +320,6 @@ class LoopDetector:
             done += size
         weight = self.config.global_weight
         return rank_by_pair_score(candidates[:done], np.concatenate(parts), weight)
-
-    def _temporally_consistent(self, recent: deque[tuple], match: Candidate) -> bool:
-        """Agreeing: matches of one map, robot and session whose ids lie within
-        `temporal_tolerance` (ids of different robots or sessions say nothing about place)."""
-        if recent:
-            group, last = recent[-1]
-            if group != match.group or abs(match.id - last) > self.config.temporal_tolerance:
-                recent.clear()
-        recent.append((match.group, match.id))
-        return len(recent) >= self.config.temporal_consistency
 
     @staticmethod
     def _record(

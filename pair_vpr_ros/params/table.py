@@ -200,6 +200,10 @@ PARAMS: tuple[ParamSpec, ...] = (
     _p("exclude_recent_keyframes", 10, "... nor among the newest this many", 0, 1000000),
     _p("temporal_consistency", 1, "accept after this many consecutive agreeing queries", 1, 100),
     _p("temporal_tolerance", 5, "agreeing: matched ids within this many keyframes", 0, 100000),
+    _p("sequence_margin", 0.0, "when the best candidate scores below score_threshold, accept "
+       "one that continues the previous keyframe's accepted loop (same map, robot and session, "
+       "id within temporal_tolerance) at score_threshold - this (verification still applies); "
+       "0 = off", 0.0, 1.0e6),
     _p("geometric_verification", False, "also require ORB + fundamental-matrix RANSAC inliers"),
     _p("min_inliers", 15, "inliers needed with geometric_verification", 0, 100000),
     _p("loop_per_map", True, "with prior_map_dirs: search the live map and each prior map for "
@@ -229,6 +233,7 @@ DETECTOR_PARAMS = (
     "exclude_recent_keyframes",
     "temporal_consistency",
     "temporal_tolerance",
+    "sequence_margin",
     "geometric_verification",
     "min_inliers",
     "loop_per_map",

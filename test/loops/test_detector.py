@@ -164,6 +164,45 @@ def test_temporal_consistency_agrees_only_within_one_map_robot_and_session():
     assert reasons == ["awaiting temporal consistency (1/2)"] * 4 + ["accepted"]
 
 
+def follow(det, ids_scores, robot="a", session="s1", verify=None):
+    """One query whose candidates are (id, pair score) in global order: (match, rank, reason)."""
+    cs = [Candidate(i, 0.0, "c", 0.5, r + 1, robot=robot, session=session)
+          for r, (i, _) in enumerate(ids_scores)]  # fmt: skip
+    rec = det.decide(1.0, "c", cs, scorer(*(s for _, s in ids_scores)), verify=verify)
+    return rec.match_id, rec.rank_after, rec.reason or "accepted"
+
+
+def test_sequence_margin_accepts_a_weaker_candidate_that_continues_the_last_loop():
+    config = DetectorConfig(score_threshold=10.0, sequence_margin=4.0, temporal_tolerance=2,
+                            geometric_verification=True)  # fmt: skip
+    det = LoopDetector(config)
+    ok = lambda _c: (40, 0.6)  # noqa: E731
+    assert follow(det, [(50, 12.0)], verify=ok) == (50, 1, "accepted")
+    # best is 90 (below threshold), 52 continues the loop to 50 at 7 >= 10 - 4: accepted
+    assert follow(det, [(90, 9.0), (52, 7.0)], verify=ok) == (52, 2, "accepted")
+    # 55 is 3 ids from 52 (> tolerance 2); 53 scores 5.9 < 6: neither is followed
+    assert follow(det, [(55, 9.0), (53, 5.9)], verify=ok) == (55, 1, "score below threshold")
+    # that query ended the sequence: 54 (1 id from 53, 2 from 52) is not followed now
+    assert follow(det, [(54, 9.5)], verify=ok) == (54, 1, "score below threshold")
+
+
+def test_sequence_margin_keeps_verification_and_the_group():
+    det = LoopDetector(DetectorConfig(score_threshold=10.0, sequence_margin=4.0,
+                                      geometric_verification=True, min_inliers=20))  # fmt: skip
+    assert follow(det, [(50, 12.0)], verify=lambda _c: (40, 0.6))[2] == "accepted"
+    # a follower still needs its inliers; a failed one ends the sequence
+    assert follow(det, [(51, 8.0)], verify=lambda _c: (12, 0.3)) == (
+        51, 1, "geometric verification failed (12 inliers)")  # fmt: skip
+    assert follow(det, [(52, 8.0)], verify=lambda _c: (40, 0.6))[2] == "score below threshold"
+    assert follow(det, [(60, 12.0)], verify=lambda _c: (40, 0.6))[2] == "accepted"
+    # close id, other session: ids say nothing about place
+    assert follow(det, [(61, 8.0)], session="s2")[2] == "score below threshold"
+    # the margin 0 (default) follows nothing
+    det = LoopDetector(DetectorConfig(score_threshold=10.0))
+    follow(det, [(50, 12.0)])
+    assert follow(det, [(51, 9.99)])[2] == "score below threshold"
+
+
 def test_geometric_verification_gate():
     det = LoopDetector(DetectorConfig(geometric_verification=True, min_inliers=20))
     rec = det.decide(1.0, "c", cands(0.9), scorer(1.0), verify=lambda _id: (12, 0.3))
@@ -192,6 +231,8 @@ def test_keyframe_selection_by_similarity():
         (dict(global_weight=-1.0), "detector global_weight=-1.0 must be a finite number >= 0"),
         (dict(loop_per_map="no"), "detector loop_per_map='no' must be true or false"),
         (dict(global_weight=float("inf")), "detector global_weight=inf must be a finite number"),
+        (dict(sequence_margin=-1.0), "detector sequence_margin=-1.0 must be a finite number >= 0"),
+        (dict(sequence_margin=float("nan")), "detector sequence_margin=nan must be a finite"),
     ],
 )
 def test_bad_config_is_refused(changes, message):

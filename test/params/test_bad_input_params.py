@@ -47,6 +47,10 @@ CASES = {
     "nan": (section("score_threshold: .nan").encode(), "score_threshold must be a finite number"),
     "inf": (section("exclude_recent_s: .inf").encode(), "exclude_recent_s must be a finite"),
     "out of range": (section("top_k: -4").encode(), "top_k=-4 is out of range [0, 1000]"),
+    "negative margin": (
+        section("sequence_margin: -2.0").encode(),
+        "sequence_margin=-2.0 is out of range [0.0, 1000000.0]",
+    ),
     "bad choice": (section("mode: slam").encode(), "mode='slam' must be one of mapping"),
     "backend typo": (
         section("backend: onnx").encode(),
