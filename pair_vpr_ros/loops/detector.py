@@ -220,6 +220,11 @@ class LoopDetector:
         self.config = config
         self._tracks.set_config(config)
 
+    def end_sequence(self, track: int | None) -> None:
+        """The last accepted loop of `track` is not to be followed (the pipeline: it got no
+        relative pose, the mark of many false loops)."""
+        self._tracks.decided(track, None, False)
+
     def is_new_keyframe(self, similarity_to_last: float | None) -> bool:
         """A frame becomes a keyframe unless it nearly repeats the previous keyframe."""
         return (

@@ -214,6 +214,8 @@ class LoopClosurePipeline(PipelineMaps):
                 # a lent match is posed from its lender's features, camera and odometry
                 near = self._scale_neighbours(best if lent is None else replace(best, id=lent[0]))
                 outcome.timings_ms["pose"] += self.geometry.pose(loop, features, match, near)
+                if not loop.pose_status:  # an unposed loop is no sequence to follow (sequence.py)
+                    self.detector.end_sequence(best.prior if self.config.loop_per_map else None)
                 if lent is not None:  # posed to the lender: T_match_query (growth.py)
                     shift_pose(loop, lent[1])
         if self.config.mode == "mapping":

@@ -197,6 +197,10 @@ def test_sequence_margin_keeps_verification_and_the_group():
     assert follow(det, [(60, 12.0)], verify=lambda _c: (40, 0.6))[2] == "accepted"
     # close id, other session: ids say nothing about place
     assert follow(det, [(61, 8.0)], session="s2")[2] == "score below threshold"
+    # the pipeline ends a sequence whose last loop got no relative pose
+    assert follow(det, [(62, 12.0)])[2] == "accepted"
+    det.end_sequence(None)
+    assert follow(det, [(63, 8.0)])[2] == "score below threshold"
     # the margin 0 (default) follows nothing
     det = LoopDetector(DetectorConfig(score_threshold=10.0))
     follow(det, [(50, 12.0)])
