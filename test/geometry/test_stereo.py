@@ -47,7 +47,7 @@ def test_baseline_from_the_right_camera_info():
 
 def test_stereo_depth_matches_the_rendered_depth(world):
     rgb, truth = render_keyframe(world, 40)
-    depth = stereo_depth(rgb, right_view(world, 40), MODEL.fx, BASELINE)
+    depth, _ = stereo_depth(rgb, right_view(world, 40), MODEL.fx, BASELINE)
     ok = np.isfinite(depth) & (truth > 0) & (truth < 20)
     assert ok.mean() > 0.25  # flat-shaded facades: little texture to match
     rel = np.abs(depth[ok] - truth[ok]) / truth[ok]
