@@ -58,8 +58,7 @@ class PoseConfig:
     # Gauss-Newton covariances came out too confident on the demo world's seed-8 loops (median
     # normalised error x1.9 of chi-square's, metric and scale-free alike): they are scaled by this.
     covariance_scale: float = 2.0
-    # Monocular scale from the odometry next to the match keyframe (odometry_scale.py).
-    odometry_scale: bool = True
+    odometry_scale: bool = True  # monocular scale from the odometry next to the match keyframe
     scale_neighbours: int = 2  # map keyframes up to this many ids before / after the match
     scale_tries: int = 2  # of those, how many to use (least turn, then longest, first)
     scale_max_gap_s: float = 10.0  # stamps of the match and the neighbour at most this apart
@@ -70,18 +69,16 @@ class PoseConfig:
     scale_min_points: int = 8  # loop inliers with a triangulated point needed
     scale_sigma_floor: float = 0.03  # relative std of the scale at least (odometry error)
     scale_lever_m: float = 1.0  # assumed camera offset from the odometry's turn axis, at most
-    # Depth noise sigma_z = a + b z^2 (depth_noise.py: Kinect-class defaults), depth beyond
-    # max_depth_m (0: no limit) not used for PnP, depth agreement within this many sigmas of
-    # both depths' noise, a misregistration and the pose's covariance (metric_pose.py).
+    # Depth noise sigma_z = a + b z^2 (depth_noise.py, Kinect-class), no depth beyond max_depth_m
+    # (0: no limit) in PnP, depth agreement within this many sigmas (metric_pose.py).
     depth_sigma_a: float = 0.0012
     depth_sigma_b: float = 0.0019
     max_depth_m: float = 0.0
     depth_agreement_sigmas: float = 3.0
     depth_registration_px: float = 2.0  # depth-to-colour misregistration allowed in agreement
-    # Errors no residual shows (intrinsics a little off, distortion left in, image/depth timing,
-    # rolling shutter), added to every covariance as independent noise: rotation std per axis
-    # of floor_rotation_px pixels' angle at the focal length (at least floor_rotation_deg),
-    # translation std a + b |t|. TUM's Kinect (f 517 px) needs 1.8 px (docs/real-cameras.md).
+    # Errors no residual shows (intrinsics a little off, distortion, timing, rolling shutter):
+    # rotation std per axis of floor_rotation_px pixels' angle at the focal length (at least
+    # floor_rotation_deg), translation a + b |t|. TUM's Kinect (f 517) needs 1.8 px (docs).
     floor_rotation_px: float = 1.8
     floor_rotation_deg: float = 0.0
     floor_translation_m: float = 0.005
@@ -303,8 +300,11 @@ def _odometry_scaled(q, m, inliers, fit, c: PoseConfig, neighbours) -> RelativeP
         for sign in (1.0, -1.0):
             d = sign * sq[:, k]
             t_k = t + basis @ d[:2]
-            ends.append(float(np.median(lengths(exp_so3(d[2:]) @ r, t_k / np.linalg.norm(t_k)))))
+            s_k = lengths(exp_so3(d[2:]) @ r, t_k / np.linalg.norm(t_k))
+            ends.append(float(np.median(s_k)) if len(s_k) else math.nan)
         jac[k] = (ends[0] - ends[1]) / 2
+    if not np.isfinite(jac).all():  # a pose one std away leaves no point in front: no length
+        return "no length for poses within the pose's std (its points fall behind a camera)"
     a = np.zeros((6, 5))
     a[:3] = s * basis @ sq[:2] + np.outer(t, jac)
     a[3:] = sq[2:]
