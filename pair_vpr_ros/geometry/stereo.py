@@ -6,9 +6,11 @@ baseline: P[0, 3] = -fx B), a keyframe's depth is z = fx B / disparity. The pair
 rectified (``image_rect`` topics: same size, rows aligned); an unrectified or mismatched pair is
 refused with a `StereoInputError` saying why (the pipeline counts it and goes on without depth).
 Stereo depth noise: sigma_z = z^2 sigma_d / (fx B) = z sigma_d / d, with the disparity's
-sigma_d per pixel from what the matching had to go on (`disparity_sigma`): a block whose
-texture runs across the rows (weak horizontal gradients) fixes its disparity poorly. Without
-it (`stereo_noise_b`): the depth-noise model with a = 0 and b = sigma_d / (fx B).
+sigma_d per pixel from what the matching had to go on (OpenCV's SGBM gives no cost): the
+block's horizontal texture (`disparity_sigma`: weak gradients fix a disparity poorly) and how
+far the right image's own match lands from it (`left_right_difference`; more than
+MAX_LEFT_RIGHT_PX: no depth). Without it (`stereo_noise_b`): the depth-noise model with a = 0
+and b = sigma_d / (fx B).
 """
 
 from __future__ import annotations
