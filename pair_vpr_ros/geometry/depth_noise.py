@@ -6,8 +6,8 @@ b = 1.9 mm / m^2 follow the published Kinect noise study of Nguyen, Izadi and Lo
 2012: 0.0012 + 0.0019 (z - 0.4)^2 m; the (z - 0.4) offset is dropped, which is conservative);
 Khoshelham and Oude Elberink (Sensors 2012) measured the same growth (about 1.4 mm z^2). For a
 stereo camera set b = sigma_disparity / (f B), a = 0 (``stereo.stereo_noise_b``); stereo depth
-from `stereo.sgbm_depth` also comes with its own sigma per pixel (the block's texture: weak
-gradients match poorly), kept per keypoint (`Features.depth_sigma`) and used in its place.
+from `stereo.sgbm_depth` also comes with its own sigma per pixel (the block's texture and the
+left-right check), kept per keypoint (`Features.depth_sigma`) and used in its place.
 
 A keypoint sits on a corner or an edge more often than not, and at a depth edge the nearest
 pixel's depth is as likely the background's as the object's: the depth of a keypoint is the
