@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from pair_vpr_ros.geometry import PoseConfig, camera_from_params, extract_features, relative_pose
-from pair_vpr_ros.geometry.depth_noise import robust_depth_at
+from pair_vpr_ros.geometry.depth_noise import robust_depth_at, sigma_at
 from pair_vpr_ros.geometry.features import Features
 from pair_vpr_ros.geometry.rotations import (
     exp_so3,
@@ -196,14 +196,15 @@ def chessboard():
     for v in range(len(CHESS_VIEWS)):
         left, right = (cv2.remap(grey[s][v], *maps[n], cv2.INTER_LINEAR)
                        for n, s in enumerate(("left", "right")))  # fmt: skip
-        depth = sgbm_depth(left, right, fx, baseline, CHESS_MAX_DISPARITY)
+        depth, sigma = sgbm_depth(left, right, fx, baseline, CHESS_MAX_DISPARITY)
         px = cv2.undistortPoints(corners["left"][v], kl, dl, R=r1, P=p1).reshape(-1, 2)
         _, rvec, tvec = cv2.solvePnP(obj, px, p1[:, :3], None)
         pose = np.eye(4)  # board -> left camera
         pose[:3, :3], pose[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
         poses.append(pose)
         px = px.astype(np.float32)
-        feats.append(Features(px, code, "sift", robust_depth_at(depth, px, 0.0, b), cam))
+        z = robust_depth_at(depth, px, 0.0, b)
+        feats.append(Features(px, code, "sift", z, cam, depth_sigma=sigma_at(sigma, px, z)))
     n = len(poses)
     truths = {(i, j): poses[j] @ np.linalg.inv(poses[i]) for i in range(n) for j in range(i)}
     return tuple(feats), truths, PoseConfig(depth_sigma_a=0.0, depth_sigma_b=b)

@@ -12,7 +12,9 @@ for it as measured on the demo world; the tails stay heavier than Gaussian: use 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -88,3 +90,11 @@ def with_floor(
     if scaled:
         out[:3, :3] += np.eye(3) * (trans_m + trans_rel * float(np.linalg.norm(t))) ** 2
     return out
+
+
+def rotation_floor_deg(config: Any, *cameras: Any) -> float:
+    """Rotation floor (deg per axis) of a pose fitted on the pixels of `cameras` (`CameraModel`):
+    `config.floor_rotation_px` pixels' angle at their mean focal length (a camera with more,
+    smaller pixels sees a smaller turn), at least `config.floor_rotation_deg`."""
+    f = sum((c.fx + c.fy) / 2 for c in cameras) / len(cameras)
+    return max(config.floor_rotation_deg, math.degrees(config.floor_rotation_px / f))

@@ -16,7 +16,7 @@ import numpy as np
 
 from pair_vpr_ros.errors import GeometryInputError
 from pair_vpr_ros.geometry.camera import PACKED_SIZE, CameraModel
-from pair_vpr_ros.geometry.depth_noise import robust_depth_at
+from pair_vpr_ros.geometry.depth_noise import robust_depth_at, sigma_at
 from pair_vpr_ros.geometry.feature_codec import (
     COMPACT_KEEP,
     decode_keypoints,
@@ -36,7 +36,9 @@ class Features:
     """keypoints [M, 2] float32 distorted pixels; descriptors [M, 128 | 32] uint8; depth [M]
     float32 metres along the optical axis (NaN: unknown) or None without a depth image;
     camera: the intrinsics of the image (None: unknown); response [M] float32: the detector's
-    strength of each keypoint (None: unknown; not stored, picks what a compact record keeps)."""
+    strength of each keypoint (None: unknown; not stored, picks what a compact record keeps);
+    depth_sigma [M] float32: the depth's own std (m) where the sensor gives one (stereo
+    matching), NaN or None: the depth-noise model's."""
 
     keypoints: np.ndarray
     descriptors: np.ndarray
@@ -44,6 +46,7 @@ class Features:
     depth: np.ndarray | None = None
     camera: CameraModel | None = None
     response: np.ndarray | None = None
+    depth_sigma: np.ndarray | None = None
     _float: np.ndarray | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
@@ -93,11 +96,13 @@ def extract_features(
     depth: np.ndarray | None = None,
     camera: CameraModel | None = None,
     depth_noise: tuple[float, float] = (0.0012, 0.0019),
+    depth_sigma: np.ndarray | None = None,
 ) -> Features:
     """RGB uint8 [H, W, 3] (+ aligned depth [H, W] metres) -> Features; images larger than
     `max_side` are detected on a downscaled copy, keypoints stay in full-size pixels. The depth
     of a keypoint: `depth_noise.robust_depth_at` with sigma_z = a + b z^2, (a, b) =
-    `depth_noise`."""
+    `depth_noise`; `depth_sigma` [H, W] (m, NaN: none): the depth's own std per pixel
+    (stereo), kept at the keypoints as `Features.depth_sigma`."""
     grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
     h, w = grey.shape
     scale = min(1.0, max_side / max(h, w))
@@ -115,6 +120,8 @@ def extract_features(
     out.camera = camera
     if depth is not None:
         out.depth = robust_depth_at(depth, out.keypoints, *depth_noise)
+        if depth_sigma is not None and depth_sigma.shape == depth.shape:
+            out.depth_sigma = sigma_at(depth_sigma, out.keypoints, out.depth)
     return out
 
 
@@ -153,7 +160,8 @@ def match_features(
     return out
 
 
-_HEADER = struct.Struct("<4sBBBBIH2x")  # magic, version, kind, has depth, has camera, M, width
+_HEADER = struct.Struct("<4sBBBBIH2x")  # magic, version, kind, depth flags, has camera, M, width
+_DEPTH, _SIGMA = 1, 2  # depth flags: depth stored; its own std stored after it (stereo)
 _GRID = struct.Struct("<fff")  # version 2: keypoint grid origin x, y and step (px)
 _KIND_CODES = {kind: i for i, kind in enumerate(KINDS)}
 
@@ -162,18 +170,22 @@ def pack_features(f: Features, compact: bool = True, keep: int | None = None) ->
     """Features -> bytes for the place map, little-endian: header, camera record, then
     compact (version 2, feature_codec.py: the `keep` strongest keypoints as uint16, 4-bit SIFT
     descriptors, float16 depth; `keep` default: COMPACT_KEEP of the kind) or full (version 1:
-    keypoints [M, 2] float32, descriptors [M, W] uint8, depth [M] float32 when known)."""
+    keypoints [M, 2] float32, descriptors [M, W] uint8, depth [M] float32 when known). The
+    depth's own std (`depth_sigma`) follows the depth in the same type."""
+    sigma = f.depth_sigma if f.depth is not None else None
     if compact:
         pick = strongest(f.response, len(f.keypoints), keep or COMPACT_KEEP[f.kind])
         f = Features(f.keypoints[pick], f.descriptors[pick], f.kind,
                      None if f.depth is None else f.depth[pick], f.camera)  # fmt: skip
+        sigma = None if sigma is None else sigma[pick]
+    depths = [] if f.depth is None else [f.depth] + ([] if sigma is None else [sigma])
     n, width = f.descriptors.shape
     parts = [
         _HEADER.pack(
             b"FEAT",
             2 if compact else 1,
             _KIND_CODES[f.kind],
-            f.depth is not None,
+            (_DEPTH if depths else 0) | (_SIGMA if len(depths) == 2 else 0),
             f.camera is not None,
             n,
             width,
@@ -185,35 +197,37 @@ def pack_features(f: Features, compact: bool = True, keep: int | None = None) ->
         grid = keypoint_grid(f.keypoints)
         parts += [_GRID.pack(*grid), encode_keypoints(f.keypoints, grid)]
         parts.append(encode_sift(desc) if f.kind == "sift" else desc.tobytes())
-        if f.depth is not None:
-            parts.append(np.asarray(f.depth, "<f4").astype("<f2").tobytes())
+        parts += [np.asarray(d, "<f4").astype("<f2").tobytes() for d in depths]
         return b"".join(parts)
     parts += [np.ascontiguousarray(f.keypoints, "<f4").tobytes(), desc.tobytes()]
-    if f.depth is not None:
-        parts.append(np.ascontiguousarray(f.depth, "<f4").tobytes())
+    parts += [np.ascontiguousarray(d, "<f4").tobytes() for d in depths]
     return b"".join(parts)
 
 
-def _sizes(version: int, kind: str, n: int, width: int, has_depth: bool) -> tuple[int, ...]:
-    """Bytes of (grid, keypoints, descriptors, depth) in a record of `version`."""
+def _sizes(version: int, kind: str, n: int, width: int, depths: int) -> tuple[int, ...]:
+    """Bytes of (grid, keypoints, descriptors, depth (+ its std: `depths` arrays)) in a record
+    of `version`."""
     if version == 1:
-        return 0, n * 8, n * width, n * 4 if has_depth else 0
+        return 0, n * 8, n * width, n * 4 * depths
     desc = sift_bytes(n) if kind == "sift" else n * width
-    return _GRID.size, n * 4, desc, n * 2 if has_depth else 0
+    return _GRID.size, n * 4, desc, n * 2 * depths
 
 
 def unpack_features(data: bytes) -> Features:
     """Inverse of `pack_features` (versions 1 and 2); GeometryInputError when the bytes are not
     a features record."""
     try:
-        magic, version, code, has_depth, has_camera, n, width = _HEADER.unpack_from(data)
+        magic, version, code, flags, has_camera, n, width = _HEADER.unpack_from(data)
         kind = list(KINDS)[code]
         pos = _HEADER.size
         if magic != b"FEAT" or version not in (1, 2):
             raise ValueError(f"not a features record of version 1 or 2 (version {version})")
         camera = CameraModel.unpack(data[pos : pos + PACKED_SIZE]) if has_camera else None
         pos += PACKED_SIZE
-        sizes = _sizes(version, kind, n, width, bool(has_depth))
+        if flags not in (0, _DEPTH, _DEPTH | _SIGMA):
+            raise ValueError(f"unknown depth flags {flags}")
+        depths = (flags & _DEPTH) + (flags & _SIGMA) // _SIGMA
+        sizes = _sizes(version, kind, n, width, depths)
         if width != KINDS[kind] or len(data) != pos + sum(sizes):
             raise ValueError("size or header mismatch")
     except (struct.error, IndexError, ValueError) as err:
@@ -230,8 +244,12 @@ def unpack_features(data: bytes) -> Features:
     else:
         descriptors = np.frombuffer(data, np.uint8, n * width, pos).reshape(n, width).copy()
     pos += sizes[2]
-    depth = None
-    if has_depth:
-        depth = np.frombuffer(data, "<f4" if version == 1 else "<f2", n, pos).astype(np.float32)
-        depth[np.isinf(depth)] = np.nan  # float16 overflow (over 65 km): no depth
-    return Features(keypoints, descriptors, kind, depth, camera)
+    stored = []
+    for _ in range(depths):
+        d = np.frombuffer(data, "<f4" if version == 1 else "<f2", n, pos).astype(np.float32)
+        d[np.isinf(d)] = np.nan  # float16 overflow (over 65 km): none
+        stored.append(d)
+        pos += sizes[3] // depths
+    out = Features(keypoints, descriptors, kind, stored[0] if stored else None, camera)
+    out.depth_sigma = stored[1] if depths == 2 else None
+    return out

@@ -75,12 +75,13 @@ class KeyframeGeometry:
         if camera is not None and (camera.width, camera.height) != (w, h):
             self.counts.intrinsics_wrong_size += 1
             camera = None
+        sigma = None  # the depth's own std per pixel (stereo matching), else the model's
         if depth is None and right is not None:
-            depth = self._stereo(rgb, right, camera, baseline)
+            depth, sigma = self._stereo(rgb, right, camera, baseline)
         c = self.config
         noise = (c.pose.depth_sigma_a, c.pose.depth_sigma_b)
         return extract_features(rgb, c.features, c.max_features, depth=depth, camera=camera,
-                                depth_noise=noise)  # fmt: skip
+                                depth_noise=noise, depth_sigma=sigma)  # fmt: skip
 
     def _stereo(self, left, right, camera: CameraModel | None, baseline: float):
         try:
@@ -89,13 +90,13 @@ class KeyframeGeometry:
             if not baseline > 0:
                 raise StereoInputError(f"stereo baseline {baseline!r} m must be > 0 (right "
                                        "camera_info missing or without P[0, 3])")  # fmt: skip
-            depth = stereo_depth(left, right, camera.fx, baseline)
+            depth, sigma = stereo_depth(left, right, camera.fx, baseline)
         except StereoInputError as err:
             self.counts.stereo_invalid += 1
             self.last_stereo_problem = str(err)
-            return None
+            return None, None
         self.counts.stereo_depth += 1
-        return depth
+        return depth, sigma
 
     def pack(self, features: Features | None) -> bytes:
         if features is None:

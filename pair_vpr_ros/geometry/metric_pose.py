@@ -41,6 +41,7 @@ def metric_fit(q, m, pairs: np.ndarray, side: str, z: np.ndarray, c):
     T_match_query, or (reason, inliers)."""
     ok = np.isfinite(z) & (z <= c.depth_limit)  # far points: too noisy for PnP
     kp_q, kp_m = q.keypoints[pairs[ok, 0]], m.keypoints[pairs[ok, 1]]
+    s_z = _own_sigma(m if side == "match" else q, pairs[ok, 0 if side == "query" else 1])
     if side == "match":  # 3D in the match frame, seen by the query camera
         pts, px, k = m.camera.rays(kp_m) * z[ok, None], q.camera.undistort(kp_q), q.camera.k
     else:
@@ -52,7 +53,7 @@ def metric_fit(q, m, pairs: np.ndarray, side: str, z: np.ndarray, c):
     r, t = (r_ba.T, -r_ba.T @ t_ba) if side == "match" else (r_ba, t_ba)
     depth_ab = (c.depth_sigma_a, c.depth_sigma_b)
     fit = refine_with_covariance(pts[idx], px[idx], k, r, t, side == "match", c.min_sigma_px,
-                                 depth_ab)  # fmt: skip
+                                 depth_ab, None if s_z is None else s_z[idx])  # fmt: skip
     if fit is None:
         return "degenerate geometry: the inliers do not constrain every axis", len(idx)
     r, t, cov, _, _ = fit
@@ -66,6 +67,11 @@ def metric_fit(q, m, pairs: np.ndarray, side: str, z: np.ndarray, c):
     if s_t > c.max_translation_sigma_m or s_r > c.max_rotation_sigma_deg:
         return f"pose too uncertain (std {s_t:.2f} m, {s_r:.2f} deg)", len(idx)
     return r, t, cov, len(idx), pts[idx]
+
+
+def _own_sigma(f, idx: np.ndarray) -> np.ndarray | None:
+    """The depth's own std [K] (m, NaN: none) of keypoints `idx` of features f, or None."""
+    return None if f.depth_sigma is None else f.depth_sigma[idx]
 
 
 def agreement_needed(both: int) -> int:
@@ -93,10 +99,11 @@ def depth_agreement(q, m, pairs, r, t, cov, c) -> tuple[int, int] | None:
     seen = xq @ r.T  # the query's points in the match frame, before t
     gap = seen + t - xm
     ab, px = (c.depth_sigma_a, c.depth_sigma_b), c.min_sigma_px + c.depth_registration_px
-    s = (r @ point_covariances(rays_q, zq[ok], px, q.camera.fx, *ab) @ r.T
-         + point_covariances(rays_m, zm[ok], px, m.camera.fx, *ab))  # fmt: skip
-    pose_cov = cv.with_floor(cov, t, c.floor_rotation_deg, c.floor_translation_m,
-                             c.floor_translation_rel)  # fmt: skip
+    own = [_own_sigma(f, pairs[ok, col]) for f, col in ((q, 0), (m, 1))]
+    s = (r @ point_covariances(rays_q, zq[ok], px, q.camera.fx, *ab, own[0]) @ r.T
+         + point_covariances(rays_m, zm[ok], px, m.camera.fx, *ab, own[1]))  # fmt: skip
+    pose_cov = cv.with_floor(cov, t, cv.rotation_floor_deg(c, q.camera, m.camera),
+                             c.floor_translation_m, c.floor_translation_rel)  # fmt: skip
     jac = np.zeros((len(seen), 3, 6))  # d gap / d (d_t, d_rot): I, -[R X_q]x
     jac[:, :, :3] = np.eye(3)
     x, y, z = seen.T

@@ -56,12 +56,14 @@ def refine_with_covariance(
     points_in_match: bool,
     sigma_px: float,
     depth_ab: tuple[float, float],
+    depth_sigma: np.ndarray | None = None,
 ):
-    """Inlier 3-D points [N, 3] and pixels [N, 2] (ideal), T_match_query (R, t) from PnP ->
+    """Inlier 3-D points [N, 3] and pixels [N, 2] (ideal), T_match_query (R, t) from PnP,
+    the points' own depth std [N] (m, NaN: the model a + b z^2 of `depth_ab`) ->
     (R, t, cov [6, 6], variance factor, whitened chi^2 per residual); None when degenerate."""
     f = float(k[0, 0] + k[1, 1]) / 2
     rays = pts / pts[:, 2:3]
-    cov_x = point_covariances(rays, pts[:, 2], sigma_px, f, *depth_ab)
+    cov_x = point_covariances(rays, pts[:, 2], sigma_px, f, *depth_ab, depth_sigma)
 
     def raw(rr, tt):
         cam, _ = _camera_points(pts, rr, tt, points_in_match)

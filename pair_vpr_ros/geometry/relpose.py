@@ -5,16 +5,13 @@ camera frame (optical: x right, y down, z forward): ``X_match = R X_query + t``,
 query camera's position seen from the match camera. The frames are those of the two images'
 ``header.frame_id`` at their stamps. Its covariance is described in ``covariance.py``.
 
-* metric: depth at the keypoints of either keyframe (the match's from the map, else the
-  query's) gives 3D points -> PnP-RANSAC -> Levenberg-Marquardt on the inliers;
+* metric: depth at the keypoints of either keyframe (the match's, else the query's) -> PnP;
 * metric from odometry: no usable depth, but a map keyframe next to the match keyframe with an
   odometry pose -> essential matrix (USAC) -> R and the direction of t; its length from points
   triangulated over that short odometry baseline (``odometry_scale.py``), never from the
   odometry between the loop's two keyframes, which holds the drift the loop is to remove;
 * scale-free: none of that -> R and the direction of t (a unit vector) with a 1e6 m^2
-  translation variance, never a made-up metric length;
-* no pose: a reason (no features, no intrinsics, too few matches or inliers, degenerate motion,
-  too uncertain).
+  translation variance, never a made-up metric length; no pose: a reason.
 """
 
 from __future__ import annotations
@@ -61,8 +58,7 @@ class PoseConfig:
     # Gauss-Newton covariances came out too confident on the demo world's seed-8 loops (median
     # normalised error x1.9 of chi-square's, metric and scale-free alike): they are scaled by this.
     covariance_scale: float = 2.0
-    # Monocular scale from the odometry next to the match keyframe (odometry_scale.py).
-    odometry_scale: bool = True
+    odometry_scale: bool = True  # monocular scale from the odometry next to the match keyframe
     scale_neighbours: int = 2  # map keyframes up to this many ids before / after the match
     scale_tries: int = 2  # of those, how many to use (least turn, then longest, first)
     scale_max_gap_s: float = 10.0  # stamps of the match and the neighbour at most this apart
@@ -73,22 +69,22 @@ class PoseConfig:
     scale_min_points: int = 8  # loop inliers with a triangulated point needed
     scale_sigma_floor: float = 0.03  # relative std of the scale at least (odometry error)
     scale_lever_m: float = 1.0  # assumed camera offset from the odometry's turn axis, at most
-    # Depth noise sigma_z = a + b z^2 (depth_noise.py: Kinect-class defaults), depth beyond
-    # max_depth_m (0: no limit) not used for PnP, depth agreement within this many sigmas of
-    # both depths' noise, a misregistration and the pose's covariance (metric_pose.py).
+    # Depth noise sigma_z = a + b z^2 (depth_noise.py, Kinect-class), no depth beyond max_depth_m
+    # (0: no limit) in PnP, depth agreement within this many sigmas (metric_pose.py).
     depth_sigma_a: float = 0.0012
     depth_sigma_b: float = 0.0019
     max_depth_m: float = 0.0
     depth_agreement_sigmas: float = 3.0
     depth_registration_px: float = 2.0  # depth-to-colour misregistration allowed in agreement
-    # Errors no residual shows (intrinsics a little off, distortion left in, image/depth timing,
-    # rolling shutter), added to every covariance as independent noise: rotation std per axis,
-    # translation std a + b |t|. Measured on real RGB-D pairs (docs/real-cameras.md).
-    floor_rotation_deg: float = 0.2
+    # Errors no residual shows (intrinsics a little off, distortion, timing, rolling shutter):
+    # rotation std per axis of floor_rotation_px pixels' angle at the focal length (at least
+    # floor_rotation_deg), translation a + b |t|. TUM's Kinect (f 517) needs 1.8 px (docs).
+    floor_rotation_px: float = 1.8
+    floor_rotation_deg: float = 0.0
     floor_translation_m: float = 0.005
     floor_translation_rel: float = 0.01
-    # PnP vs essential-matrix rotation (3 dof): above it the covariance is scaled by chi2 / it
-    max_model_disagreement_chi2: float = 16.0
+    max_model_disagreement_chi2: float = 16.0  # PnP vs essential-matrix rotation (3 dof) chi2:
+    # above it the covariance is scaled by chi2 / it
 
     def __post_init__(self) -> None:
         for name in ("ratio", "ransac_px", "essential_px", "max_rotation_sigma_deg",
@@ -103,8 +99,8 @@ class PoseConfig:
         for name in ("scale_neighbours", "scale_tries", "scale_min_points"):
             if not getattr(self, name) >= 1:
                 raise ConfigError(f"pose {name}={getattr(self, name)!r} must be >= 1")
-        for name in ("depth_sigma_a", "max_depth_m", "floor_rotation_deg", "floor_translation_m",
-                     "floor_translation_rel", "depth_registration_px"):  # fmt: skip
+        floors = [n for n in vars(self) if n.startswith("floor_")]
+        for name in ("depth_sigma_a", "max_depth_m", *floors, "depth_registration_px"):
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"pose {name}={getattr(self, name)!r} must be >= 0")
         if not 0 < self.ratio <= 1:
@@ -160,13 +156,14 @@ def relative_pose(
 ) -> RelativePose:
     """T_match_query of a loop from the query and match keyframes' features; `neighbours`:
     map keyframes next to the match with an odometry baseline (``pick_neighbours``), for the
-    scale of a pose without depth. Every covariance carries the floor of `PoseConfig`."""
+    scale of a pose without depth. Every covariance carries the floor of `PoseConfig`, its
+    rotation part from the two cameras' focal lengths (`covariance.rotation_floor_deg`)."""
     c = config or PoseConfig()
     out = _relative_pose(query, match, c, neighbours)
     if out.status:
-        out.covariance = cv.with_floor(out.covariance, out.translation, c.floor_rotation_deg,
-                                       c.floor_translation_m, c.floor_translation_rel,
-                                       scaled=out.status != SCALE_FREE)  # fmt: skip
+        rot = cv.rotation_floor_deg(c, query.camera, match.camera)
+        trans = (c.floor_translation_m, c.floor_translation_rel, out.status != SCALE_FREE)
+        out.covariance = cv.with_floor(out.covariance, out.translation, rot, *trans)
     return out
 
 
@@ -233,14 +230,14 @@ def _metric(q, m, pairs, side, z, c: PoseConfig) -> RelativePose:
 
 def _model_disagreement(q, m, pairs, r, cov, c: PoseConfig) -> tuple[float, float]:
     """(chi-square, 3 dof, angle in deg) of the difference between the PnP rotation (depth +
-    pixels) and the essential matrix's (pixels only) under both covariances; (0, 0) when no
-    essential matrix fits. Wrong intrinsics or ignored distortion bend the two models
-    differently (docs/real-cameras.md): the sign of a confident wrong pose."""
+    pixels) and the essential matrix's (pixels only) under both covariances ((0, 0): no E).
+    A wrong camera model bends the two differently: the sign of a confident wrong pose."""
     e = _essential_fit(q, m, pairs, c)
     if isinstance(e, RelativePose):
         return 0.0, 0.0
     d = log_so3(e[0] @ r.T)
-    both = cov[3:, 3:] + e[3][2:, 2:] + 2 * np.eye(3) * math.radians(c.floor_rotation_deg) ** 2
+    floor = 2 * np.eye(3) * math.radians(cv.rotation_floor_deg(c, q.camera, m.camera)) ** 2
+    both = cov[3:, 3:] + e[3][2:, 2:] + floor
     return float(d @ np.linalg.solve(both, d)), math.degrees(float(np.linalg.norm(d)))
 
 
@@ -303,8 +300,11 @@ def _odometry_scaled(q, m, inliers, fit, c: PoseConfig, neighbours) -> RelativeP
         for sign in (1.0, -1.0):
             d = sign * sq[:, k]
             t_k = t + basis @ d[:2]
-            ends.append(float(np.median(lengths(exp_so3(d[2:]) @ r, t_k / np.linalg.norm(t_k)))))
+            s_k = lengths(exp_so3(d[2:]) @ r, t_k / np.linalg.norm(t_k))
+            ends.append(float(np.median(s_k)) if len(s_k) else math.nan)
         jac[k] = (ends[0] - ends[1]) / 2
+    if not np.isfinite(jac).all():  # a pose one std away leaves no point in front: no length
+        return "no length for poses within the pose's std (its points fall behind a camera)"
     a = np.zeros((6, 5))
     a[:3] = s * basis @ sq[:2] + np.outer(t, jac)
     a[3:] = sq[2:]

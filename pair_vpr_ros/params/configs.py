@@ -37,6 +37,7 @@ def geometry_config(values: Mapping[str, Any]) -> GeometryConfig:
             depth_sigma_a=values["depth_sigma_a"],
             depth_sigma_b=values["depth_sigma_b"],
             max_depth_m=values["max_depth"],
+            floor_rotation_px=values["pose_floor_rotation_px"],
             floor_rotation_deg=values["pose_floor_rotation_deg"],
             floor_translation_m=values["pose_floor_translation_m"],
             floor_translation_rel=values["pose_floor_translation_rel"],

@@ -123,13 +123,17 @@ PARAMS: tuple[ParamSpec, ...] = (
        "(every keypoint as extracted: 140 KB for 1000 SIFT)", choices=("compact", "full"), **RO),
     _p("depth_sigma_a", 0.0012, "depth noise sigma_z = a + b z^2 (m): a; defaults from "
        "published Kinect noise studies (docs/real-cameras.md)", 0.0, 10.0, **RO),
-    _p("depth_sigma_b", 0.0019, "depth noise: b (1/m); stereo: sigma_disparity / (f baseline)",
+    _p("depth_sigma_b", 0.0019, "depth noise: b (1/m); depth from the stereo pair "
+       "(right_image_topic) has its own sigma per pixel from the matching instead",
        1e-9, 10.0, **RO),
     _p("max_depth", 0.0, "depth beyond this (m) is not used for relative poses (0 = no limit)",
        0.0, 1.0e4, **RO),
-    _p("pose_floor_rotation_deg", 0.2, "covariance floor of relative poses: rotation std per "
-       "axis (deg) for errors no residual shows (calibration, timing; docs/real-cameras.md)",
-       0.0, 90.0, **RO),
+    _p("pose_floor_rotation_px", 1.8, "covariance floor of relative poses: rotation std per "
+       "axis for errors no residual shows (calibration, timing), as this many pixels' angle at "
+       "the camera's focal length (1.8: 0.2 deg at f = 517 px; docs/real-cameras.md)",
+       0.0, 100.0, **RO),
+    _p("pose_floor_rotation_deg", 0.0, "... and at least this (deg; before pose_floor_rotation_px "
+       "this alone was the floor, 0.2)", 0.0, 90.0, **RO),
     _p("pose_floor_translation_m", 0.005, "covariance floor: translation std (m), plus ...",
        0.0, 100.0, **RO),
     _p("pose_floor_translation_rel", 0.01, "... this fraction of the translation's length",

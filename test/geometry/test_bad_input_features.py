@@ -32,6 +32,10 @@ def with_version(data: bytes, version: int) -> bytes:
     return data[:4] + bytes([version]) + data[5:]
 
 
+def with_depth_flags(data: bytes, flags: int) -> bytes:
+    return data[:6] + bytes([flags]) + data[7:]
+
+
 def with_grid(data: bytes, *grid: float) -> bytes:
     return data[:GRID_AT] + struct.pack("<fff", *grid) + data[GRID_AT + 12 :]
 
@@ -51,6 +55,9 @@ CASES = {
         "not a features record of version 1 or 2 (version 3)",
     ),  # fmt: skip
     "version 1 size read as 2": (lambda d: with_version(d, 1), "size or header mismatch"),
+    "depth flags of no kind": (lambda d: with_depth_flags(d, 4), "unknown depth flags 4"),
+    "depth std without depth": (lambda d: with_depth_flags(d, 2), "unknown depth flags 2"),
+    "depth std said, not stored": (lambda d: with_depth_flags(d, 3), "size or header mismatch"),
     "foreign magic": (
         lambda d: b"JPEG" + d[4:],
         "not a features record of version 1 or 2 (version 2)",

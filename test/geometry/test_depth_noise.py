@@ -6,7 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pair_vpr_ros.geometry.depth_noise import depth_sigma, point_covariances, robust_depth_at
+from pair_vpr_ros.geometry.depth_noise import (
+    depth_sigma,
+    point_covariances,
+    point_sigmas,
+    robust_depth_at,
+    sigma_at,
+)
 from pair_vpr_ros.geometry.pnp import project, solve_pnp
 from pair_vpr_ros.geometry.pnp_uncertainty import refine_with_covariance
 from pair_vpr_ros.geometry.rotations import exp_so3, log_so3
@@ -34,6 +40,28 @@ def test_robust_depth_is_the_window_median_and_none_at_edges_or_holes():
     assert np.isnan(z[4])  # 9 of 25 outside the image, 9 zeros: 7 of 25 readings
     assert z[6] == pytest.approx(2.0)  # one zero and one stray reading in the window
     assert np.isnan(z[5])  # clipped to the corner (19, 0): half the window is outside
+
+
+def test_a_depths_own_sigma_is_used_where_it_is_a_positive_number():
+    """Stereo depth's own sigma per keypoint; NaN (none), 0, negative or inf (a damaged or
+    foreign record) fall back to the model a + b z^2, so no point gets a weight from them."""
+    z = np.full(6, 3.0)
+    own = np.array([0.02, np.nan, 0.0, -0.01, np.inf, 0.005])
+    model = depth_sigma(z, *AB)
+    np.testing.assert_allclose(point_sigmas(z, *AB, own), [0.02, *model[1:5], 0.005])
+    np.testing.assert_allclose(point_sigmas(z, *AB), model)
+    cov = point_covariances(np.array([[0.0, 0.0, 1.0]] * 6), z, 1.0, 500.0, *AB, own)
+    np.testing.assert_allclose(np.sqrt(cov[:, 2, 2]), point_sigmas(z, *AB, own))
+
+
+def test_sigma_at_a_keypoint_is_its_window_median_where_it_has_depth():
+    sigma = np.full((20, 20), 0.01, np.float32)
+    sigma[:, 10:] = 0.05
+    sigma[8, 3] = 9.0  # one stray value: the median ignores it
+    px = np.array([[3, 8], [15, 8], [3, 8]], np.float32)
+    out = sigma_at(sigma, px, np.array([2.0, 2.0, np.nan], np.float32))
+    np.testing.assert_allclose(out[:2], [0.01, 0.05])
+    assert np.isnan(out[2])  # no depth there: no sigma either
 
 
 def test_point_covariance_is_depth_noise_along_the_ray_and_pixel_noise_across():

@@ -105,3 +105,16 @@ def test_a_map_written_before_compact_features_gives_them_back(tmp_path, read_on
             if want.depth is not None:
                 assert np.array_equal(got.depth, want.depth, equal_nan=True)
     assert geometry.counts.features_damaged == 0
+
+
+def test_the_depths_own_std_comes_back_in_both_records() -> None:
+    f = sift(800)
+    f.depth_sigma = (0.01 * f.depth**2).astype(np.float32)
+    f.depth_sigma[::7] = np.nan  # none there: the model's
+    keep = np.sort(np.argsort(-f.response)[:500])
+    back = unpack_features(pack_features(f))
+    assert np.allclose(back.depth_sigma, f.depth_sigma[keep], rtol=2**-10, equal_nan=True)
+    full = unpack_features(pack_features(f, compact=False))
+    assert np.array_equal(full.depth_sigma, f.depth_sigma, equal_nan=True)
+    f.depth_sigma = None
+    assert unpack_features(pack_features(f)).depth_sigma is None

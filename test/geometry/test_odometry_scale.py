@@ -144,3 +144,19 @@ def test_neighbours_are_picked_by_time_baseline_and_turn():
 def test_scale_settings_are_checked(name, value, match):
     with pytest.raises(ConfigError, match=match):
         PoseConfig(**{name: value})
+
+
+def test_a_length_undefined_within_the_pose_std_is_a_reason_not_a_crash():
+    """Demo seed 8, query 211 on match 51: the centre / rim check widens the monocular pose's
+    covariance (x3.1), and a pose one std away from it leaves no triangulated point in front
+    of the cameras. That gave NaN lengths and a LinAlgError; now the pose stays scale-free."""
+    world = generate_world(8)
+    q, m = 211, 51
+    feats = {i: extract_features(render_keyframe(world, i)[0], camera=MODEL)
+             for i in (q, m - 2, m - 1, m, m + 1, m + 2)}  # fmt: skip
+    near = [(i, float(i), odom(world.poses[i])) for i in (m - 2, m - 1, m + 1, m + 2)]
+    found = pick_neighbours(float(m), odom(world.poses[m]), near, feats.get, PoseConfig())
+    pose = relative_pose(feats[q], feats[m], neighbours=found)
+    assert pose.status == "scale-free"
+    assert pose.reason.endswith("no scale from odometry: no length for poses within the pose's "
+                                "std (its points fall behind a camera)")  # fmt: skip

@@ -12,9 +12,11 @@ from pair_vpr_ros.demo import generate_world
 from pair_vpr_ros.demo.camera import Camera
 from pair_vpr_ros.demo.views import camera_model, pose_errors, render_keyframe, true_relative_pose
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.geometry import PoseConfig, extract_features, relative_pose
+from pair_vpr_ros.geometry import PoseConfig, camera_from_params, extract_features, relative_pose
 from pair_vpr_ros.geometry.covariance import SCALE_FREE_VARIANCE
-from pair_vpr_ros.geometry.features import empty_features
+from pair_vpr_ros.geometry.features import Features, empty_features
+from pair_vpr_ros.geometry.pnp import project
+from pair_vpr_ros.geometry.rotations import exp_so3
 
 CAM = Camera()
 MODEL = camera_model(CAM)
@@ -146,6 +148,8 @@ def test_pose_config_checks_its_values():
         ("max_depth_m", float("nan"), "pose max_depth_m=nan must be >= 0"),
         ("depth_agreement_sigmas", -1.0, "pose depth_agreement_sigmas=-1.0 must be > 0"),
         ("floor_rotation_deg", -0.2, "pose floor_rotation_deg=-0.2 must be >= 0"),
+        ("floor_rotation_px", -1.0, "pose floor_rotation_px=-1.0 must be >= 0"),
+        ("floor_rotation_px", float("nan"), "pose floor_rotation_px=nan must be >= 0"),
         ("depth_registration_px", -1.0, "pose depth_registration_px=-1.0 must be >= 0"),
         ("max_model_disagreement_chi2", 0.0, "pose max_model_disagreement_chi2=0.0 must be > 0"),
     ],
@@ -160,11 +164,43 @@ def test_covariance_floor_is_added_to_every_pose(views):
     rq, _, rm, dm, _ = views
     q, m = extract_features(rq, camera=MODEL), extract_features(rm, depth=dm, camera=MODEL)
     # (no model-disagreement scaling: the floor also enters that check's chi-square)
-    zero = dict(floor_rotation_deg=0.0, floor_translation_m=0.0, floor_translation_rel=0.0)
+    zero = dict(floor_rotation_px=0.0, floor_translation_m=0.0, floor_translation_rel=0.0)
     off = dict(max_model_disagreement_chi2=1e9)
     bare = relative_pose(q, m, PoseConfig(**zero, **off))
     floored = relative_pose(q, m, PoseConfig(**off))
     diff = floored.covariance - bare.covariance
     length = np.linalg.norm(bare.translation)
     np.testing.assert_allclose(np.diag(diff), [(0.005 + 0.01 * length) ** 2] * 3
-                               + [math.radians(0.2) ** 2] * 3)  # fmt: skip
+                               + [(1.8 / MODEL.fx) ** 2] * 3)  # fmt: skip
+    # pose_floor_rotation_deg is a lower bound: 1.8 px is 0.64 deg on this 160 px focal length
+    at_least = relative_pose(q, m, PoseConfig(**off, floor_rotation_deg=1.0))
+    np.testing.assert_allclose(np.diag(at_least.covariance - bare.covariance)[3:],
+                               [math.radians(1.0) ** 2] * 3, rtol=1e-6)  # fmt: skip
+
+
+def _synthetic_pair(f: float, size: tuple[int, int]):
+    """The same 3-D scene seen by two poses of a camera with focal length f (px) and image
+    size -> (query features, match features with exact depth), no pixel noise."""
+    rng = np.random.default_rng(3)
+    pts = np.c_[rng.uniform(-2, 2, (80, 2)), rng.uniform(4, 8, 80)]  # match frame
+    r, t = exp_so3(np.radians([0.0, 8.0, 0.0])), np.array([0.4, 0.0, 0.1])
+    cam = camera_from_params(*size, f, f, size[0] / 2, size[1] / 2)
+    code = rng.integers(0, 256, (80, 128)).astype(np.uint8)
+    px_m = project(cam.k, pts).astype(np.float32)
+    px_q = project(cam.k, (pts - t) @ r).astype(np.float32)  # X_q = R^T (X_m - t)
+    return Features(px_q, code, "sift", None, cam), Features(px_m, code, "sift", pts[:, 2], cam)
+
+
+def test_rotation_floor_is_pixels_at_each_cameras_focal_length():
+    """A camera with twice the focal length (twice the pixels over the same view) gets half the
+    rotation floor: pose_floor_rotation_px (1.8) pixels' angle, not one angle for every camera."""
+    added = []
+    for f, size in ((400.0, (640, 480)), (800.0, (1280, 960))):
+        q, m = _synthetic_pair(f, size)
+        off = dict(max_model_disagreement_chi2=1e9)
+        bare = relative_pose(q, m, PoseConfig(floor_rotation_px=0.0, **off))
+        floored = relative_pose(q, m, PoseConfig(**off))
+        assert (bare.status, floored.status) == ("metric", "metric")
+        added.append(np.diag(floored.covariance - bare.covariance)[3:])
+        np.testing.assert_allclose(added[-1], [(1.8 / f) ** 2] * 3, rtol=1e-6)
+    np.testing.assert_allclose(np.sqrt(added[0] / added[1]), 2.0, rtol=1e-6)

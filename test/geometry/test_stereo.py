@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from types import SimpleNamespace
 
+import cv2
 import numpy as np
 import pytest
 
@@ -15,7 +16,15 @@ from pair_vpr_ros.demo.render import render_view
 from pair_vpr_ros.demo.views import camera_model, pose_errors, render_keyframe, true_relative_pose
 from pair_vpr_ros.geometry import extract_features, relative_pose
 from pair_vpr_ros.geometry.keyframes import KeyframeGeometry
-from pair_vpr_ros.geometry.stereo import stereo_baseline, stereo_depth, stereo_noise_b
+from pair_vpr_ros.geometry.stereo import (
+    MAX_DISPARITY_SIGMA_PX,
+    SUBPIXEL_SIGMA_PX,
+    disparity_sigma,
+    left_right_difference,
+    stereo_baseline,
+    stereo_depth,
+    stereo_noise_b,
+)
 from pair_vpr_ros.loops.frames import PipelineCounts
 
 CAM = Camera()
@@ -47,11 +56,44 @@ def test_baseline_from_the_right_camera_info():
 
 def test_stereo_depth_matches_the_rendered_depth(world):
     rgb, truth = render_keyframe(world, 40)
-    depth = stereo_depth(rgb, right_view(world, 40), MODEL.fx, BASELINE)
+    depth, sigma = stereo_depth(rgb, right_view(world, 40), MODEL.fx, BASELINE)
     ok = np.isfinite(depth) & (truth > 0) & (truth < 20)
     assert ok.mean() > 0.25  # flat-shaded facades: little texture to match
     rel = np.abs(depth[ok] - truth[ok]) / truth[ok]
     assert np.median(rel) < 0.06, np.median(rel)
+    # each depth's own std: z^2 sigma_d / (f B), sigma_d from the left image's texture and
+    # the left-right difference (mostly 0 here)
+    grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    texture = depth[ok] ** 2 * disparity_sigma(grey)[ok] / (MODEL.fx * BASELINE)
+    assert np.all(sigma[ok] >= 0.999 * texture) and np.median(sigma[ok] / texture) < 1.01
+    assert np.array_equal(np.isfinite(sigma), np.isfinite(depth))
+
+
+def test_disparity_sigma_is_small_on_texture_and_large_where_flat():
+    """A block with horizontal gradients fixes the disparity to about its sub-pixel error; a
+    flat block, or one striped along the rows (no gradient across them), does not."""
+    rng = np.random.default_rng(0)
+    img = np.full((60, 90), 128, np.uint8)
+    img[:, :30] = rng.integers(0, 256, (60, 30))  # textured
+    img[:, 60:] = np.where(np.arange(60)[:, None] % 4 < 2, 60, 200)  # stripes along the rows
+    s = disparity_sigma(img)
+    assert np.allclose(s[10:50, 5:25], SUBPIXEL_SIGMA_PX, atol=0.05)
+    assert np.all(s[10:50, 35:55] == np.float32(MAX_DISPARITY_SIGMA_PX))  # flat
+    assert np.all(s[10:50, 65:85] == np.float32(MAX_DISPARITY_SIGMA_PX))  # row stripes
+    weak = (img[:, :30] // 64 + 120).astype(np.uint8)
+    s_weak = disparity_sigma(weak)[10:50, 5:25]  # the same texture at 1/64 contrast
+    assert np.median(s_weak) > 1.5 * np.median(s[10:50, 5:25])
+
+
+def test_left_right_difference_finds_a_match_the_right_image_does_not_confirm():
+    left = np.full((4, 40), 5.0, np.float32)  # every left pixel x matches right x - 5 ...
+    right = np.full((4, 40), 5.0, np.float32)
+    left[1, 20] = 12.0  # ... but this one claims x - 12, where the right image says 5
+    right[2, 15] = 0.0  # and here the right image has no match: no verdict
+    lr = left_right_difference(left, right)
+    assert lr[1, 20] == 7.0 and np.isnan(lr[2, 20]) and lr[0, 20] == 0.0
+    left[3, 30] = -1.0  # no left disparity
+    assert np.isnan(left_right_difference(left, right)[3, 30])
 
 
 def test_stereo_keyframes_give_a_metric_loop(world):
@@ -61,6 +103,8 @@ def test_stereo_keyframes_give_a_metric_loop(world):
     fq = geo.extract(render_keyframe(world, q)[0], None, MODEL, right_view(world, q), BASELINE)
     fm = geo.extract(render_keyframe(world, m)[0], None, MODEL, right_view(world, m), BASELINE)
     assert (counts.stereo_depth, counts.stereo_invalid) == (2, 0)
+    has = np.isfinite(fm.depth)  # each stereo depth with its own std
+    assert has.sum() > 30 and np.all(fm.depth_sigma[has] > 0)
     pose = relative_pose(fq, fm)
     assert pose.status == "metric", pose.reason
     truth = true_relative_pose(world.poses[m], world.poses[q], CAM)

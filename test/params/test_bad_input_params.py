@@ -98,6 +98,18 @@ CASES = {
         (section("top_k: 3") + section("top_k: 4")).encode(),
         "'/**' is given twice (lines 1 and 4): keep one",
     ),
+    "negative pixel floor": (
+        section("pose_floor_rotation_px: -1.0").encode(),
+        "pose_floor_rotation_px=-1.0 is out of range [0.0, 100.0]",
+    ),
+    "nan pixel floor": (
+        section("pose_floor_rotation_px: .nan").encode(),
+        "pose_floor_rotation_px must be a finite number, got nan",
+    ),
+    "string pixel floor": (
+        section('pose_floor_rotation_px: "2 px"').encode(),
+        "pose_floor_rotation_px must be a number, got '2 px'",
+    ),
     "zero pixel limit": (
         section("max_image_pixels: 0").encode(),
         "max_image_pixels=0 is out of range [1, 1073741824]",
