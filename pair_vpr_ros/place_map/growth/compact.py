@@ -168,6 +168,7 @@ def _dropped(m: PlaceMap, tables: GrowthTables, config: GrowthConfig) -> dict[in
 def _copy(m: PlaceMap, tables: GrowthTables, dropped: dict, codec: str, work: Path) -> PlaceMap:
     config = replace(m.index_config, dense_codec=codec)
     new = PlaceMap(m.desc_dim, m.dense_shape, m.fingerprint, config, work_dir=work)
+    new.adopt_dense_basis(m.dense_basis)  # p4: keep the input's basis (fitted with the model)
     try:
         new_id: dict[int, int] = {}
         metas = m.all_meta()
