@@ -42,7 +42,9 @@ from pair_vpr_ros.errors import ConfigError, MapError
 
 CODECS = ("p4", "q4a", "q4", "f16")
 BASIS_FROM = 16  # p4: entries stored as q4 before the basis, which is fitted on them
-_HEAD = struct.Struct("<4sIII")  # magic, CRC32 of the rest, first entry coded with the basis, D
+# p4's head: magic, CRC32 of the rest, first entry coded with the basis, D, copies of entries
+# before it (see `Basis`)
+_HEAD = struct.Struct("<4sIIII")
 _MAGIC = b"PVB1"
 _PAD = 36  # p4: bytes an entry keeps for padding its bit planes (at most 36) to whole bytes
 _LEVELS = 7  # |q| <= 7: symmetric, so 0 stays exactly 0
@@ -64,9 +66,14 @@ def entry_bytes(shape: tuple[int, int], codec: str = "f16") -> int:
 
 
 def head_bytes(shape: tuple[int, int], codec: str) -> int:
-    """Bytes before entry 0 in a dense file of `codec`: p4's basis (zeros until it is fitted)."""
+    """Bytes before entry 0 in a dense file of `codec`: p4's basis and the copies of the
+    entries before it (zeros until it is fitted)."""
     d = int(shape[1])
-    return _HEAD.size + 4 * d + 2 * d * d + d if codec == "p4" else 0
+    return (
+        _HEAD.size + 4 * d + 2 * d * d + d + BASIS_FROM * entry_bytes(shape, codec)
+        if (codec == "p4")
+        else 0
+    )
 
 
 def _pack(q: np.ndarray) -> bytes:
@@ -174,9 +181,14 @@ def _toward(values: np.ndarray, down: bool) -> np.ndarray:
 class Basis:
     """p4's transform of one map: y = (x - mean) @ enc, x = y @ dec + mean (dec = enc^-1),
     components ordered by their fixed widths `bits` [D] (widest first; `groups`: (width, first,
-    stop) per run of equal width); `start`: the first entry coded with it."""
+    stop) per run of equal width); `start`: the first entry coded with it; `early`: the
+    entries before it coded with it too (from their float16 tokens, kept until the fit), stored
+    in the head and read instead of their q4 form (none when the map was saved and loaded
+    before the fit: their tokens are gone then)."""
 
-    def __init__(self, mean: np.ndarray, enc: np.ndarray, bits: np.ndarray, start: int) -> None:
+    def __init__(
+        self, mean: np.ndarray, enc: np.ndarray, bits: np.ndarray, start: int, early=()
+    ) -> None:
         self.mean = np.asarray(mean, "<f4")
         self.enc16 = np.asarray(enc, "<f2")
         self.bits = np.asarray(bits, np.uint8)
@@ -188,8 +200,12 @@ class Basis:
         cut = [0, *np.flatnonzero(np.diff(widths)) + 1, self.live]
         pairs = zip(cut[:-1], cut[1:], strict=True)
         self.groups = [(int(widths[a]), a, b) for a, b in pairs if b > a]
-        self.payload = self.mean.tobytes() + self.enc16.tobytes() + self.bits.tobytes()
-        self.crc = zlib.crc32(self.payload, zlib.crc32(struct.pack("<II", self.start, len(mean))))
+        self.early = list(early)
+        self.payload = b"".join(
+            [self.mean.tobytes(), self.enc16.tobytes(), self.bits.tobytes(), *self.early]
+        )
+        fields = struct.pack("<III", self.start, len(mean), len(self.early))
+        self.crc = zlib.crc32(self.payload, zlib.crc32(fields))
 
     @classmethod
     def fit(cls, x: np.ndarray, n: int, size: int, start: int, weight=None) -> Basis:
@@ -215,24 +231,32 @@ class Basis:
     def to_bytes(self) -> bytes:
         """The head of a p4 file; its CRC32 (`crc`) also seeds those of the entries coded with
         it, so entries never decode with a basis they were not coded with."""
-        return _HEAD.pack(_MAGIC, self.crc, self.start, len(self.mean)) + self.payload
+        head = _HEAD.pack(_MAGIC, self.crc, self.start, len(self.mean), len(self.early))
+        return head + self.payload
 
     @classmethod
-    def from_bytes(cls, data: bytes, d: int, where: str) -> Basis | None:
-        """The head of a p4 file -> its basis, None when none was written yet (zeros);
-        MapError when it is damaged."""
+    def from_bytes(cls, data: bytes, shape: tuple[int, int], where: str) -> Basis | None:
+        """The head of a p4 file of entries [N, D] -> its basis, None when none was written yet
+        (zeros); MapError when it is damaged."""
         if not any(data):
             return None
-        magic, crc, start, dim = _HEAD.unpack_from(data)
-        payload = data[_HEAD.size :]
-        if (magic, dim) != (_MAGIC, d) or crc != zlib.crc32(payload, zlib.crc32(data[8:16])):
+        magic, crc, start, dim, copies = _HEAD.unpack_from(data)
+        d, size = int(shape[1]), entry_bytes(shape, "p4")
+        payload = data[_HEAD.size : _HEAD.size + 4 * d + 2 * d * d + d + copies * size]
+        if (
+            (magic, dim) != (_MAGIC, d)
+            or copies > min(start, BASIS_FROM)
+            or crc != zlib.crc32(payload, zlib.crc32(data[8:20]))
+        ):
             raise MapError(
                 f"the p4 basis at the head of {where} fails its check (magic, size or CRC32): "
                 "the file is damaged on disk; restore the map from a backup or rebuild it"
             )
         mean = np.frombuffer(payload[: 4 * d], "<f4")
         enc = np.frombuffer(payload[4 * d : 4 * d + 2 * d * d], "<f2").reshape(d, d)
-        return cls(mean, enc, np.frombuffer(payload[4 * d + 2 * d * d :], np.uint8), start)
+        at = 4 * d + 2 * d * d + d
+        early = [payload[at + i * size : at + (i + 1) * size] for i in range(copies)]
+        return cls(mean, enc, np.frombuffer(payload[at - d : at], np.uint8), start, early)
 
     def encode(self, tokens: np.ndarray, size: int) -> bytes:
         """tokens [N, D] float16 -> `size` bytes."""

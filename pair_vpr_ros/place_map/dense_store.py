@@ -67,6 +67,9 @@ class DenseStore:
         self.entry_bytes = entry_bytes(self.shape, codec)
         self.head = head_bytes(self.shape, codec)  # p4: its basis, before entry 0
         self.basis: Basis | None = None
+        # p4, a new store: the float16 tokens of the entries before the basis, to fit it on
+        # and to code them with it too (Basis.early)
+        self._first: list[np.ndarray] | None = [] if codec == "p4" and crcs is None else None
         self.crcs = crcs if crcs is not None else array("I")
         self.count = len(self.crcs)
         self.writable, self.cache_size, self.verify_reads = writable, cache_size, verify_reads
@@ -124,7 +127,7 @@ class DenseStore:
         basis they were coded with, tell (`_spot_check`)."""
         data = os.pread(self._fd, self.head, 0)
         try:
-            basis = Basis.from_bytes(data, self.shape[1], str(self.path))
+            basis = Basis.from_bytes(data, self.shape, str(self.path))
         except MapError:
             if self.count > BASIS_FROM:
                 self.close()
@@ -162,18 +165,34 @@ class DenseStore:
         if self.codec != "p4":
             return encode(dense, self.codec)
         if self.basis is None and self.count >= BASIS_FROM:
-            tokens = self.read(np.arange(BASIS_FROM)).reshape(-1, self.shape[1])
-            n = self.shape[0]
-            self._write_basis(Basis.fit(tokens, n, self.entry_bytes, BASIS_FROM, self.weight))
+            self._fit()
+        if self.basis is None and self._first is not None:
+            self._first.append(dense.copy())
         if self.basis is None or self.count < self.basis.start:
             data = encode(dense, "q4")  # tiny shapes: p4's entries are longer than q4's
             return data + bytes(self.entry_bytes - len(data))
         return self.basis.encode(dense, self.entry_bytes)
 
+    def _fit(self) -> None:
+        """Fit the basis on the first BASIS_FROM entries (their float16 tokens when this store
+        saw them added, else as decoded) and write it with their copies coded with it."""
+        first = self._first if self._first and len(self._first) == BASIS_FROM else None
+        tokens = np.stack(first) if first else self.read(np.arange(BASIS_FROM))
+        size, n = self.entry_bytes, self.shape[0]
+        basis = Basis.fit(tokens.reshape(-1, self.shape[1]), n, size, BASIS_FROM, self.weight)
+        if first:
+            early = [basis.encode(t, size) for t in first]
+            basis = Basis(basis.mean, basis.enc16, basis.bits, basis.start, early)
+        self._first = None
+        self._write_basis(basis)
+        self._cache.clear()  # entries before the basis now decode from their copies
+
     def _decode(self, data: bytes, i: int) -> np.ndarray:
         if self.codec != "p4":
             return decode(data, self.shape, self.codec)
-        if self.basis is None or i < self.basis.start:
+        if self.basis is not None and i < len(self.basis.early):
+            data = self.basis.early[i]  # its slot (CRC32-checked) holds the q4 form
+        elif self.basis is None or i < self.basis.start:
             return decode(data[: entry_bytes(self.shape, "q4")], self.shape, "q4")
         return self.basis.decode(data, self.shape[0])
 
@@ -197,6 +216,8 @@ class DenseStore:
         self.crcs.pop()
         self.count -= 1
         self._cache.pop(self.count, None)
+        if self._first is not None and len(self._first) > self.count:
+            self._first.pop()
 
     def truncate(self, count: int) -> None:
         """Forget entries >= count (their bytes become an ignored tail)."""

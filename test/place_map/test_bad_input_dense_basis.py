@@ -1,7 +1,8 @@
-"""Bad-input matrix, dense codec p4's basis (the head of `dense-g.p4`): a flipped byte, a head
-of zeros (lost), a basis-coded entry without its basis, a file cut inside the head: each a
-MapError naming the file, at load, and the saved map unchanged; a basis written past the saved
-entries (a crash before the save) is fitted again."""
+"""Bad-input matrix, dense codec p4's basis (the head of `dense-g.p4`): a flipped byte (in the
+basis or in its copies of the entries before it), a head of zeros (lost), a basis-coded entry
+without its basis, a file cut inside the head: each a MapError naming the file, at load, and the
+saved map unchanged; a basis written past the saved entries (a crash before the save) is fitted
+again."""
 
 from __future__ import annotations
 
@@ -46,6 +47,10 @@ CASES = {
     ),
     "a flipped byte in the basis's magic": (
         "fitted", lambda p: _flip(p, 1),
+        "the p4 basis at the head of {p} fails its check (magic, size or CRC32)",
+    ),
+    "a flipped byte in a copy of an entry before the basis": (
+        "fitted", lambda p: _flip(p, 20 + 4 * 32 + 2 * 32 * 32 + 32 + 5),
         "the p4 basis at the head of {p} fails its check (magic, size or CRC32)",
     ),
     "a head of zeros": (
