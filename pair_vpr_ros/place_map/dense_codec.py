@@ -1,16 +1,16 @@
 """How one keyframe's dense tokens [N, D] are stored: "q4" (default), "p4", "q4a" or "f16".
 
-"p4" (issue 34): a basis per map. The map's first BASIS_FROM entries are stored as q4; then a
-basis is fitted once on their decoded tokens (`Basis.fit`) and every later entry is stored as
-the coefficients y = (x - mean) E [N, D], each component with a width fixed for the whole map
-(bits from the components' spreads by reverse water-filling, `allocate`), so every entry has the
-same layout and the same bytes as q4. When the pair decoder's first layer W [C, D] is given
-(its input sees the tokens only as W x), the basis is fitted on W x: E = W^T V with V the
-principal axes of W x, so the coding error is spread where the decoder looks. The basis (E as
-float16, the mean, the widths) lives in the dense file's head (`Basis.to_bytes`, magic + CRC32),
-written once; decoding needs only the file, never the model.
-Entry layout: per component a float16 low end and a float16 step [D] each, then per group of
-equal width (widest first) its bit planes, low bit first, each `np.packbits` of [N, m] values.
+"p4" (issue 34): a basis per map. The map's first BASIS_FROM entries are stored as q4 and their
+float16 tokens kept in memory; at the next add a basis is fitted on them once (`Basis.fit`) and
+every later entry is stored as the components y = (x - mean) E [N, D], each with a width fixed
+for the whole map (bits from the components' spreads by reverse water-filling, `allocate`), so
+every entry has the same layout and the same bytes as q4. With the pair decoder's first layer
+W [C, D] (it sees the tokens only as W x) the basis is fitted on W x: E = W^T V with V the
+principal axes of W x, so the coding error goes where the decoder looks least. The basis (mean,
+E as float16, the widths) and the first entries coded with it (read instead of their q4 slots)
+are written once into the dense file's head (`Basis.to_bytes`: magic, CRC32); decoding needs
+the file only, never the model. An entry: a float16 low end and step per component [D] each,
+then per run of equal width (widest first) its bit planes, each `np.packbits` of [N, m] bits.
 
 "q4a" (issue 34): 4 bits a value on a grid of each channel's own range, x = (q - z) s with q in
 0..15: the step s = base 2^(e / 16) (one uint8 e per channel, one float32 base per keyframe: the
