@@ -166,8 +166,6 @@ class DenseStore:
             return encode(dense, self.codec)
         if self.basis is None and self.count >= BASIS_FROM:
             self._fit()
-        if self.basis is None and self._first is not None:
-            self._first.append(dense.copy())
         if self.basis is None or self.count < self.basis.start:
             data = encode(dense, "q4")  # tiny shapes: p4's entries are longer than q4's
             return data + bytes(self.entry_bytes - len(data))
@@ -183,8 +181,8 @@ class DenseStore:
         if first:
             early = [basis.encode(t, size) for t in first]
             basis = Basis(basis.mean, basis.enc16, basis.bits, basis.start, early)
-        self._first = None
         self._write_basis(basis)
+        self._first = None
         self._cache.clear()  # entries before the basis now decode from their copies
 
     def _decode(self, data: bytes, i: int) -> np.ndarray:
@@ -209,6 +207,8 @@ class DenseStore:
             raise MapError(f"writing dense tokens to {self.path} stopped early: disk full?")
         self.crcs.append(self._crc(data, self.count))
         self.count += 1
+        if self._first is not None and self.basis is None:
+            self._first.append(dense.copy())
         return self.count - 1
 
     def drop_last(self) -> None:

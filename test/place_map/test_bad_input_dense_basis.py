@@ -2,10 +2,11 @@
 basis or in its copies of the entries before it), a head of zeros (lost), a basis-coded entry
 without its basis, a file cut inside the head: each a MapError naming the file, at load, and the
 saved map unchanged; a basis written past the saved entries (a crash before the save) is fitted
-again."""
+again; a full disk while writing it loses no keyframe."""
 
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,7 @@ from bad_input import tree_digest
 from test_dense_codec_p4 import BASIS_FROM, P4, SHAPE, _desc, _map, _meta, tokens
 
 from pair_vpr_ros.errors import MapError
-from pair_vpr_ros.place_map import PlaceMap
+from pair_vpr_ros.place_map import PlaceMap, dense_store
 from pair_vpr_ros.place_map.dense_codec import head_bytes
 
 
@@ -119,3 +120,30 @@ def test_an_unsaved_basis_past_the_saved_entries_is_fitted_again(tmp_path: Path)
         m.save(d)
     with PlaceMap.load(d, verify_dense=True) as m:
         assert len(m) == BASIS_FROM + 1 and m.dense_basis is not None
+
+
+def test_a_full_disk_while_writing_the_basis_loses_no_keyframe(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """The add that fits the basis fails with a MapError; the map keeps its keyframes and the
+    next add fits it again (the float16 tokens of the first ones kept)."""
+    data = tokens(4, BASIS_FROM + 2)
+    real = dense_store.os.pwrite
+
+    def full(fd, payload, offset):
+        if offset == 0:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(fd, payload, offset)
+
+    with PlaceMap(8, SHAPE, "fp", P4) as m:
+        for i in range(BASIS_FROM):
+            m.add(_desc(i), data[i], _meta(i))
+        with monkeypatch.context() as mp:
+            mp.setattr(dense_store.os, "pwrite", full)
+            with pytest.raises(MapError) as err:
+                m.add(_desc(9), data[BASIS_FROM], _meta(9))
+        assert "writing the p4 basis to " in str(err.value)
+        assert str(err.value).endswith("failed: No space left on device")
+        assert len(m) == BASIS_FROM and m.dense_basis is None
+        m.add(_desc(9), data[BASIS_FROM], _meta(9))
+        assert len(m.dense_basis.early) == BASIS_FROM
