@@ -1,10 +1,12 @@
-"""What the map's 4-bit dense tokens (dense_codec "q4a", "q4") cost the re-ranking (issue 34).
+"""What the map's 4-bit dense tokens (dense_codec q4a, q4, p4) cost the re-ranking (issue 34).
 
 Demo-world frames (benchmarks/bench_model.py's `agreement_images`: spread over the laps of the
 seed-1234 world, revisits included) are encoded by the shipped demo model; each frame is a query
 whose k nearest others by global descriptor are its candidates, re-ranked as config/demo.yaml
 does (pair score + global_weight x descriptor similarity) once with the float16 tokens the map
-stored before and once with the same tokens through each 4-bit codec (what a map gives back).
+stored before and once with the same tokens through each 4-bit codec (what a map gives back;
+p4: the frames added in order to a dense store, its basis fitted on the first BASIS_FROM for the
+model's decoder_embed, and "p4-channels" on the tokens' own channels).
 
 Reported: top-1 agreement (the same candidate wins), the same place (top-1 within the replay's
 ground-truth radius of float16's), and the AP / recall at precision 0.9 of the re-ranked top-1 as

@@ -41,7 +41,9 @@ import numpy as np
 from pair_vpr_ros.errors import ConfigError, MapError
 
 CODECS = ("p4", "q4a", "q4", "f16")
-BASIS_FROM = 4  # p4: keyframes the basis is fitted on (see the module docstring)
+# p4: the keyframes the basis is fitted on (module docstring); part of the format: it sizes the
+# head of every p4 file, so another value needs another codec name
+BASIS_FROM = 16
 # p4's head: magic, CRC32 of the rest, first entry coded with the basis, D, copies of entries
 # before it (see `Basis`)
 _HEAD = struct.Struct("<4sIIII")
