@@ -69,14 +69,9 @@ def entry_bytes(shape: tuple[int, int], codec: str = "f16") -> int:
 
 
 def head_bytes(shape: tuple[int, int], codec: str) -> int:
-    """Bytes before entry 0 in a dense file of `codec`: p4's basis and the copies of the
-    entries before it (zeros until it is fitted)."""
+    """Bytes before entry 0 in a dense file of `codec`: p4's basis (zeros until it is fitted)."""
     d = int(shape[1])
-    return (
-        _HEAD.size + 4 * d + 2 * d * d + d + BASIS_FROM * entry_bytes(shape, codec)
-        if (codec == "p4")
-        else 0
-    )
+    return _HEAD.size + 4 * d + 2 * d * d + d + 4 * BASIS_FROM if codec == "p4" else 0
 
 
 def _pack(q: np.ndarray) -> bytes:
@@ -184,13 +179,12 @@ def _toward(values: np.ndarray, down: bool) -> np.ndarray:
 class Basis:
     """p4's transform of one map: y = (x - mean) @ enc, x = y @ dec + mean (dec = enc^-1),
     components ordered by their fixed widths `bits` [D] (widest first; `groups`: (width, first,
-    stop) per run of equal width); `start`: the first entry coded with it; `early`: the
-    entries before it coded with it too (from their float16 tokens, kept until the fit), stored
-    in the head and read instead of their q4 form (none when the map was saved and loaded
-    before the fit: their tokens are gone then)."""
+    stop) per run of equal width); `start`: the first entry coded with it; `recoded`: the
+    CRC32s of entries 0.. before it that were coded with it too, in their own slots (from their
+    float16 tokens, kept until the fit; only in a file no save names yet: none otherwise)."""
 
     def __init__(
-        self, mean: np.ndarray, enc: np.ndarray, bits: np.ndarray, start: int, early=()
+        self, mean: np.ndarray, enc: np.ndarray, bits: np.ndarray, start: int, recoded=()
     ) -> None:
         self.mean = np.asarray(mean, "<f4")
         self.enc16 = np.asarray(enc, "<f2")
@@ -202,11 +196,10 @@ class Basis:
         cut = [0, *np.flatnonzero(np.diff(widths)) + 1, self.live]
         pairs = zip(cut[:-1], cut[1:], strict=True)
         self.groups = [(int(widths[a]), a, b) for a, b in pairs if b > a]
-        self.early = list(early)
-        self.payload = b"".join(
-            [self.mean.tobytes(), self.enc16.tobytes(), self.bits.tobytes(), *self.early]
-        )
-        fields = struct.pack("<III", self.start, len(mean), len(self.early))
+        self.recoded = [int(c) for c in recoded]
+        crcs = np.asarray(self.recoded, "<u4").tobytes()
+        self.payload = self.mean.tobytes() + self.enc16.tobytes() + self.bits.tobytes() + crcs
+        fields = struct.pack("<III", self.start, len(mean), len(self.recoded))
         self.crc = zlib.crc32(self.payload, zlib.crc32(fields))
 
     @functools.cached_property
@@ -238,7 +231,7 @@ class Basis:
     def to_bytes(self) -> bytes:
         """The head of a p4 file; its CRC32 (`crc`) also seeds those of the entries coded with
         it, so entries never decode with a basis they were not coded with."""
-        head = _HEAD.pack(_MAGIC, self.crc, self.start, len(self.mean), len(self.early))
+        head = _HEAD.pack(_MAGIC, self.crc, self.start, len(self.mean), len(self.recoded))
         return head + self.payload
 
     @classmethod
@@ -248,8 +241,8 @@ class Basis:
         if not any(data):
             return None
         magic, crc, start, dim, copies = _HEAD.unpack_from(data)
-        d, size = int(shape[1]), entry_bytes(shape, "p4")
-        payload = data[_HEAD.size : _HEAD.size + 4 * d + 2 * d * d + d + copies * size]
+        d = int(shape[1])
+        payload = data[_HEAD.size : _HEAD.size + 4 * d + 2 * d * d + d + 4 * copies]
         if (
             (magic, dim) != (_MAGIC, d)
             or copies > min(start, BASIS_FROM)
@@ -262,8 +255,8 @@ class Basis:
         mean = np.frombuffer(payload[: 4 * d], "<f4")
         enc = np.frombuffer(payload[4 * d : 4 * d + 2 * d * d], "<f2").reshape(d, d)
         at = 4 * d + 2 * d * d + d
-        early = [payload[at + i * size : at + (i + 1) * size] for i in range(copies)]
-        return cls(mean, enc, np.frombuffer(payload[at - d : at], np.uint8), start, early)
+        recoded = np.frombuffer(payload[at:], "<u4")
+        return cls(mean, enc, np.frombuffer(payload[at - d : at], np.uint8), start, recoded)
 
     def encode(self, tokens: np.ndarray, size: int) -> bytes:
         """tokens [N, D] float16 -> `size` bytes."""

@@ -68,7 +68,7 @@ class DenseStore:
         self.head = head_bytes(self.shape, codec)  # p4: its basis, before entry 0
         self.basis: Basis | None = None
         # p4, a new store: the float16 tokens of the entries before the basis, to fit it on
-        # and to code them with it too (Basis.early)
+        # and to code them with it too (Basis.recoded)
         self._first: list[np.ndarray] | None = [] if codec == "p4" and crcs is None else None
         self.crcs = crcs if crcs is not None else array("I")
         self.count = len(self.crcs)
@@ -102,7 +102,7 @@ class DenseStore:
         of `shape` (a wrong shape puts the entry boundaries elsewhere)."""
         for i in sorted({0, self.count - 1} if self.count else set()):
             data = os.pread(self._fd, self.entry_bytes, self._at(i))
-            if self._crc(data, i) != self.crcs[i]:
+            if not self._intact(data, i):
                 self.close()
                 raise MapError(
                     f"dense token file {self.path} does not match its manifest: keyframe {i} "
@@ -119,6 +119,12 @@ class DenseStore:
         """CRC32 of entry i's bytes; p4 entries coded with the basis: seeded with its CRC32."""
         coded = self.basis is not None and i >= self.basis.start
         return zlib.crc32(data, self.basis.crc if coded else 0)
+
+    def _intact(self, data: bytes, i: int) -> bool:
+        """Entry i's bytes match their CRC32 (the basis's for entries it re-coded in place)."""
+        if self.basis is not None and i < len(self.basis.recoded):
+            return zlib.crc32(data) == self.basis.recoded[i]
+        return self._crc(data, i) == self.crcs[i]
 
     def _open_basis(self) -> None:
         """p4: read the basis from the file's head; MapError when the valid entries need one
@@ -140,7 +146,7 @@ class DenseStore:
                 f"{BASIS_FROM}.. need it: the file is damaged; restore the map from a backup or "
                 "rebuild it"
             )
-        if basis is not None and self.count > basis.start:
+        if basis is not None and (self.count > basis.start or basis.recoded):
             self.basis = basis
 
     def adopt(self, basis: Basis) -> None:
@@ -152,14 +158,20 @@ class DenseStore:
     def _write_basis(self, basis: Basis) -> None:
         """Write the basis into the head (once per map: fsynced with the entries by `sync`,
         before any saved row names an entry coded with it)."""
-        data = basis.to_bytes()
-        try:
-            written = os.pwrite(self._fd, data, 0)
-        except OSError as err:
-            raise MapError(f"writing the p4 basis to {self.path} failed: {err.strerror}") from err
-        if written != len(data):
-            raise MapError(f"writing the p4 basis to {self.path} stopped early: disk full?")
+        self._write(basis.to_bytes(), 0, "the p4 basis")
         self.basis = basis
+
+    def _write(self, data: bytes, offset: int, what: str) -> None:
+        try:
+            written = os.pwrite(self._fd, data, offset)
+        except OSError as err:
+            raise MapError(f"writing {what} to {self.path} failed: {err.strerror}") from err
+        if written != len(data):
+            raise MapError(f"writing {what} to {self.path} stopped early: disk full?")
+
+    def _encode_q4(self, dense: np.ndarray) -> bytes:
+        data = encode(dense, "q4")  # tiny shapes: p4's entries are longer than q4's
+        return data + bytes(self.entry_bytes - len(data))
 
     def _encode(self, dense: np.ndarray) -> bytes:
         if self.codec != "p4":
@@ -167,30 +179,39 @@ class DenseStore:
         if self.basis is None and self.count >= BASIS_FROM:
             self._fit()
         if self.basis is None or self.count < self.basis.start:
-            data = encode(dense, "q4")  # tiny shapes: p4's entries are longer than q4's
-            return data + bytes(self.entry_bytes - len(data))
+            return self._encode_q4(dense)
         return self.basis.encode(dense, self.entry_bytes)
 
     def _fit(self) -> None:
         """Fit the basis on the first BASIS_FROM entries (their float16 tokens when this store
-        saw them added, else as decoded) and write it with their copies coded with it."""
+        saw them added, else as decoded) and write it; in a file no save names yet, code those
+        entries with it too, in their slots (their q4 form is then needed by no one)."""
         first = self._first if self._first and len(self._first) == BASIS_FROM else None
         tokens = np.stack(first) if first else self.read(np.arange(BASIS_FROM))
         size, n = self.entry_bytes, self.shape[0]
         basis = Basis.fit(tokens.reshape(-1, self.shape[1]), n, size, BASIS_FROM, self.weight)
-        if first:
-            early = [basis.encode(t, size) for t in first]
-            basis = Basis(basis.mean, basis.enc16, basis.bits, basis.start, early)
-        self._write_basis(basis)
+        if not (first and self.owned):
+            self._write_basis(basis)
+            self._first = None
+            return
+        coded = [basis.encode(t, size) for t in first]
+        crcs = [zlib.crc32(c) for c in coded]
+        self._write_basis(Basis(basis.mean, basis.enc16, basis.bits, basis.start, crcs))
+        try:  # the head first (it may need new blocks), then the slots (they have theirs)
+            for i, data in enumerate(coded):
+                self._write(data, self._at(i), "dense tokens")
+        except MapError:  # put the q4 forms back: the map goes on without re-coded entries
+            for i, t in enumerate(first):
+                self._write(self._encode_q4(t), self._at(i), "dense tokens")
+            self._write_basis(basis)
+            raise
         self._first = None
-        self._cache.clear()  # entries before the basis now decode from their copies
+        self._cache.clear()  # entries 0.. decode with the basis now
 
     def _decode(self, data: bytes, i: int) -> np.ndarray:
         if self.codec != "p4":
             return decode(data, self.shape, self.codec)
-        if self.basis is not None and i < len(self.basis.early):
-            data = self.basis.early[i]  # its slot (CRC32-checked) holds the q4 form
-        elif self.basis is None or i < self.basis.start:
+        if self.basis is None or len(self.basis.recoded) <= i < self.basis.start:
             return decode(data[: entry_bytes(self.shape, "q4")], self.shape, "q4")
         return self.basis.decode(data, self.shape[0])
 
@@ -198,13 +219,7 @@ class DenseStore:
         """dense [N, D] float16 C-contiguous (validated by the caller) -> its entry index."""
         assert self._fd is not None and self.writable and dense.dtype == DTYPE
         data = self._encode(dense)
-        offset = self._at(self.count)
-        try:
-            written = os.pwrite(self._fd, data, offset)
-        except OSError as err:
-            raise MapError(f"writing dense tokens to {self.path} failed: {err.strerror}") from err
-        if written != len(data):
-            raise MapError(f"writing dense tokens to {self.path} stopped early: disk full?")
+        self._write(data, self._at(self.count), "dense tokens")
         self.crcs.append(self._crc(data, self.count))
         self.count += 1
         if self._first is not None and self.basis is None:
@@ -238,7 +253,7 @@ class DenseStore:
             return hit
         buf = os.pread(self._fd, self.entry_bytes, self._at(i))
         self.bytes_read += len(buf)
-        bad = self.verify_reads and self._crc(buf, i) != self.crcs[i]
+        bad = self.verify_reads and not self._intact(buf, i)
         if len(buf) != self.entry_bytes or bad:
             raise self._corrupt(i)
         entry = self._decode(buf, i)
@@ -263,7 +278,7 @@ class DenseStore:
             data = os.pread(self._fd, (stop - start) * self.entry_bytes, self._at(start))
             for i in range(start, stop):
                 lo = (i - start) * self.entry_bytes
-                if self._crc(data[lo : lo + self.entry_bytes], i) != self.crcs[i]:
+                if not self._intact(data[lo : lo + self.entry_bytes], i):
                     raise self._corrupt(i)
 
     def crc_bytes(self) -> bytes:

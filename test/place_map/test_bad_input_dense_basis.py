@@ -1,5 +1,5 @@
 """Bad-input matrix, dense codec p4's basis (the head of `dense-g.p4`): a flipped byte (in the
-basis or in its copies of the entries before it), a head of zeros (lost), a basis-coded entry
+basis, in an entry it re-coded), a head of zeros (lost), a basis-coded entry
 without its basis, a file cut inside the head: each a MapError naming the file, at load, and the
 saved map unchanged; a basis written past the saved entries (a crash before the save) is fitted
 again; a full disk while writing it loses no keyframe."""
@@ -50,9 +50,13 @@ CASES = {
         "fitted", lambda p: _flip(p, 1),
         "the p4 basis at the head of {p} fails its check (magic, size or CRC32)",
     ),
-    "a flipped byte in a copy of an entry before the basis": (
-        "fitted", lambda p: _flip(p, 20 + 4 * 32 + 2 * 32 * 32 + 32 + 5),
+    "a flipped byte in the CRC32s of the entries re-coded with the basis": (
+        "fitted", lambda p: _flip(p, 20 + 4 * 32 + 2 * 32 * 32 + 32 + 1),
         "the p4 basis at the head of {p} fails its check (magic, size or CRC32)",
+    ),
+    "a flipped byte in an entry re-coded with the basis": (
+        "fitted", lambda p: _flip(p, head_bytes(SHAPE, "p4") + 5),
+        "dense token file {p} does not match its manifest: keyframe 0 fails its CRC32 check",
     ),
     "a head of zeros": (
         "fitted", _zero_head,
@@ -146,4 +150,4 @@ def test_a_full_disk_while_writing_the_basis_loses_no_keyframe(
         assert str(err.value).endswith("failed: No space left on device")
         assert len(m) == BASIS_FROM and m.dense_basis is None
         m.add(_desc(9), data[BASIS_FROM], _meta(9))
-        assert len(m.dense_basis.early) == BASIS_FROM
+        assert len(m.dense_basis.recoded) == BASIS_FROM

@@ -35,7 +35,7 @@ def weight() -> np.ndarray:
 
 
 def store(path: Path, data: np.ndarray, w: np.ndarray | None = None) -> DenseStore:
-    s = DenseStore(path, SHAPE, codec="p4", weight=w)
+    s = DenseStore(path, SHAPE, codec="p4", weight=w, owned=True)  # as a new map's
     for t in data:
         s.append(np.ascontiguousarray(t))
     return s
@@ -55,7 +55,7 @@ def test_a_store_reopened_before_the_fit_keeps_its_first_entries_as_q4(tmp_path:
     s = DenseStore(tmp_path / "d.p4", SHAPE, crcs, codec="p4")
     for t in data[BASIS_FROM - 1 :]:
         s.append(np.ascontiguousarray(t))
-    assert s.basis.start == BASIS_FROM and s.basis.early == []
+    assert s.basis.start == BASIS_FROM and s.basis.recoded == []
     got = s.read(np.arange(len(data)))
     for i in range(BASIS_FROM):
         np.testing.assert_array_equal(got[i], q4(data[i]))
@@ -67,7 +67,7 @@ def test_entries_before_the_basis_are_coded_with_it_too(tmp_path: Path) -> None:
     data = tokens(1, BASIS_FROM + 8)
     s = store(tmp_path / "d.p4", data)
     assert s.basis is not None and s.basis.start == BASIS_FROM
-    assert len(s.basis.early) == BASIS_FROM
+    assert len(s.basis.recoded) == BASIS_FROM  # in their slots: no copies
     assert (tmp_path / "d.p4").stat().st_size == head_bytes(SHAPE, "p4") + len(data) * (
         entry_bytes(SHAPE, "p4")
     )
