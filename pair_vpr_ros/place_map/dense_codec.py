@@ -7,10 +7,11 @@ for the whole map (bits from the components' spreads by reverse water-filling, `
 every entry has the same layout and the same bytes as q4. With the pair decoder's first layer
 W [C, D] (it sees the tokens only as W x) the basis is fitted on W x: E = W^T V with V the
 principal axes of W x, so the coding error goes where the decoder looks least. The basis (mean,
-E as float16, the widths) and the first entries coded with it (read instead of their q4 slots)
-are written once into the dense file's head (`Basis.to_bytes`: magic, CRC32); decoding needs
-the file only, never the model. An entry: a float16 low end and step per component [D] each,
-then per run of equal width (widest first) its bit planes, each `np.packbits` of [N, m] bits.
+E as float16, the widths) is written once into the dense file's head (`Basis.to_bytes`: magic,
+CRC32), and the first entries are coded with it too in their slots while no save names the
+file (their CRC32s in the head); decoding needs the file only, never the model. An entry: a
+float16 low end and step per component [D] each, then per run of equal width (widest first)
+its bit planes, each `np.packbits` of [N, m] bits.
 
 "q4a" (issue 34): 4 bits a value on a grid of each channel's own range, x = (q - z) s with q in
 0..15: the step s = base 2^(e / 16) (one uint8 e per channel, one float32 base per keyframe: the
