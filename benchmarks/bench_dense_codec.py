@@ -68,7 +68,8 @@ class MapStored(StoredAs):
         dense, desc = self.model.encode(images)
         shape = tuple(dense.shape[1:])
         with tempfile.TemporaryDirectory() as tmp:
-            store = DenseStore(Path(tmp) / "d.p4", shape, codec="p4", weight=self.weight)
+            path = Path(tmp) / "d.p4"  # owned: a new map's working file, as the pipeline's
+            store = DenseStore(path, shape, codec="p4", weight=self.weight, owned=True)
             for t in dense.float():
                 store.append(np.ascontiguousarray(t.half().numpy()))
             stored = store.read(np.arange(store.count))
