@@ -65,9 +65,10 @@ def compact_map(
     fingerprint: str | None = None,
 ) -> CompactResult:
     """Compact the saved map `src` into the new folder `out` (module docstring) -> result.
-    codec: "q4" or "f16"; policy False: re-encode only; fingerprint: refuse a map of another
-    model. ConfigError (`out` exists, bad codec), MapError (`src` not a map, damaged, of an old
-    format), MapFingerprintError; `out` is not created then."""
+    codec: "q4", "p4", "q4a" or "f16" (p4 of a p4 map keeps its basis); policy False: re-encode
+    only; fingerprint: refuse a map of another model. ConfigError (`out` exists, bad codec),
+    MapError (`src` not a map, damaged, of an old format), MapFingerprintError; `out` is not
+    created then."""
     check_codec(codec)
     source, target = Path(src).expanduser().resolve(), Path(out).expanduser().resolve()
     _check_paths(source, target)
