@@ -1,10 +1,12 @@
-"""What the map's 4-bit dense tokens (dense_codec "q4a", "q4") cost the re-ranking (issue 34).
+"""What the map's 4-bit dense tokens (dense_codec q4a, q4, p4) cost the re-ranking (issue 34).
 
 Demo-world frames (benchmarks/bench_model.py's `agreement_images`: spread over the laps of the
 seed-1234 world, revisits included) are encoded by the shipped demo model; each frame is a query
 whose k nearest others by global descriptor are its candidates, re-ranked as config/demo.yaml
 does (pair score + global_weight x descriptor similarity) once with the float16 tokens the map
-stored before and once with the same tokens through each 4-bit codec (what a map gives back).
+stored before and once with the same tokens through each 4-bit codec (what a map gives back;
+p4: the frames added in order to a dense store, its basis fitted on the first BASIS_FROM for the
+model's decoder_embed, and "p4-channels" on the tokens' own channels).
 
 Reported: top-1 agreement (the same candidate wins), the same place (top-1 within the replay's
 ground-truth radius of float16's), and the AP / recall at precision 0.9 of the re-ranked top-1 as
@@ -22,7 +24,9 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -30,7 +34,8 @@ from bench_model import SAME_PLACE_M, agreement, agreement_images, default_demo_
 
 from pair_vpr_ros.learn.heldout import average_precision
 from pair_vpr_ros.model import load_pairvpr
-from pair_vpr_ros.place_map.dense_codec import decode, encode
+from pair_vpr_ros.place_map.dense_codec import BASIS_FROM, Basis, decode, encode, entry_bytes
+from pair_vpr_ros.place_map.dense_store import DenseStore
 
 
 class StoredAs:
@@ -49,6 +54,27 @@ class StoredAs:
 
     def pair_scores(self, *args):
         return self.model.pair_scores(*args)
+
+
+class MapStored(StoredAs):
+    """Dense tokens as a p4 map gives them back: the frames added in order to a dense store
+    (the first BASIS_FROM as q4, then the basis fitted on them; `weight`: the decoder's W)."""
+
+    def __init__(self, model, weight: np.ndarray | None) -> None:
+        super().__init__(model, "p4")
+        self.weight = weight
+
+    def encode(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        dense, desc = self.model.encode(images)
+        shape = tuple(dense.shape[1:])
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "d.p4"  # owned: a new map's working file, as the pipeline's
+            store = DenseStore(path, shape, codec="p4", weight=self.weight, owned=True)
+            for t in dense.float():
+                store.append(np.ascontiguousarray(t.half().numpy()))
+            stored = store.read(np.arange(store.count))
+            store.close()
+        return torch.from_numpy(stored).to(dense.dtype), desc
 
 
 def loop_ap(model, images, places, k: int, weight: float) -> tuple[float, float]:
@@ -87,8 +113,10 @@ def setup(argv: list[str] | None, doc: str):
 def main(argv: list[str] | None = None) -> int:
     args, model, images, places = setup(argv, __doc__)
     paths = {"fp32": StoredAs(model, "f16")} | {c: StoredAs(model, c) for c in ("q4", "q4a")}
+    weight = model.decoder_embed.weight.detach().float().numpy()
+    paths |= {"p4": MapStored(model, weight), "p4-channels": MapStored(model, None)}
     found = agreement(paths, images, args.k, places, args.global_weight)
-    for codec in ("q4", "q4a"):
+    for codec in [name for name in paths if name != "fp32"]:
         f = found[codec]
         print(f"{codec} vs f16 tokens, {args.queries} queries, top {args.k}, global weight "
               f"{args.global_weight:g}: top-1 agreement {f['top1']:.4f}, same place "
@@ -96,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
         for i, lost, gap, apart in f["flips"]:  # which queries change winner, and by how much
             print(f"  query {i}: float16's margin over the {codec} winner {lost:.3f}, "
                   f"{codec}'s {gap:.3f} the other way, winners {apart:.2f} m apart")  # fmt: skip
-    for name, m in (("f16", paths["fp32"]), ("q4", paths["q4"]), ("q4a", paths["q4a"])):
+    for name, m in [("f16", paths["fp32"])] + [(c, paths[c]) for c in paths if c != "fp32"]:
         ap, r90 = loop_ap(m, images, places, args.k, args.global_weight)
         print(f"{name}: re-ranked top-1 AP {ap:.4f}, recall at precision 0.9 {r90:.4f}")
     print_speed()
@@ -105,14 +133,22 @@ def main(argv: list[str] | None = None) -> int:
 
 def print_speed(shape: tuple[int, int] = (529, 768), repeats: int = 20) -> None:
     """Median encode and decode time of one ViT-B/322 keyframe's tokens per codec."""
-    tokens = np.random.default_rng(0).standard_normal(shape).astype(np.float16)
-    for codec in ("f16", "q4", "q4a"):
+    rng = np.random.default_rng(0)
+    tokens = rng.standard_normal(shape).astype(np.float16)
+    # p4's basis fitted on random correlated tokens (every component gets bits: the slowest)
+    mix = rng.standard_normal((shape[1], shape[1])) / np.sqrt(shape[1])
+    fit = rng.standard_normal((BASIS_FROM * shape[0], shape[1])) @ mix
+    basis = Basis.fit(fit, shape[0], entry_bytes(shape, "p4"), BASIS_FROM)
+    for codec in ("f16", "q4", "q4a", "p4"):
         enc, dec = [], []
         for _ in range(repeats):
             t0 = time.perf_counter()
-            data = encode(tokens, codec)
+            if codec == "p4":
+                data = basis.encode(tokens, entry_bytes(shape, "p4"))
+            else:
+                data = encode(tokens, codec)
             t1 = time.perf_counter()
-            decode(data, shape, codec)
+            basis.decode(data, shape[0]) if codec == "p4" else decode(data, shape, codec)
             enc.append(t1 - t0)
             dec.append(time.perf_counter() - t1)
         print(f"{codec} [{shape[0]}, {shape[1]}]: {len(data):,} B, encode "

@@ -10,6 +10,8 @@ import sqlite3
 from pathlib import Path
 from urllib.parse import quote
 
+from pair_vpr_ros.place_map.dense_codec import entry_bytes, head_bytes
+
 LOCK_NAME = "map.lock"  # holds the pid of the last writer: not part of the saved map
 
 
@@ -51,9 +53,9 @@ def saved_map_digest(directory: Path) -> dict[str, str]:
     out = {"manifest.json": hashlib.sha256((directory / "manifest.json").read_bytes()).hexdigest()}
     if manifest["format_version"] >= 3:
         count, out["store"] = _store_rows(directory / manifest["files"]["store"]["name"])
-        n, d = manifest["dense_shape"]
-        size = n * d * 2 if manifest["dense_codec"] == "f16" else (n * d + 1) // 2 + 2 * d
-        data = (directory / manifest["files"]["dense"]["name"]).read_bytes()[: count * size]
+        shape, codec = manifest["dense_shape"], manifest["dense_codec"]
+        size = head_bytes(shape, codec) + count * entry_bytes(shape, codec)
+        data = (directory / manifest["files"]["dense"]["name"]).read_bytes()[:size]
         out["dense"] = hashlib.sha256(data).hexdigest()
         return out
     for role, entry in manifest["files"].items():

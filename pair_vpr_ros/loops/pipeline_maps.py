@@ -23,7 +23,15 @@ class PipelineMaps:
             dense_shape=dense_shape,
             fingerprint=self.model.fingerprint,
             index=self.index_kind,
+            dense_weight=self._dense_weight(),
         )
+
+    def _dense_weight(self):
+        """The pair decoder's first layer W [C, D] (float32 numpy), which dense codec p4 fits
+        its basis for; None when the model does not expose it."""
+        layer = getattr(self.model, "decoder_embed", None)
+        weight = getattr(layer, "weight", None)
+        return None if weight is None else weight.detach().float().cpu().numpy()
 
     def _check_fingerprint(self, place_map: PlaceMap) -> None:
         if place_map.fingerprint != self.model.fingerprint:
@@ -74,6 +82,7 @@ class PipelineMaps:
                 self._place_map = self._new_map()
                 self._reset_tracking()
             raise
+        loaded.set_dense_weight(self._dense_weight())
         self._place_map = loaded
         self._reset_tracking()
         if not same:

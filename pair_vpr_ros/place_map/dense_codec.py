@@ -1,4 +1,17 @@
-"""How one keyframe's dense tokens [N, D] are stored: "q4" (default), "q4a" or "f16" (as given).
+"""How one keyframe's dense tokens [N, D] are stored: "q4" (default), "p4", "q4a" or "f16".
+
+"p4" (issue 34): a basis per map. The map's first BASIS_FROM entries are stored as q4 and their
+float16 tokens kept in memory; at the next add a basis is fitted on them once (`Basis.fit`) and
+every later entry is stored as the components y = (x - mean) E [N, D], each with a width fixed
+for the whole map (bits from the components' spreads by reverse water-filling, `allocate`), so
+every entry has the same layout and the same bytes as q4. With the pair decoder's first layer
+W [C, D] (it sees the tokens only as W x) the basis is fitted on W x: E = W^T V with V the
+principal axes of W x, so the coding error goes where the decoder looks least. The basis (mean,
+E as float16, the widths) is written once into the dense file's head (`Basis.to_bytes`: magic,
+CRC32), and the first entries are coded with it too in their slots while no save names the
+file (their CRC32s in the head); decoding needs the file only, never the model. An entry: a
+float16 low end and step per component [D] each, then per run of equal width (widest first)
+its bit planes, each `np.packbits` of [N, m] bits.
 
 "q4a" (issue 34): 4 bits a value on a grid of each channel's own range, x = (q - z) s with q in
 0..15: the step s = base 2^(e / 16) (one uint8 e per channel, one float32 base per keyframe: the
@@ -20,11 +33,24 @@ tolerance is measured in docs/performance.md ("Compact keyframes").
 
 from __future__ import annotations
 
+import functools
+import heapq
+import struct
+import zlib
+
 import numpy as np
 
-from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.errors import ConfigError, MapError
 
-CODECS = ("q4a", "q4", "f16")
+CODECS = ("p4", "q4a", "q4", "f16")
+# p4: the keyframes the basis is fitted on (module docstring); part of the format: it sizes the
+# head of every p4 file, so another value needs another codec name
+BASIS_FROM = 16
+# p4's head: magic, CRC32 of the rest, first entry coded with the basis, D, copies of entries
+# before it (see `Basis`)
+_HEAD = struct.Struct("<4sIIII")
+_MAGIC = b"PVB1"
+_PAD = 36  # p4: bytes an entry keeps for padding its bit planes (at most 36) to whole bytes
 _LEVELS = 7  # |q| <= 7: symmetric, so 0 stays exactly 0
 
 
@@ -39,7 +65,14 @@ def entry_bytes(shape: tuple[int, int], codec: str = "f16") -> int:
     n, d = int(shape[0]), int(shape[1])
     if codec == "f16":
         return n * d * 2
-    return (n * d + 1) // 2 + 2 * d + (4 if codec == "q4a" else 0)
+    q4 = (n * d + 1) // 2 + 2 * d
+    return q4 + 4 if codec == "q4a" else max(q4, 4 * d + _PAD) if codec == "p4" else q4
+
+
+def head_bytes(shape: tuple[int, int], codec: str) -> int:
+    """Bytes before entry 0 in a dense file of `codec`: p4's basis (zeros until it is fitted)."""
+    d = int(shape[1])
+    return _HEAD.size + 4 * d + 2 * d * d + d + 4 * BASIS_FROM if codec == "p4" else 0
 
 
 def _pack(q: np.ndarray) -> bytes:
@@ -118,3 +151,150 @@ def decode(data: bytes, shape: tuple[int, int], codec: str) -> np.ndarray:
     q[1::2] = raw[:nibbles] >> 4
     values = (q[: n * d].reshape(n, d) - 8).astype(np.float32) * scale[None, :]
     return values.astype(np.float16)
+
+
+# ------------------------------------------------------------------------------------- p4
+def allocate(energy: np.ndarray, total: int, top: int = 8) -> np.ndarray:
+    """Bits 0..top for each component of energy [D] (its mean squared range), `total` in all:
+    each bit goes where it removes the most squared error (energy 4^-bits), reverse
+    water-filling for a uniform quantiser."""
+    bits = np.zeros(len(energy), np.int64)
+    heap = [(-float(e), i) for i, e in enumerate(energy)]
+    heapq.heapify(heap)
+    for _ in range(min(int(total), top * len(energy))):
+        e, i = heapq.heappop(heap)
+        bits[i] += 1
+        if bits[i] < top:
+            heapq.heappush(heap, (e / 4, i))
+    return bits
+
+
+def _toward(values: np.ndarray, down: bool) -> np.ndarray:
+    """float32 [D] -> float16, rounded down (or up), within float16's range."""
+    v = np.clip(values, -65504, 65504).astype(np.float32)
+    h = v.astype(np.float16)
+    off = h.astype(np.float32) > v if down else h.astype(np.float32) < v
+    return np.where(off, np.nextafter(h, np.float16(-np.inf if down else np.inf)), h)
+
+
+class Basis:
+    """p4's transform of one map: y = (x - mean) @ enc, x = y @ dec + mean (dec = enc^-1),
+    components ordered by their fixed widths `bits` [D] (widest first; `groups`: (width, first,
+    stop) per run of equal width); `start`: the first entry coded with it; `recoded`: the
+    CRC32s of entries 0.. before it that were coded with it too, in their own slots (from their
+    float16 tokens, kept until the fit; only in a file no save names yet: none otherwise)."""
+
+    def __init__(
+        self, mean: np.ndarray, enc: np.ndarray, bits: np.ndarray, start: int, recoded=()
+    ) -> None:
+        self.mean = np.asarray(mean, "<f4")
+        self.enc16 = np.asarray(enc, "<f2")
+        self.bits = np.asarray(bits, np.uint8)
+        self.start = int(start)
+        self.enc = self.enc16.astype(np.float32)
+        self.live = int(np.count_nonzero(self.bits))  # components with bits come first
+        widths = self.bits[: self.live]
+        cut = [0, *np.flatnonzero(np.diff(widths)) + 1, self.live]
+        pairs = zip(cut[:-1], cut[1:], strict=True)
+        self.groups = [(int(widths[a]), a, b) for a, b in pairs if b > a]
+        self.recoded = [int(c) for c in recoded]
+        crcs = np.asarray(self.recoded, "<u4").tobytes()
+        self.payload = self.mean.tobytes() + self.enc16.tobytes() + self.bits.tobytes() + crcs
+        fields = struct.pack("<III", self.start, len(mean), len(self.recoded))
+        self.crc = zlib.crc32(self.payload, zlib.crc32(fields))
+
+    @functools.cached_property
+    def dec(self) -> np.ndarray:
+        """enc^-1 [D, D] float32, made at the first decode (not at load: ~0.1 s at D = 768)."""
+        return np.linalg.inv(self.enc.astype(np.float64)).astype(np.float32)
+
+    @classmethod
+    def fit(cls, x: np.ndarray, n: int, size: int, start: int, weight=None) -> Basis:
+        """x [K * n, D]: the decoded tokens of K keyframes of n tokens; size: entry bytes;
+        weight: the decoder's W [C, D] (used when square and well conditioned) or None."""
+        x = x.astype(np.float64)
+        mean = x.mean(0)
+        w = None if weight is None else np.asarray(weight, np.float64)
+        if w is not None and (w.shape != (x.shape[1],) * 2 or np.linalg.cond(w) > 1e4):
+            w = None  # the fit falls back to the tokens' own channels
+        z = (x - mean) if w is None else (x - mean) @ w.T
+        vectors = np.linalg.eigh(z.T @ z)[1][:, ::-1]
+        enc = vectors if w is None else w.T @ vectors
+        enc = enc * 2.0 ** -np.ceil(np.log2(np.abs(enc).max()))  # float16's sweet spot
+        enc16 = enc.astype(np.float16)
+        y = ((x - mean) @ enc16.astype(np.float64)).reshape(-1, n, x.shape[1])
+        energy = ((y.max(1) - y.min(1)) ** 2).mean(0)  # [D]
+        d = x.shape[1]
+        bits = allocate(energy, max(size - 4 * d - _PAD, 0) * 8 // n)
+        order = np.argsort(-bits, kind="stable")
+        return cls(mean, enc16[:, order], bits[order], start)
+
+    def to_bytes(self) -> bytes:
+        """The head of a p4 file; its CRC32 (`crc`) also seeds those of the entries coded with
+        it, so entries never decode with a basis they were not coded with."""
+        head = _HEAD.pack(_MAGIC, self.crc, self.start, len(self.mean), len(self.recoded))
+        return head + self.payload
+
+    @classmethod
+    def from_bytes(cls, data: bytes, shape: tuple[int, int], where: str) -> Basis | None:
+        """The head of a p4 file of entries [N, D] -> its basis, None when none was written yet
+        (zeros); MapError when it is damaged."""
+        if not any(data):
+            return None
+        magic, crc, start, dim, copies = _HEAD.unpack_from(data)
+        d = int(shape[1])
+        payload = data[_HEAD.size : _HEAD.size + 4 * d + 2 * d * d + d + 4 * copies]
+        if (
+            (magic, dim) != (_MAGIC, d)
+            or copies > min(start, BASIS_FROM)
+            or crc != zlib.crc32(payload, zlib.crc32(data[8:20]))
+        ):
+            raise MapError(
+                f"the p4 basis at the head of {where} fails its check (magic, size or CRC32): "
+                "the file is damaged on disk; restore the map from a backup or rebuild it"
+            )
+        mean = np.frombuffer(payload[: 4 * d], "<f4")
+        enc = np.frombuffer(payload[4 * d : 4 * d + 2 * d * d], "<f2").reshape(d, d)
+        at = 4 * d + 2 * d * d + d
+        recoded = np.frombuffer(payload[at:], "<u4")
+        return cls(mean, enc, np.frombuffer(payload[at - d : at], np.uint8), start, recoded)
+
+    def encode(self, tokens: np.ndarray, size: int) -> bytes:
+        """tokens [N, D] float16 -> `size` bytes."""
+        y = (tokens.astype(np.float32) - self.mean) @ self.enc  # [N, D]
+        lo = _toward(y.min(0), down=True)
+        levels = (2.0 ** self.bits.astype(np.float32) - 1).astype(np.float32)
+        step = _toward((y.max(0) - lo.astype(np.float32)) / np.maximum(levels, 1), down=False)
+        lo[self.live :] = y[:, self.live :].mean(0)  # no bits: the component's mean
+        step[self.live :] = 0
+        safe = np.where(step > 0, step.astype(np.float32), 1)
+        parts = [lo.tobytes(), step.tobytes()]
+        for width, a, b in self.groups:
+            q = np.rint((y[:, a:b] - lo[a:b].astype(np.float32)) / safe[a:b])
+            q = np.clip(q, 0, levels[a]).astype(np.uint8).reshape(-1)
+            parts += [np.packbits((q >> k) & 1, bitorder="little").tobytes() for k in range(width)]
+        data = b"".join(parts)
+        return data + bytes(size - len(data))
+
+    def decode(self, data: bytes, n: int) -> np.ndarray:
+        """Bytes of `encode` -> tokens [n, D] float16."""
+        raw = np.frombuffer(data, np.uint8)
+        d = len(self.mean)
+        lo, step = np.frombuffer(data, "<f2", 2 * d).astype(np.float32).reshape(2, d)
+        y = np.empty((n, self.live), np.float32)
+        at = 4 * d
+        for width, a, b in self.groups:
+            plane = (n * (b - a) + 7) // 8
+            bits = np.unpackbits(
+                raw[at : at + width * plane].reshape(width, plane), axis=1,
+                count=n * (b - a), bitorder="little",
+            )  # fmt: skip
+            q = bits[0].copy()
+            for k in range(1, width):
+                q |= bits[k] << k
+            y[:, a:b] = q.reshape(n, b - a)
+            at += width * plane
+        y *= step[: self.live]
+        y += lo[: self.live]
+        rest = lo[self.live :] @ self.dec[self.live :] + self.mean  # [D]
+        return (y @ self.dec[: self.live] + rest).astype(np.float16)

@@ -12,20 +12,24 @@ Not detected: damage to an entry while verification is off, or to entries alread
 
 from __future__ import annotations
 
-import mmap
 import os
-import struct
 import zlib
 from array import array
 from collections import OrderedDict
 from pathlib import Path
 
-import faiss
 import numpy as np
 from tqdm import tqdm
 
 from pair_vpr_ros.errors import MapError
-from pair_vpr_ros.place_map.dense_codec import decode, encode, entry_bytes
+from pair_vpr_ros.place_map.dense_codec import (
+    BASIS_FROM,
+    Basis,
+    decode,
+    encode,
+    entry_bytes,
+    head_bytes,
+)
 from pair_vpr_ros.place_map.files import copy_prefix
 
 DTYPE = np.float16
@@ -39,7 +43,9 @@ class DenseStore:
     cache_size: hot entries kept in memory (LRU); 0 disables the cache.
     verify_reads: check the CRC32 of every entry read from the file.
     owned: the file belongs to this store alone (no saved manifest names it): may be moved/deleted.
-    codec: how entries are stored ("q4" or "f16", dense_codec.py).
+    codec: how entries are stored ("q4", "p4", "q4a" or "f16", dense_codec.py).
+    weight: p4: the pair decoder's first layer W [C, D] its basis is fitted for (None: the
+        tokens' own channels); decoding never needs it.
     """
 
     def __init__(
@@ -53,11 +59,17 @@ class DenseStore:
         verify_reads: bool = True,
         owned: bool = False,
         codec: str = "f16",
+        weight: np.ndarray | None = None,
     ) -> None:
         self.path = Path(path)
         self.shape = (int(shape[0]), int(shape[1]))
-        self.codec = codec
+        self.codec, self.weight = codec, weight
         self.entry_bytes = entry_bytes(self.shape, codec)
+        self.head = head_bytes(self.shape, codec)  # p4: its basis, before entry 0
+        self.basis: Basis | None = None
+        # p4, a new store: the float16 tokens of the entries before the basis, to fit it on
+        # and to code them with it too (Basis.recoded)
+        self._first: list[np.ndarray] | None = [] if codec == "p4" and crcs is None else None
         self.crcs = crcs if crcs is not None else array("I")
         self.count = len(self.crcs)
         self.writable, self.cache_size, self.verify_reads = writable, cache_size, verify_reads
@@ -70,13 +82,16 @@ class DenseStore:
         except OSError as err:
             raise MapError(f"cannot open dense token file {self.path}: {err.strerror}") from err
         size = os.fstat(self._fd).st_size
-        if size < self.count * self.entry_bytes:
+        if self.count and size < self.head + self.count * self.entry_bytes:
             self.close()
             raise MapError(
                 f"dense token file {self.path} is too short: {size} bytes hold "
-                f"{size // self.entry_bytes} keyframes, the manifest lists {self.count}; the map "
-                "is damaged (truncated copy?): restore it from a backup or rebuild it"
+                f"{max(size - self.head, 0) // self.entry_bytes} keyframes, the manifest lists "
+                f"{self.count}; the map is damaged (truncated copy?): restore it from a backup "
+                "or rebuild it"
             )
+        if self.head and size >= self.head:  # shorter: a new file (written at entry 0)
+            self._open_basis()
         # Bytes past `count` (unsaved or torn appends) are left alone: later appends overwrite
         # them. Never shrinking the file means a manifest that disagrees with it (a hand-edited
         # dense_shape) can not destroy saved tokens; the spot check below reports it instead.
@@ -86,8 +101,8 @@ class DenseStore:
         """The first and last valid entries match their CRC32: the file holds `count` entries
         of `shape` (a wrong shape puts the entry boundaries elsewhere)."""
         for i in sorted({0, self.count - 1} if self.count else set()):
-            data = os.pread(self._fd, self.entry_bytes, i * self.entry_bytes)
-            if zlib.crc32(data) != self.crcs[i]:
+            data = os.pread(self._fd, self.entry_bytes, self._at(i))
+            if not self._intact(data, i):
                 self.close()
                 raise MapError(
                     f"dense token file {self.path} does not match its manifest: keyframe {i} "
@@ -97,19 +112,118 @@ class DenseStore:
                     "rebuild it"
                 )
 
-    def append(self, dense: np.ndarray) -> int:
-        """dense [N, D] float16 C-contiguous (validated by the caller) -> its entry index."""
-        assert self._fd is not None and self.writable and dense.dtype == DTYPE
-        data = encode(dense, self.codec)
-        offset = self.count * self.entry_bytes
+    def _at(self, i: int) -> int:
+        return self.head + i * self.entry_bytes
+
+    def _crc(self, data: bytes, i: int) -> int:
+        """CRC32 of entry i's bytes; p4 entries coded with the basis: seeded with its CRC32."""
+        coded = self.basis is not None and i >= self.basis.start
+        return zlib.crc32(data, self.basis.crc if coded else 0)
+
+    def _intact(self, data: bytes, i: int) -> bool:
+        """Entry i's bytes match their CRC32 (the basis's for entries it re-coded in place)."""
+        if self.basis is not None and i < len(self.basis.recoded):
+            return zlib.crc32(data) == self.basis.recoded[i]
+        return self._crc(data, i) == self.crcs[i]
+
+    def _open_basis(self) -> None:
+        """p4: read the basis from the file's head; MapError when the valid entries need one
+        and it is missing or damaged. Up to BASIS_FROM entries a damaged head may be one torn
+        past the save (fitted again at the next append): the entries' CRC32s, seeded with the
+        basis they were coded with, tell (`_spot_check`)."""
+        data = os.pread(self._fd, self.head, 0)
+        try:
+            basis = Basis.from_bytes(data, self.shape, str(self.path))
+        except MapError:
+            if self.count > BASIS_FROM:
+                self.close()
+                raise
+            basis = None
+        if basis is None and self.count > BASIS_FROM:
+            self.close()
+            raise MapError(
+                f"the p4 basis at the head of {self.path} is missing (zeros) but keyframes "
+                f"{BASIS_FROM}.. need it: the file is damaged; restore the map from a backup or "
+                "rebuild it"
+            )
+        if basis is not None and (self.count > basis.start or basis.recoded):
+            self.basis = basis
+
+    def adopt(self, basis: Basis) -> None:
+        """Code every entry with `basis` (another map's, e.g. a merge's first map), from the
+        first; only while the store is empty."""
+        assert self.codec == "p4" and self.count == 0
+        self._write_basis(Basis(basis.mean, basis.enc16, basis.bits, 0))
+
+    def _write_basis(self, basis: Basis) -> None:
+        """Write the basis into the head (once per map: fsynced with the entries by `sync`,
+        before any saved row names an entry coded with it)."""
+        self._write(basis.to_bytes(), 0, "the p4 basis")
+        self.basis = basis
+
+    def _write(self, data: bytes, offset: int, what: str) -> None:
         try:
             written = os.pwrite(self._fd, data, offset)
         except OSError as err:
-            raise MapError(f"writing dense tokens to {self.path} failed: {err.strerror}") from err
+            raise MapError(f"writing {what} to {self.path} failed: {err.strerror}") from err
         if written != len(data):
-            raise MapError(f"writing dense tokens to {self.path} stopped early: disk full?")
-        self.crcs.append(zlib.crc32(data))
+            raise MapError(f"writing {what} to {self.path} stopped early: disk full?")
+
+    def _encode_q4(self, dense: np.ndarray) -> bytes:
+        data = encode(dense, "q4")  # tiny shapes: p4's entries are longer than q4's
+        return data + bytes(self.entry_bytes - len(data))
+
+    def _encode(self, dense: np.ndarray) -> bytes:
+        if self.codec != "p4":
+            return encode(dense, self.codec)
+        if self.basis is None and self.count >= BASIS_FROM:
+            self._fit()
+        if self.basis is None or self.count < self.basis.start:
+            return self._encode_q4(dense)
+        return self.basis.encode(dense, self.entry_bytes)
+
+    def _fit(self) -> None:
+        """Fit the basis on the first BASIS_FROM entries (their float16 tokens when this store
+        saw them added, else as decoded) and write it; in a file no save names yet, code those
+        entries with it too, in their slots (their q4 form is then needed by no one)."""
+        first = self._first if self._first and len(self._first) == BASIS_FROM else None
+        tokens = np.stack(first) if first else self.read(np.arange(BASIS_FROM))
+        size, n = self.entry_bytes, self.shape[0]
+        basis = Basis.fit(tokens.reshape(-1, self.shape[1]), n, size, BASIS_FROM, self.weight)
+        if not (first and self.owned):
+            self._write_basis(basis)
+            self._first = None
+            return
+        coded = [basis.encode(t, size) for t in first]
+        crcs = [zlib.crc32(c) for c in coded]
+        self._write_basis(Basis(basis.mean, basis.enc16, basis.bits, basis.start, crcs))
+        try:  # the head first (it may need new blocks), then the slots (they have theirs)
+            for i, data in enumerate(coded):
+                self._write(data, self._at(i), "dense tokens")
+        except MapError:  # put the q4 forms back: the map goes on without re-coded entries
+            for i, t in enumerate(first):
+                self._write(self._encode_q4(t), self._at(i), "dense tokens")
+            self._write_basis(basis)
+            raise
+        self._first = None
+        self._cache.clear()  # entries 0.. decode with the basis now
+
+    def _decode(self, data: bytes, i: int) -> np.ndarray:
+        if self.codec != "p4":
+            return decode(data, self.shape, self.codec)
+        if self.basis is None or len(self.basis.recoded) <= i < self.basis.start:
+            return decode(data[: entry_bytes(self.shape, "q4")], self.shape, "q4")
+        return self.basis.decode(data, self.shape[0])
+
+    def append(self, dense: np.ndarray) -> int:
+        """dense [N, D] float16 C-contiguous (validated by the caller) -> its entry index."""
+        assert self._fd is not None and self.writable and dense.dtype == DTYPE
+        data = self._encode(dense)
+        self._write(data, self._at(self.count), "dense tokens")
+        self.crcs.append(self._crc(data, self.count))
         self.count += 1
+        if self._first is not None and self.basis is None:
+            self._first.append(dense.copy())
         return self.count - 1
 
     def drop_last(self) -> None:
@@ -117,6 +231,8 @@ class DenseStore:
         self.crcs.pop()
         self.count -= 1
         self._cache.pop(self.count, None)
+        if self._first is not None and len(self._first) > self.count:
+            self._first.pop()
 
     def truncate(self, count: int) -> None:
         """Forget entries >= count (their bytes become an ignored tail)."""
@@ -135,11 +251,12 @@ class DenseStore:
         if hit is not None:
             self._cache.move_to_end(i)
             return hit
-        buf = os.pread(self._fd, self.entry_bytes, i * self.entry_bytes)
+        buf = os.pread(self._fd, self.entry_bytes, self._at(i))
         self.bytes_read += len(buf)
-        if len(buf) != self.entry_bytes or (self.verify_reads and zlib.crc32(buf) != self.crcs[i]):
+        bad = self.verify_reads and not self._intact(buf, i)
+        if len(buf) != self.entry_bytes or bad:
             raise self._corrupt(i)
-        entry = decode(buf, self.shape, self.codec)
+        entry = self._decode(buf, i)
         if self.cache_size > 0:
             self._cache[i] = entry
             if len(self._cache) > self.cache_size:
@@ -158,10 +275,10 @@ class DenseStore:
         starts = range(0, self.count, step)
         for start in tqdm(starts, desc="verify dense", disable=self.count < 5000):
             stop = min(start + step, self.count)
-            data = os.pread(self._fd, (stop - start) * self.entry_bytes, start * self.entry_bytes)
+            data = os.pread(self._fd, (stop - start) * self.entry_bytes, self._at(start))
             for i in range(start, stop):
                 lo = (i - start) * self.entry_bytes
-                if zlib.crc32(data[lo : lo + self.entry_bytes]) != self.crcs[i]:
+                if not self._intact(data[lo : lo + self.entry_bytes], i):
                     raise self._corrupt(i)
 
     def crc_bytes(self) -> bytes:
@@ -174,7 +291,7 @@ class DenseStore:
 
     def copy_to(self, dst: Path) -> None:
         """Write the valid entries to a new file `dst` (fsynced)."""
-        copy_prefix(self._fd, dst, self.count * self.entry_bytes)
+        copy_prefix(self._fd, dst, self._at(self.count))
 
     def close(self) -> None:
         self._cache.clear()
@@ -198,77 +315,3 @@ def read_crcs(path: Path, count: int) -> array:
     crcs = array("I")
     crcs.frombytes(np.frombuffer(data, dtype="<u4").astype(np.uint32).tobytes())
     return crcs
-
-
-# ---------------------------------------------------------------------------- descriptor cache
-# A flat map's descriptors, next to its keyframe store (`map-<g>.sqlite.desc`), so a load reads
-# neither every row nor every byte: the store's rows stay the saved truth; the cache is derived
-# from them, written after each save, and used only when its header names exactly the store's
-# keyframe count and its rows match the CRC32 in that header (otherwise the load scans the rows
-# as before, and the next save writes the cache again). Layout: a 4096-byte header page
-# (magic, version, dim, count, CRC32 of the rows), then the rows [count, dim] float32, so the
-# page's last bytes can take FAISS's own IndexFlatIP header in a private memory map and FAISS
-# searches the rows where the page cache holds them (no copy at load).
-CACHE_SUFFIX = ".desc"
-_CACHE_HEAD = struct.Struct("<4sIIQI")  # b"PVDC", version 1, dim, count, crc32 of the rows
-_PAGE = 4096
-_FAISS_HEAD = struct.Struct("<4siqqqBiq")  # faiss IndexFlatIP: fourcc, d, ntotal, 2 dummies,
-# is_trained, metric (0: inner product), then the float vector's size and its values
-
-
-def cache_path(store_path: Path) -> Path:
-    return store_path.with_name(store_path.name + CACHE_SUFFIX)
-
-
-class CacheCheck:
-    """The CRC32 check of a mapped cache's rows, made when the rows are first used (`ok`), not
-    at load: a load then costs the same at any size (a thread started at load measured no
-    better on 2 busy cores: starting it waited tens of ms for a core)."""
-
-    def __init__(self, rows: memoryview, crc: int) -> None:
-        self._rows, self._crc = rows, crc
-
-    def ok(self) -> bool:
-        return zlib.crc32(self._rows) == self._crc
-
-
-def open_cache(path: Path, dim: int, count: int) -> tuple[faiss.Index, object, int] | None:
-    """-> (an IndexFlatIP of the `count` cached descriptors [count, dim] that views the file,
-    (what must stay alive while it is used, its `CacheCheck`), the rows' CRC32), or None when
-    the cache cannot hold those rows (missing, short, another count or dim). The index must not
-    be used before `CacheCheck.ok` says the rows match their CRC32."""
-    try:
-        with open(path, "rb") as fh:
-            mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_COPY)
-    except (OSError, ValueError):
-        return None
-    size = _PAGE + count * 4 * dim
-    if count < 1 or len(mm) < size:
-        return None
-    magic, version, d, n, crc = _CACHE_HEAD.unpack_from(mm)
-    if (magic, version, d, n) != (b"PVDC", 1, dim, count):
-        return None
-    check = CacheCheck(memoryview(mm)[_PAGE:size], crc)
-    start = _PAGE - _FAISS_HEAD.size
-    mm[start:_PAGE] = _FAISS_HEAD.pack(b"IxFI", dim, count, 1 << 20, 1 << 20, 1, 0, count * dim)
-    view = np.frombuffer(mm, np.uint8, size - start, start)  # private: the file is unchanged
-    index = faiss.read_index(faiss.ZeroCopyIOReader(faiss.swig_ptr(view), view.size))
-    return index, (mm, view, check), crc
-
-
-def write_cache(path: Path, rows: np.ndarray, start: int, crc: int) -> int:
-    """Write descriptors rows [m, dim] float32 as entries start.. of the cache (start 0: a new
-    cache) -> the CRC32 of its rows 0..start+m-1 (`crc`: that of rows 0..start-1). Not
-    fsynced: the cache is checked at every load and rebuilt when it does not match."""
-    rows = np.ascontiguousarray(rows, "<f4")
-    data = rows.tobytes()
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        if start == 0:
-            os.ftruncate(fd, 0)
-        os.pwrite(fd, data, _PAGE + start * rows.shape[1] * 4)
-        crc = zlib.crc32(data, crc if start else 0)
-        os.pwrite(fd, _CACHE_HEAD.pack(b"PVDC", 1, rows.shape[1], start + len(rows), crc), 0)
-    finally:
-        os.close(fd)
-    return crc

@@ -1,4 +1,5 @@
-"""Durable file operations for map directories: fsync, atomic publish, a writer lock.
+"""Durable file operations for map directories: fsync, atomic publish, a writer lock, and the
+flat map's descriptor cache (below).
 
 A save is crash-safe only if every new file is on disk before the manifest that names it, and the
 manifest switch itself is one `os.replace`; these helpers give those guarantees on POSIX.
@@ -8,10 +9,15 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import mmap
 import os
+import struct
 import zlib
 from collections.abc import Callable
 from pathlib import Path
+
+import faiss
+import numpy as np
 
 from pair_vpr_ros.errors import MapError
 
@@ -138,3 +144,77 @@ class DirLock:
 
     def __del__(self) -> None:  # a PlaceMap dropped without close() still unlocks
         self.release()
+
+
+# ---------------------------------------------------------------------------- descriptor cache
+# A flat map's descriptors, next to its keyframe store (`map-<g>.sqlite.desc`), so a load reads
+# neither every row nor every byte: the store's rows stay the saved truth; the cache is derived
+# from them, written after each save, and used only when its header names exactly the store's
+# keyframe count and its rows match the CRC32 in that header (otherwise the load scans the rows
+# as before, and the next save writes the cache again). Layout: a 4096-byte header page
+# (magic, version, dim, count, CRC32 of the rows), then the rows [count, dim] float32, so the
+# page's last bytes can take FAISS's own IndexFlatIP header in a private memory map and FAISS
+# searches the rows where the page cache holds them (no copy at load).
+CACHE_SUFFIX = ".desc"
+_CACHE_HEAD = struct.Struct("<4sIIQI")  # b"PVDC", version 1, dim, count, crc32 of the rows
+_PAGE = 4096
+_FAISS_HEAD = struct.Struct("<4siqqqBiq")  # faiss IndexFlatIP: fourcc, d, ntotal, 2 dummies,
+# is_trained, metric (0: inner product), then the float vector's size and its values
+
+
+def cache_path(store_path: Path) -> Path:
+    return store_path.with_name(store_path.name + CACHE_SUFFIX)
+
+
+class CacheCheck:
+    """The CRC32 check of a mapped cache's rows, made when the rows are first used (`ok`), not
+    at load: a load then costs the same at any size (a thread started at load measured no
+    better on 2 busy cores: starting it waited tens of ms for a core)."""
+
+    def __init__(self, rows: memoryview, crc: int) -> None:
+        self._rows, self._crc = rows, crc
+
+    def ok(self) -> bool:
+        return zlib.crc32(self._rows) == self._crc
+
+
+def open_cache(path: Path, dim: int, count: int) -> tuple[faiss.Index, object, int] | None:
+    """-> (an IndexFlatIP of the `count` cached descriptors [count, dim] that views the file,
+    (what must stay alive while it is used, its `CacheCheck`), the rows' CRC32), or None when
+    the cache cannot hold those rows (missing, short, another count or dim). The index must not
+    be used before `CacheCheck.ok` says the rows match their CRC32."""
+    try:
+        with open(path, "rb") as fh:
+            mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_COPY)
+    except (OSError, ValueError):
+        return None
+    size = _PAGE + count * 4 * dim
+    if count < 1 or len(mm) < size:
+        return None
+    magic, version, d, n, crc = _CACHE_HEAD.unpack_from(mm)
+    if (magic, version, d, n) != (b"PVDC", 1, dim, count):
+        return None
+    check = CacheCheck(memoryview(mm)[_PAGE:size], crc)
+    start = _PAGE - _FAISS_HEAD.size
+    mm[start:_PAGE] = _FAISS_HEAD.pack(b"IxFI", dim, count, 1 << 20, 1 << 20, 1, 0, count * dim)
+    view = np.frombuffer(mm, np.uint8, size - start, start)  # private: the file is unchanged
+    index = faiss.read_index(faiss.ZeroCopyIOReader(faiss.swig_ptr(view), view.size))
+    return index, (mm, view, check), crc
+
+
+def write_cache(path: Path, rows: np.ndarray, start: int, crc: int) -> int:
+    """Write descriptors rows [m, dim] float32 as entries start.. of the cache (start 0: a new
+    cache) -> the CRC32 of its rows 0..start+m-1 (`crc`: that of rows 0..start-1). Not
+    fsynced: the cache is checked at every load and rebuilt when it does not match."""
+    rows = np.ascontiguousarray(rows, "<f4")
+    data = rows.tobytes()
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        if start == 0:
+            os.ftruncate(fd, 0)
+        os.pwrite(fd, data, _PAGE + start * rows.shape[1] * 4)
+        crc = zlib.crc32(data, crc if start else 0)
+        os.pwrite(fd, _CACHE_HEAD.pack(b"PVDC", 1, rows.shape[1], start + len(rows), crc), 0)
+    finally:
+        os.close(fd)
+    return crc

@@ -142,7 +142,7 @@ class DescriptorIndex:
         cls, dim: int, config: IndexConfig, index: faiss.Index, backing: tuple, fallback
     ) -> DescriptorIndex:
         """A "flat" index over vectors it does not own (a loaded map's descriptor cache,
-        dense_store.open_cache: `backing` = (map, rows, CRC32 check)): its first use makes
+        files.open_cache: `backing` = (map, rows, CRC32 check)): its first use makes
         the check (rows that fail it are replaced by `fallback()` [n, dim], and `cache_failed`
         says so), its first change copies them."""
         obj = cls(dim, config)

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from pair_vpr_ros.identity import DEFAULT_ROBOT, LEGACY_SESSION
-from pair_vpr_ros.place_map.dense_store import cache_path
+from pair_vpr_ros.place_map.files import cache_path
 from pair_vpr_ros.place_map.manifest import MANIFEST_NAME, read_manifest
 from pair_vpr_ros.place_map.place_map import PlaceMap
 

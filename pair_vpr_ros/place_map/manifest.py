@@ -2,10 +2,10 @@
 
 Format 3 (written since issue 34): generation g is `map-g.sqlite` (the keyframe store, store.py:
 metadata, descriptors, features, per-row CRC32s; its own commits are the incremental saves) and
-the append-only `dense-h.q4` / `dense-h.f16`; non-flat index kinds add a snapshot
-`index-g-k.faiss` / `.milvus` that the store names. The manifest is written only when a
-generation starts (first save into a folder, a save after `clear`, a converted old map) and
-carries a CRC32 of its own content.
+the append-only `dense-h.q4` / `.p4` / `.q4a` / `.f16` (p4: its basis in the file's head);
+non-flat index kinds add a snapshot `index-g-k.faiss` / `.milvus` that the store names. The
+manifest is written only when a generation starts (first save into a folder, a save after
+`clear`, a converted old map) and carries a CRC32 of its own content.
 
 Formats 1 and 2 (read, converted to 3 by the next save): files of generation g are named
 `index-g.faiss` (kind "milvus": `index-g.milvus`, the record of its collection), `meta-g.sqlite`,
@@ -32,12 +32,12 @@ FORMAT_VERSION = 3  # 2: keyframes carry robot and session (issue 22); 3: increm
 READABLE_VERSIONS = (1, 2, 3)  # a version-1 map loads with its keyframes named at load
 # Files a save may create; anything else in the directory is left alone.
 MAP_FILE_RE = re.compile(
-    r"^(index-\d+(-\d+)?\.(faiss|milvus)|(meta|map)-\d+\.sqlite|dense-\d+\.(f16|crc|q4a|q4))"
+    r"^(index-\d+(-\d+)?\.(faiss|milvus)|(meta|map)-\d+\.sqlite|dense-\d+\.(f16|crc|q4a|q4|p4))"
 )
 _CHECKED = ("index", "meta", "dense_crc")  # small files: size + sha256 in the manifest
 _ROLE_RE_V3 = {
     "store": re.compile(r"map-\d+\.sqlite"),
-    "dense": re.compile(r"dense-\d+\.(f16|q4a|q4)"),
+    "dense": re.compile(r"dense-\d+\.(f16|q4a|q4|p4)"),
 }
 _ROLE_RE = {
     "index": re.compile(r"index-\d+\.(faiss|milvus)"),  # milvus: the collection's record
@@ -143,7 +143,7 @@ def _check_fields(m: Manifest) -> None:
         raise ValueError("dense_shape entries must be integers > 0")
     if m.dense_dtype != "float16" or not isinstance(m.fingerprint, str):
         raise ValueError("dense_dtype must be float16 and fingerprint a string")
-    if m.dense_codec not in ("f16", "q4", "q4a") or (
+    if m.dense_codec not in ("f16", "q4", "q4a", "p4") or (
         m.format_version < 3 and m.dense_codec != "f16"
     ):
         raise ValueError(f"unknown dense_codec {m.dense_codec!r}")
@@ -200,7 +200,7 @@ def remove_stale(directory: Path, keep: set[str]) -> None:
 def remove_generation(directory: Path, generation: int, keep: set[str]) -> None:
     """Delete the files (and temporaries) a failed save of `generation` left, except `keep`."""
     pattern = re.compile(
-        rf"^(index|meta|dense|map)-{generation}(-\d+)?\.(faiss|milvus|sqlite|f16|crc|q4a|q4)"
+        rf"^(index|meta|dense|map)-{generation}(-\d+)?\.(faiss|milvus|sqlite|f16|crc|q4a|q4|p4)"
     )
     for name in os.listdir(directory):
         if pattern.match(name) and name not in keep:

@@ -194,6 +194,7 @@ def _copy(
 ) -> PlaceMap:
     first = maps[0]
     merged = PlaceMap(first.desc_dim, first.dense_shape, first.fingerprint, index, work_dir=work)
+    merged.adopt_dense_basis(next((m.dense_basis for m in maps if m.dense_basis), None))
     total = sum(len(m) for m in maps)
     try:
         with tqdm(total=total, unit="keyframe", desc="merge", disable=not progress) as bar:

@@ -21,10 +21,12 @@ from pathlib import Path
 import numpy as np
 
 from pair_vpr_ros.errors import MapError, MapFingerprintError
-from pair_vpr_ros.place_map.dense_store import DenseStore, cache_path, open_cache
+from pair_vpr_ros.place_map.dense_store import DenseStore
 from pair_vpr_ros.place_map.files import (
+    cache_path,
     crc32_file,
     fsync_path,
+    open_cache,
     publish,
     remove_quietly,
     same_device,

@@ -44,10 +44,11 @@ class PlaceMap(MapSaving):
     index: "flat" (exact) | "ivf" (exact below 25,000 keyframes, then k-means lists: ~1e6
         keyframes; training pauses an add, see place_map/ivf.py) | "hnsw" | an IndexConfig
         (kind "milvus": a Milvus collection, see place_map/milvus/index.py and docs/milvus.md);
-        its `dense_codec` ("q4" default, "q4a", "f16") is how dense tokens are stored.
+        its `dense_codec` ("q4" default, "p4", "q4a", "f16") is how dense tokens are stored.
     dense_cache_size: dense entries kept in memory (LRU). verify_dense_reads: CRC32-check
     entries read from disk. work_dir: parent of the working folder of a never-saved map (default:
     $TMPDIR); put it on the disk of the map directory so the first save moves the dense file.
+    dense_weight: codec p4: the pair decoder's first layer W [C, D] (`set_dense_weight`).
     """
 
     def __init__(
@@ -60,11 +61,13 @@ class PlaceMap(MapSaving):
         dense_cache_size: int = 128,
         verify_dense_reads: bool = True,
         work_dir: str | os.PathLike | None = None,
+        dense_weight: np.ndarray | None = None,
     ) -> None:
         config = index if isinstance(index, IndexConfig) else IndexConfig(kind=index)
         if int(desc_dim) < 1 or len(dense_shape) != 2 or min(dense_shape) < 1:
             raise ConfigError(f"bad place map shape: desc_dim={desc_dim}, dense={dense_shape}")
         self._setup(dense_cache_size, verify_dense_reads, work_dir)
+        self._dense_weight = dense_weight
         self.desc_dim = int(desc_dim)
         self.dense_shape = (int(dense_shape[0]), int(dense_shape[1]))
         self.fingerprint = str(fingerprint)
@@ -90,6 +93,7 @@ class PlaceMap(MapSaving):
         self._read_only = False
         self.load_note = ""  # what a caller should log about the load ("" = nothing)
         self._fresh_count = 0
+        self._dense_weight: np.ndarray | None = None
         self._closed = False
         self.session = utc_session()  # of keyframes that name none (see `identity`)
         try:
@@ -102,7 +106,8 @@ class PlaceMap(MapSaving):
         self._fresh_count += 1
         path = self._tmp / f"dense-work-{self._fresh_count}.{self._codec}"
         reads = dict(cache_size=self._cache_size, verify_reads=self._verify_reads)
-        return DenseStore(path, self.dense_shape, owned=True, codec=self._codec, **reads)
+        return DenseStore(path, self.dense_shape, owned=True, codec=self._codec,
+                          weight=self._dense_weight, **reads)  # fmt: skip
 
     def _fresh_store(self) -> KeyframeStore:
         self._fresh_count += 1
@@ -239,6 +244,23 @@ class PlaceMap(MapSaving):
         self._check_open()
         if self.filters_in_index:
             self._index.drop()
+
+    def set_dense_weight(self, weight: np.ndarray | None) -> None:
+        """Codec p4: fit the basis (when it is fitted: at keyframe BASIS_FROM) for the pair
+        decoder's first layer W [C, D] (dense_codec.py); a fitted basis is kept."""
+        self._dense_weight = self._dense.weight = weight
+
+    @property
+    def dense_basis(self):
+        """Codec p4: the fitted `dense_codec.Basis`, else None."""
+        return self._dense.basis
+
+    def adopt_dense_basis(self, basis) -> None:
+        """Code this empty p4 map's tokens with `basis` from its first keyframe (a merge or
+        compact keeps its input's basis); nothing for other codecs or shapes, or no basis."""
+        if basis is not None and self._codec == "p4" and len(self) == 0:
+            if len(basis.mean) == self.dense_shape[1]:
+                self._dense.adopt(basis)
 
     @property
     def index_config(self) -> IndexConfig:

@@ -17,8 +17,15 @@ import numpy as np
 from pair_vpr_ros.errors import MapError, MapFingerprintError
 from pair_vpr_ros.identity import DEFAULT_ROBOT, LEGACY_SESSION
 from pair_vpr_ros.place_map import persist
-from pair_vpr_ros.place_map.dense_store import CACHE_SUFFIX, DenseStore, cache_path, write_cache
-from pair_vpr_ros.place_map.files import LOCK_NAME, DirLock, fsync_path
+from pair_vpr_ros.place_map.dense_store import DenseStore
+from pair_vpr_ros.place_map.files import (
+    CACHE_SUFFIX,
+    LOCK_NAME,
+    DirLock,
+    cache_path,
+    fsync_path,
+    write_cache,
+)
 from pair_vpr_ros.place_map.manifest import MANIFEST_NAME, Manifest, read_manifest, remove_stale
 from pair_vpr_ros.place_map.parts import MapParts
 from pair_vpr_ros.place_map.store import KeyframeStore, SavedCrcs
@@ -201,6 +208,7 @@ class MapSaving:
                     cache_size=self._cache_size,
                     verify_reads=self._verify_reads,
                     codec=old.codec,
+                    weight=old.weight,
                 )
                 self._discard(old)
             fsync_path(d)  # make the manifest switch durable before deleting what it replaced

@@ -244,3 +244,31 @@ def test_stamps_going_back_start_a_session_and_never_pair_a_frame_with_itself(
     assert pipe.counts.clock_jumps == 2 and loops(earlier) == [(15, 0), (16, 1)]
     for o in earlier:  # loops into the "future": no LIO-SAM pair for them
         assert o.loop.match_stamp > o.loop.query_stamp and loop_messages(o.loop).pair is None
+
+
+def test_a_p4_map_is_fitted_for_the_decoders_first_layer(tiny_model, places, tmp_path):
+    """The pipeline hands the model's decoder_embed weight W to a new map and to a loaded one:
+    dense codec p4 fits its basis on W x (a basis on the channels differs)."""
+    from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta
+    from pair_vpr_ros.place_map.dense_codec import BASIS_FROM, Basis, entry_bytes
+
+    weight = tiny_model.decoder_embed.weight.detach().float().numpy()
+    pipe = LoopClosurePipeline(
+        tiny_model, DetectorConfig(**EXACT), index=IndexConfig(dense_codec="p4")
+    )
+    assert pipe._place_map._dense_weight is not None
+    np.testing.assert_array_equal(pipe._place_map._dense_weight, weight)
+    pipe.save_map(tmp_path / "map")
+    pipe.close()
+    fresh = LoopClosurePipeline(tiny_model, DetectorConfig(**EXACT))
+    fresh.load_map(tmp_path / "map")
+    np.testing.assert_array_equal(fresh._place_map._dense_weight, weight)
+    m, rng = fresh._place_map, np.random.default_rng(1)
+    for i in range(BASIS_FROM + 1):
+        m.add(rng.normal(size=m.desc_dim), rng.normal(size=m.dense_shape), KeyframeMeta(stamp=i))
+    tokens = m.get_dense(range(BASIS_FROM)).reshape(-1, m.dense_shape[1])  # what it was fit on
+    size, n = entry_bytes(m.dense_shape, "p4"), m.dense_shape[0]
+    for w, same in ((weight, True), (None, False)):
+        fitted = Basis.fit(tokens, n, size, BASIS_FROM, w)
+        assert np.array_equal(fitted.enc16, m.dense_basis.enc16) == same
+    fresh.close()

@@ -65,9 +65,10 @@ def compact_map(
     fingerprint: str | None = None,
 ) -> CompactResult:
     """Compact the saved map `src` into the new folder `out` (module docstring) -> result.
-    codec: "q4" or "f16"; policy False: re-encode only; fingerprint: refuse a map of another
-    model. ConfigError (`out` exists, bad codec), MapError (`src` not a map, damaged, of an old
-    format), MapFingerprintError; `out` is not created then."""
+    codec: "q4", "p4", "q4a" or "f16" (p4 of a p4 map keeps its basis); policy False: re-encode
+    only; fingerprint: refuse a map of another model. ConfigError (`out` exists, bad codec),
+    MapError (`src` not a map, damaged, of an old format), MapFingerprintError; `out` is not
+    created then."""
     check_codec(codec)
     source, target = Path(src).expanduser().resolve(), Path(out).expanduser().resolve()
     _check_paths(source, target)
@@ -168,6 +169,7 @@ def _dropped(m: PlaceMap, tables: GrowthTables, config: GrowthConfig) -> dict[in
 def _copy(m: PlaceMap, tables: GrowthTables, dropped: dict, codec: str, work: Path) -> PlaceMap:
     config = replace(m.index_config, dense_codec=codec)
     new = PlaceMap(m.desc_dim, m.dense_shape, m.fingerprint, config, work_dir=work)
+    new.adopt_dense_basis(m.dense_basis)  # p4: keep the input's basis (fitted with the model)
     try:
         new_id: dict[int, int] = {}
         metas = m.all_meta()
