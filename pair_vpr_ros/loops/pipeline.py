@@ -55,6 +55,7 @@ from pair_vpr_ros.loops.map_search import MapSearch
 from pair_vpr_ros.loops.pipeline_maps import PipelineMaps
 from pair_vpr_ros.loops.recency import ClockWatch
 from pair_vpr_ros.loops.scoring import dense_pair_scores, encode_for_map, map_pair_scores
+from pair_vpr_ros.loops.sequence import track_of
 from pair_vpr_ros.model import PairVPRModel, preprocess_batch
 from pair_vpr_ros.model.decoder import default_chunk
 from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
@@ -215,7 +216,7 @@ class LoopClosurePipeline(PipelineMaps):
                 near = self._scale_neighbours(best if lent is None else replace(best, id=lent[0]))
                 outcome.timings_ms["pose"] += self.geometry.pose(loop, features, match, near)
                 if not loop.pose_status:  # an unposed loop is no sequence to follow (sequence.py)
-                    self.detector.end_sequence(best.prior if self.config.loop_per_map else None)
+                    self.detector.end_sequence(track_of(best, self.config.loop_per_map))
                 if lent is not None:  # posed to the lender: T_match_query (growth.py)
                     shift_pose(loop, lent[1])
         if self.config.mode == "mapping":
@@ -300,7 +301,7 @@ class LoopClosurePipeline(PipelineMaps):
             record = self.detector.decide(
                 frame.stamp, frame.frame_id, candidates, rerank, verify, step=step,
                 first=fixed or 1, query_identity=(who.robot, who.session),
-                track=candidates[0].prior if per_map else None,
+                track=track_of(candidates[0], per_map),
             )  # fmt: skip
             if record is not None:
                 self.counts.candidates_scored += record.scored

@@ -15,6 +15,12 @@ from collections import deque
 from typing import Any
 
 
+def track_of(candidate: Any, loop_per_map: bool) -> int | None:
+    """The track a decision about `candidate` counts in: its map (`prior`) when each map
+    decides on its own (`loop_per_map`), else the one stream of decisions (None)."""
+    return candidate.prior if loop_per_map else None
+
+
 class DecisionTracks:
     """Per-track memory of a `LoopDetector`; `config` is its `DetectorConfig`.
     Candidates are `detector.Candidate` (`group`, `id`, `rerank_score`)."""
@@ -44,10 +50,8 @@ class DecisionTracks:
         map, robot and session whose ids lie within `temporal_tolerance` (ids of different
         robots or sessions say nothing about place)."""
         recent = self.recent(track)
-        if recent:
-            group, last = recent[-1]
-            if group != match.group or abs(match.id - last) > self.config.temporal_tolerance:
-                recent.clear()
+        if recent and not self._continues(recent[-1], match):
+            recent.clear()
         recent.append((match.group, match.id))
         return len(recent) >= self.config.temporal_consistency
 
@@ -58,13 +62,17 @@ class DecisionTracks:
         c = self.config
         if c.sequence_margin <= 0 or track not in self._followed:
             return None
-        group, last = self._followed[track]
-        floor = c.score_threshold - c.sequence_margin
+        last, floor = self._followed[track], c.score_threshold - c.sequence_margin
         for rank, cand in enumerate(scored, 1):
-            if (cand.group == group and abs(cand.id - last) <= c.temporal_tolerance
-                    and cand.rerank_score(c.global_weight) >= floor):  # fmt: skip
+            if self._continues(last, cand) and cand.rerank_score(c.global_weight) >= floor:
                 return rank, cand
         return None
+
+    def _continues(self, last: tuple, match: Any) -> bool:
+        """`match` agrees with the earlier match `last` (group, id): the same map, robot and
+        session, its id within `temporal_tolerance`."""
+        group, last_id = last
+        return match.group == group and abs(match.id - last_id) <= self.config.temporal_tolerance
 
     def decided(self, track: int | None, match: Any, accepted: bool) -> None:
         """Remember the accepted loop to `match`, or end the sequence."""
