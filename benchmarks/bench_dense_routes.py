@@ -40,7 +40,7 @@ from bench_dense_codec import setup, top1_ap
 from bench_model import rerank_scores
 from scipy.fft import dct
 
-from pair_vpr_ros.loops.detector import rerank_score
+from pair_vpr_ros.loops.records import rerank_score
 from pair_vpr_ros.place_map.dense_codec import decode, encode
 
 

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pair_vpr_ros.loops.detector import rerank_score
+from pair_vpr_ros.loops.records import rerank_score
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, load_pairvpr, quantize_int8
 from pair_vpr_ros.model.config import PATCH
 from pair_vpr_ros.offline.bags.calibration import calibration_loader

@@ -22,7 +22,7 @@ import tracemalloc
 
 import numpy as np
 
-from pair_vpr_ros.loops.detector import LoopRecord
+from pair_vpr_ros.loops.records import LoopRecord
 from pair_vpr_ros.offline.report import folder as report
 from pair_vpr_ros.offline.report.loop_truth import KeyframeInfo, queries_with_true_match
 

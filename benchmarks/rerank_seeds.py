@@ -24,9 +24,9 @@ import numpy as np
 from tqdm import tqdm
 
 from pair_vpr_ros.demo import generate_world, render_frame
-from pair_vpr_ros.loops.detector import rerank_score
 from pair_vpr_ros.loops.frames import Frame
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
+from pair_vpr_ros.loops.records import rerank_score
 from pair_vpr_ros.offline.report.loop_truth import (
     KeyframeInfo,
     PRCurve,

@@ -18,8 +18,8 @@ import numpy as np
 from pair_vpr_ros.errors import FleetMessageError
 from pair_vpr_ros.fleet.messages import ScoreRequest, ScoreResponse
 from pair_vpr_ros.geometry.features import Features
-from pair_vpr_ros.loops.detector import Candidate, LoopRecord, rank_by_pair_score
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
+from pair_vpr_ros.loops.records import Candidate, LoopRecord, rank_by_pair_score
 from pair_vpr_ros.loops.scoring import map_pair_scores
 
 MAX_PIXEL = 1e5  # keypoints further out than this (px) are no image's

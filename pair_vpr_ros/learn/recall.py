@@ -20,7 +20,7 @@ from tqdm import tqdm
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.learn.eval_sets import EvalSet
 from pair_vpr_ros.learn.image_files import ImageFiles
-from pair_vpr_ros.loops.detector import Candidate, rank_by_pair_score
+from pair_vpr_ros.loops.records import Candidate, rank_by_pair_score
 from pair_vpr_ros.loops.scoring import encode_for_map, map_pair_scores
 from pair_vpr_ros.model import PairVPR
 from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap

@@ -10,7 +10,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from pair_vpr_ros.geometry.camera import CameraModel
-from pair_vpr_ros.loops.detector import Candidate, LoopRecord
+from pair_vpr_ros.loops.records import Candidate, LoopRecord
 from pair_vpr_ros.types import Pose
 
 

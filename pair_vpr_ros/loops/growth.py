@@ -29,8 +29,8 @@ import numpy as np
 from pair_vpr_ros.geometry.epipolar import skew
 from pair_vpr_ros.geometry.rotations import quaternion_matrix
 from pair_vpr_ros.identity import Identity
-from pair_vpr_ros.loops.detector import LoopRecord
 from pair_vpr_ros.loops.frames import FrameOutcome, match_candidate
+from pair_vpr_ros.loops.records import LoopRecord
 from pair_vpr_ros.place_map import PlaceMap
 from pair_vpr_ros.place_map.growth.policy import GrowthConfig, find_representative, is_recent
 from pair_vpr_ros.place_map.growth.tables import Represented, compose, invert

@@ -16,8 +16,9 @@ from collections.abc import Sequence
 import numpy as np
 
 from pair_vpr_ros.identity import Identity
-from pair_vpr_ros.loops.detector import Candidate, DetectorConfig
+from pair_vpr_ros.loops.detector import DetectorConfig
 from pair_vpr_ros.loops.recency import GroupedRecency
+from pair_vpr_ros.loops.records import Candidate
 from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
 from pair_vpr_ros.place_map.milvus.expr import Exclusion
 

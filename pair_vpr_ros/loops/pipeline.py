@@ -29,15 +29,8 @@ import torch
 from pair_vpr_ros.errors import ConfigError, MapUnavailableError
 from pair_vpr_ros.geometry.features import Features
 from pair_vpr_ros.geometry.keyframes import GeometryConfig, KeyframeGeometry
-from pair_vpr_ros.geometry.odometry_scale import Neighbour
 from pair_vpr_ros.identity import Identity
-from pair_vpr_ros.loops.detector import (
-    Candidate,
-    DetectorConfig,
-    LoopDetector,
-    LoopRecord,
-    rerank_score,
-)
+from pair_vpr_ros.loops.detector import DetectorConfig, LoopDetector
 from pair_vpr_ros.loops.frames import (
     Frame,
     FrameOutcome,
@@ -54,7 +47,8 @@ from pair_vpr_ros.loops.growth import (
 from pair_vpr_ros.loops.map_search import MapSearch
 from pair_vpr_ros.loops.pipeline_maps import PipelineMaps
 from pair_vpr_ros.loops.recency import ClockWatch
-from pair_vpr_ros.loops.scoring import dense_pair_scores, encode_for_map, map_pair_scores
+from pair_vpr_ros.loops.records import Candidate, LoopRecord, rerank_score
+from pair_vpr_ros.loops.scoring import dense_pair_scores, encode_for_map
 from pair_vpr_ros.loops.sequence import track_of
 from pair_vpr_ros.model import PairVPRModel, preprocess_batch
 from pair_vpr_ros.model.decoder import default_chunk
@@ -315,35 +309,3 @@ class LoopClosurePipeline(PipelineMaps):
 
         outcome.loop = min(records, key=order) if records else None
         outcome.loops = records if len(records) > 1 else []
-
-    def _stored_features(self, match: Candidate) -> Features | None:
-        return self._match_features(match)[0]
-
-    def _match_features(self, match: Candidate) -> tuple[Features | None, tuple | None]:
-        """The match's features, and None; for one stored without (map_growth), its feature
-        source's and (source id, T_match_source) (`MapGrowth.feature_source`)."""
-        m = self.maps.map_of(match)
-        own = m.features(match.id)
-        source = None if own else self.growth.feature_source(m, match.id)
-        if source is None:
-            return self.geometry.unpack(own), None
-        return self.geometry.unpack(m.features(source[0])), source
-
-    def _scale_neighbours(self, match: Candidate) -> list[Neighbour]:
-        """Keyframes recorded next to the match, with an odometry baseline, for the scale of a
-        monocular loop (`MapSearch.near`)."""
-        meta, near = self.maps.near(match, self.geometry.config.pose.scale_neighbours)
-        # each neighbour's own features (lent ones would not fit its odometry pose)
-        load = lambda i: self.geometry.unpack(self.maps.map_of(match).features(i))  # noqa: E731
-        return self.geometry.neighbours(meta, near, load)
-
-    def match_meta(
-        self, outcome: FrameOutcome, loop: LoopRecord | None = None
-    ) -> KeyframeMeta | None:
-        """The metadata of the match of `loop` (default `outcome.loop`), from its own map."""
-        best = match_candidate(outcome, loop)
-        return None if best is None else self.maps.map_of(best).meta(best.id)
-
-    def pair_scores(self, dense: np.ndarray, ids: list[int]) -> np.ndarray:
-        """Query dense [N,D] against map keyframes `ids` -> bidirectional scores [K]."""
-        return map_pair_scores(self.model, self._place_map, dense, ids, self.rerank_chunk)

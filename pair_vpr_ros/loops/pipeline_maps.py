@@ -1,16 +1,25 @@
 """The pipeline's place map: made for the model, checked against it, saved, loaded, cleared
-(`PipelineMaps`, which `pipeline.LoopClosurePipeline` inherits; it works on the pipeline's state:
-`model`, `index_kind`, `identity`, `maps`, `_place_map`, `_reset_tracking`).
+and a match's data read from its own map: metadata, features (or a linked keyframe's), scale
+neighbours, pair scores (`PipelineMaps`, which `pipeline.LoopClosurePipeline` inherits; it works on
+the pipeline's state: `model`, `index_kind`, `identity`, `maps`, `geometry`, `growth`,
+`rerank_chunk`, `_place_map`, `_reset_tracking`).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from pair_vpr_ros.errors import MapFingerprintError
+from pair_vpr_ros.geometry.features import Features
+from pair_vpr_ros.geometry.odometry_scale import Neighbour
 from pair_vpr_ros.identity import LEGACY_SESSION
+from pair_vpr_ros.loops.frames import FrameOutcome, match_candidate
 from pair_vpr_ros.loops.prior_maps import refuse_prior_target
-from pair_vpr_ros.place_map import PlaceMap
+from pair_vpr_ros.loops.records import Candidate, LoopRecord
+from pair_vpr_ros.loops.scoring import map_pair_scores
+from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
 
 
 class PipelineMaps:
@@ -96,3 +105,35 @@ class PipelineMaps:
     def close(self) -> None:
         self._place_map.close()
         self.maps.close_priors()
+
+    def _stored_features(self, match: Candidate) -> Features | None:
+        return self._match_features(match)[0]
+
+    def _match_features(self, match: Candidate) -> tuple[Features | None, tuple | None]:
+        """The match's features, and None; for one stored without (map_growth), its feature
+        source's and (source id, T_match_source) (`MapGrowth.feature_source`)."""
+        m = self.maps.map_of(match)
+        own = m.features(match.id)
+        source = None if own else self.growth.feature_source(m, match.id)
+        if source is None:
+            return self.geometry.unpack(own), None
+        return self.geometry.unpack(m.features(source[0])), source
+
+    def _scale_neighbours(self, match: Candidate) -> list[Neighbour]:
+        """Keyframes recorded next to the match, with an odometry baseline, for the scale of a
+        monocular loop (`MapSearch.near`)."""
+        meta, near = self.maps.near(match, self.geometry.config.pose.scale_neighbours)
+        # each neighbour's own features (lent ones would not fit its odometry pose)
+        load = lambda i: self.geometry.unpack(self.maps.map_of(match).features(i))  # noqa: E731
+        return self.geometry.neighbours(meta, near, load)
+
+    def match_meta(
+        self, outcome: FrameOutcome, loop: LoopRecord | None = None
+    ) -> KeyframeMeta | None:
+        """The metadata of the match of `loop` (default `outcome.loop`), from its own map."""
+        best = match_candidate(outcome, loop)
+        return None if best is None else self.maps.map_of(best).meta(best.id)
+
+    def pair_scores(self, dense: np.ndarray, ids: list[int]) -> np.ndarray:
+        """Query dense [N,D] against map keyframes `ids` -> bidirectional scores [K]."""
+        return map_pair_scores(self.model, self._place_map, dense, ids, self.rerank_chunk)

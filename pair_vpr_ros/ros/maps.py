@@ -20,10 +20,11 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from pair_vpr_ros.errors import ConfigError, MapError, PairVPRError
-from pair_vpr_ros.loops.detector import DetectorConfig, LoopRecord
+from pair_vpr_ros.loops.detector import DetectorConfig
 from pair_vpr_ros.loops.frames import Frame, FrameOutcome, PipelineCounts
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.loops.prior_maps import refuse_prior_target
+from pair_vpr_ros.loops.records import LoopRecord
 from pair_vpr_ros.offline.bags.sources import check_source
 from pair_vpr_ros.offline.replay.build_map import BuildResult, build_map
 from pair_vpr_ros.types import Pose

@@ -65,9 +65,9 @@ from pair_vpr_ros.cli import EXIT_ERROR, EXIT_OK
 from pair_vpr_ros.errors import ConfigError, PairVPRError
 from pair_vpr_ros.fleet import InterRobotLoop
 from pair_vpr_ros.identity import resolve_identity
-from pair_vpr_ros.loops.detector import LoopRecord
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.loops.prior_maps import open_prior_maps
+from pair_vpr_ros.loops.records import LoopRecord
 from pair_vpr_ros.model.devices import check_device
 from pair_vpr_ros.offline.bags.calibration import calibration_loader
 from pair_vpr_ros.ros.fleet import FleetLink

@@ -21,7 +21,7 @@ from rclpy.type_support import check_for_type_support
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from visualization_msgs.msg import Marker, MarkerArray
 
-from pair_vpr_ros.loops.detector import LoopRecord
+from pair_vpr_ros.loops.records import LoopRecord
 from pair_vpr_ros.messages import loop as lm
 from pair_vpr_ros.messages.factor import FACTOR_MSG_TYPES, FACTOR_TOPIC, factor_msg
 from pair_vpr_ros.types import Pose, split_stamp

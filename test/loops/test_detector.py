@@ -9,13 +9,8 @@ import numpy as np
 import pytest
 
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.loops.detector import (
-    Candidate,
-    DetectorConfig,
-    LoopDetector,
-    preset,
-    rank_by_pair_score,
-)
+from pair_vpr_ros.loops.detector import DetectorConfig, LoopDetector, preset
+from pair_vpr_ros.loops.records import Candidate, rank_by_pair_score
 
 
 def cands(*sims):

@@ -10,9 +10,10 @@ import pytest
 from exact_match import EXACT_MATCH
 
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.loops.detector import Candidate, DetectorConfig, LoopDetector
+from pair_vpr_ros.loops.detector import DetectorConfig, LoopDetector
 from pair_vpr_ros.loops.frames import Frame
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
+from pair_vpr_ros.loops.records import Candidate
 
 
 class FakeClock:

@@ -17,10 +17,11 @@ from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.geometry.camera import CameraModel
 from pair_vpr_ros.geometry.rotations import exp_so3, log_so3
 from pair_vpr_ros.loops import pipeline as pipeline_module
-from pair_vpr_ros.loops.detector import Candidate, DetectorConfig, LoopRecord
+from pair_vpr_ros.loops.detector import DetectorConfig
 from pair_vpr_ros.loops.frames import Frame
 from pair_vpr_ros.loops.growth import appearance_signature, lent_covariance, shift_pose
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
+from pair_vpr_ros.loops.records import Candidate, LoopRecord
 from pair_vpr_ros.offline.map_cli import main
 from pair_vpr_ros.place_map import IndexConfig, PlaceMap
 from pair_vpr_ros.place_map.growth.compact import compact_map

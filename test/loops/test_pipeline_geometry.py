@@ -16,9 +16,10 @@ from exact_match import EXACT_MATCH
 from pair_vpr_ros.geometry.camera import CameraModel
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
 from pair_vpr_ros.geometry.relpose import PoseConfig
-from pair_vpr_ros.loops.detector import Candidate, DetectorConfig
+from pair_vpr_ros.loops.detector import DetectorConfig
 from pair_vpr_ros.loops.frames import Frame
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
+from pair_vpr_ros.loops.records import Candidate
 
 H, W = 120, 160
 CAMERA = CameraModel(W, H, 100.0, 100.0, 79.5, 59.5)

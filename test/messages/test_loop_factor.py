@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
-from pair_vpr_ros.loops.detector import LoopRecord
+from pair_vpr_ros.loops.records import LoopRecord
 from pair_vpr_ros.messages import factor as lf
 
 TS = get_typestore(Stores.ROS2_JAZZY)

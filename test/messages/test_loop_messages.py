@@ -137,7 +137,7 @@ def test_loop_messages_bundle():
 
 
 def test_field_order_matches_loop_record():
-    from pair_vpr_ros.loops.detector import LoopRecord
+    from pair_vpr_ros.loops.records import LoopRecord
 
     assert list(lm.LOOP_RECORD_FIELDS) == LoopRecord.field_names()
 

@@ -10,7 +10,7 @@ import pytest
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
-from pair_vpr_ros.loops.detector import LoopRecord
+from pair_vpr_ros.loops.records import LoopRecord
 from pair_vpr_ros.messages import loop as loop_messages
 from pair_vpr_ros.offline.bags import loop_writer
 from pair_vpr_ros.offline.bags.loop_writer import MSG_PATH, SOURCE_MSG, LoopBagWriter

@@ -25,7 +25,7 @@ from bag_fixtures import (
 from rosbags.highlevel import AnyReader
 
 from pair_vpr_ros.errors import BagError
-from pair_vpr_ros.loops.detector import LoopRecord
+from pair_vpr_ros.loops.records import LoopRecord
 from pair_vpr_ros.messages import loop as loop_messages
 from pair_vpr_ros.messages.factor import factor_from_msg, factor_from_record
 from pair_vpr_ros.offline.bags.loop_writer import LoopBagWriter

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 
-from pair_vpr_ros.loops.detector import LoopRecord
+from pair_vpr_ros.loops.records import LoopRecord
 from pair_vpr_ros.offline.bags.loop_writer import LoopBagWriter
 from pair_vpr_ros.offline.bags.opening import jazzy_typestore
 from pair_vpr_ros.offline.posegraph.cli import main

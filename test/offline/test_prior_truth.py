@@ -3,7 +3,7 @@ the prior keyframes (the map was built from this recording), reported apart from
 
 from __future__ import annotations
 
-from pair_vpr_ros.loops.detector import LoopRecord
+from pair_vpr_ros.loops.records import LoopRecord
 from pair_vpr_ros.offline.report.loop_truth import KeyframeInfo
 from pair_vpr_ros.offline.report.prior_truth import evaluate_prior_loops, prior_positions
 from pair_vpr_ros.place_map import KeyframeMeta

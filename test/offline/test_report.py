@@ -21,7 +21,7 @@ from pair_vpr_ros.offline.report.loop_truth import (
 )
 
 try:
-    from pair_vpr_ros.loops.detector import LoopRecord
+    from pair_vpr_ros.loops.records import LoopRecord
 except ImportError:  # pragma: no cover - detector.py is written in parallel
     LoopRecord = None
 

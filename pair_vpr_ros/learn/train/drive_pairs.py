@@ -22,8 +22,8 @@ from torch import Tensor
 
 from pair_vpr_ros.errors import DatasetError
 from pair_vpr_ros.learn.heldout import average_precision, pair_scores
-from pair_vpr_ros.loops.detector import rerank_score
 from pair_vpr_ros.loops.recency import eligible_keyframes
+from pair_vpr_ros.loops.records import rerank_score
 from pair_vpr_ros.place_map import PlaceMap
 
 RERANK_WEIGHTS = (0, 10, 20, 40)  # global weights w of score = pair + w * global similarity

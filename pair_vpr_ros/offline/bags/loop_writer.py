@@ -12,7 +12,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, TypesysError, get_types_from_msg, get_typestore
 
 from pair_vpr_ros.errors import BagError, OutputError
-from pair_vpr_ros.loops.detector import LoopRecord
+from pair_vpr_ros.loops.records import LoopRecord
 from pair_vpr_ros.messages import loop as loop_messages
 from pair_vpr_ros.messages.factor import FACTOR_TOPIC, FACTOR_TYPE, factor_msg
 from pair_vpr_ros.offline.bags.opening import jazzy_typestore

@@ -11,9 +11,9 @@ from dataclasses import dataclass, field, replace
 from tqdm import tqdm
 
 from pair_vpr_ros.errors import PairVPRError
-from pair_vpr_ros.loops.detector import Candidate, LoopRecord
 from pair_vpr_ros.loops.frames import Frame
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
+from pair_vpr_ros.loops.records import Candidate, LoopRecord
 from pair_vpr_ros.offline.bags.loop_writer import LoopBagWriter
 from pair_vpr_ros.offline.bags.reader import BagFrame
 from pair_vpr_ros.offline.bags.sources import FrameCounts, bag_frames

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.loops.detector import rerank_score
+from pair_vpr_ros.loops.records import rerank_score
 from pair_vpr_ros.messages.loop import same_session
 from pair_vpr_ros.types import Pose
 
