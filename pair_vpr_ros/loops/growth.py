@@ -9,8 +9,12 @@ with such a loop to K is *represented* when K or a keyframe linked to K (one hop
 finds revisits in another lighting far better than in the same one, so a day query often lands
 on a dusk keyframe whose day twin is linked to it) lies within `max_translation_m` and
 `max_rotation_deg` of Q (the loop's pose, composed with the link's) and its signature within
-`max_appearance` of Q's. A represented keyframe is not stored (no dense tokens, features or
-index entry), only a row naming its representative; its loops are published as found.
+`max_appearance` of Q's, and Q's re-ranking scored it at or above the detector's threshold on
+its own (`recognised_ids`: a loop accepted only through `sequence_margin` is a view the model
+barely knows from its match; represented by it, the place would be found again only inside a
+sequence, and a later query arriving there cold would miss it). A represented keyframe is not
+stored (no dense tokens, features or index entry), only a row naming its representative; its
+loops are published as found.
 
 A keyframe that is not represented but has such a loop to a stored keyframe with features
 within the (wider) share limits is a known place in another light or from another view: it is
@@ -71,6 +75,14 @@ def live_posed_loops(outcome: FrameOutcome) -> list[tuple[int, tuple[float, ...]
     return out
 
 
+def recognised_ids(outcome: FrameOutcome, threshold: float, global_weight: float) -> set[int]:
+    """Live-map keyframes that the outcome's re-ranking scored at or above `threshold` on their
+    own (re-rank score: pair score + global_weight x global similarity; unscored ones are not):
+    only these may represent the query (module docstring)."""
+    return {c.id for c in outcome.candidates
+            if c.prior < 0 and c.rerank_score(global_weight) >= threshold}  # fmt: skip
+
+
 class MapGrowth:
     """The policy's decisions and the rows it records in one map (`PlaceMap.growth`)."""
 
@@ -83,13 +95,17 @@ class MapGrowth:
         query: tuple[float, str, str],
         signature: np.ndarray,
         posed: list[tuple[int, tuple]],
+        recognised: set[int] | None = None,
     ) -> tuple[int, float] | None:
         """(id, signature distance) of the stored keyframe that represents a new one (`query`:
         stamp, robot, session) with `signature` [S] and loops `posed` ((match id,
-        T_match_query) each), None: no such."""
+        T_match_query) each), None: no such. `recognised`: the only keyframes that may
+        (`recognised_ids`); None: any."""
         tables = place_map.growth
 
         def signature_of(kf_id: int) -> np.ndarray | None:
+            if recognised is not None and kf_id not in recognised:
+                return None
             meta = place_map.meta(kf_id)
             if is_recent(query, (meta.stamp, *place_map.identity(meta)), self.config):
                 return None

@@ -42,6 +42,7 @@ from pair_vpr_ros.loops.growth import (
     MapGrowth,
     appearance_signature,
     live_posed_loops,
+    recognised_ids,
     shift_pose,
 )
 from pair_vpr_ros.loops.map_search import MapSearch
@@ -230,7 +231,8 @@ class LoopClosurePipeline(PipelineMaps):
             recent = self.config.exclude_recent_s  # the detector's window, also for this
             self.growth.config = replace(self.growth.config, exclude_recent_s=recent)
             query = (frame.stamp, *self._place_map.identity(who))
-            found = self.growth.representative(self._place_map, query, signature, posed)
+            known = recognised_ids(outcome, self.config.score_threshold, self.config.global_weight)
+            found = self.growth.representative(self._place_map, query, signature, posed, known)
             if found is not None:
                 self.growth.represented(self._place_map, frame.stamp, who, found)
                 outcome.represented_by = found[0]

@@ -61,6 +61,33 @@ def test_a_revisit_in_the_same_light_is_represented_not_stored(tiny_model):
     pipe.close()
 
 
+@pytest.mark.parametrize("threshold, stored", [(10.0, True), (4.0, False)])
+def test_a_revisit_found_only_through_the_sequence_margin_is_stored(
+    tiny_model, monkeypatch, threshold, stored
+):
+    """Place 0's revisit scores 12, place 1's 5: at threshold 10 the second loop is accepted
+    only through sequence_margin (it continues the first), a view the model barely knows, so
+    keyframe 1 does not represent it and it is stored; at threshold 4 it is represented."""
+    scores = iter([12.0, 5.0])
+    fake = lambda self, dense, ids: np.array([next(scores) for _ in ids])  # noqa: E731
+    monkeypatch.setattr(LoopClosurePipeline, "pair_scores", fake)
+    config = DetectorConfig(**{**EXACT_MATCH, "map_growth": "places", "score_threshold": threshold,
+                               "sequence_margin": 10.0})  # fmt: skip
+    pipe = LoopClosurePipeline(tiny_model, config)
+    frames = [Frame(float(t), PLACES[p], "cam", depth=DEPTH, camera=CAMERA)
+              for t, p in enumerate([0, 1, 2, 3, 0, 1])]  # fmt: skip
+    out = list(pipe.process_many(frames))
+    assert out[4].represented_by == 0 and out[4].loop.pair_score == 12.0
+    loop = out[5].loop
+    assert loop.accepted and loop.match_id == 1 and loop.pair_score == 5.0
+    assert loop.pose_status == "metric"
+    if stored:
+        assert out[5].represented_by is None and out[5].keyframe_id == 4
+    else:
+        assert out[5].represented_by == 1 and out[5].keyframe_id is None
+    pipe.close()
+
+
 def test_a_new_appearance_of_a_known_place_is_stored(tiny_model, monkeypatch):
     dusk = (PLACES[0] * 0.55).astype(np.uint8)  # the revisit's light, for its signature only
     real = appearance_signature

@@ -4,7 +4,9 @@ OUT`).
 
 Keyframes are visited in id order, as the pipeline met them. A keyframe whose links to earlier
 keyframes (its loops with a confident pose) lead to a kept keyframe of its appearance
-(`find_representative`, the pipeline's rule) is dropped and recorded as represented; the others are
+(`find_representative`, the pipeline's rule on pose and appearance; the map keeps no pair scores,
+so compact cannot also ask, as the pipeline does, that the model recognised the keyframe from its
+representative without help of a sequence) is dropped and recorded as represented; the others are
 copied (descriptor, dense tokens re-encoded, metadata, features, signature) with new ids 0, 1, 2,
 ...; a keyframe linked to one stored without features (its lender) is never dropped. The links
 between kept keyframes and the represented rows (their representatives renumbered, or followed to a
