@@ -9,6 +9,7 @@ import shutil
 import threading
 from pathlib import Path
 
+import numpy as np
 import pytest
 import test_place_map_persist as persist_tests
 from test_bad_input_map import MAPS
@@ -24,9 +25,11 @@ from test_place_map_persist import (
     dense_for,
     desc_for,
     files,
+    stored,
 )  # fmt: skip
 
 from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
+from pair_vpr_ros.place_map.dense_codec import BASIS_FROM
 
 saved = persist_tests.saved  # fixture: a format-3 map of N0 keyframes in tmp_path / "map"
 
@@ -54,6 +57,26 @@ def test_an_old_map_loads_with_a_note_and_the_next_save_converts_it(tmp_path: Pa
     with PlaceMap.load(d, verify_dense=True) as m:
         assert_holds(m, list(range(N0 + 3)), "f16") and not m.load_note
         assert m.index_config.dense_codec == "f16"  # a loaded map keeps its own codec
+
+
+def test_a_p4_map_of_its_first_encoder_decodes_as_then_and_continues(tmp_path: Path) -> None:
+    """test/data/maps/format-3-p4: written by main at 631c860 (p4's components all on their full
+    range); its tokens decode to the values that code gave, and later keyframes take the grids
+    of today's encoder in the same layout."""
+    d = Path(shutil.copytree(MAPS / "format-3-p4", tmp_path / "map"))
+    then = np.load(MAPS / "format-3-p4.npy")  # [20, 4, 8] float16
+    with PlaceMap.load(d, verify_dense=True) as m:
+        assert (m.index_config.dense_codec, m.dense_basis.start) == ("p4", BASIS_FROM)
+        assert len(m.dense_basis.recoded) == BASIS_FROM and not m.load_note
+        np.testing.assert_array_equal(m.get_dense(range(20)), then)
+        add_range(m, 20, 23)
+        m.save(d)
+    with PlaceMap.load(d, verify_dense=True) as m:
+        np.testing.assert_array_equal(m.get_dense(range(20)), then)
+        for i in range(20, 23):
+            np.testing.assert_array_equal(
+                m.get_dense([i])[0], stored(dense_for(i), "p4", m.dense_basis)
+            )
 
 
 def test_a_read_only_load_of_an_old_map_changes_nothing(tmp_path: Path) -> None:
