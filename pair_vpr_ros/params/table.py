@@ -68,7 +68,7 @@ PARAMS: tuple[ParamSpec, ...] = (
        choices=("flat", "hnsw", "ivf", "milvus"), **RO),
     _p("dense_codec", "p4", "how a new map stores each keyframe's dense tokens: p4 (200 KiB "
        "per ViT-B keyframe: a basis per map fitted on its first 16 keyframes for the pair "
-       "decoder's input layer, 1.2 MB once; decodes 3-4x slower than q4), q4 (4 bits and a "
+       "decoder's input layer, 1.2 MB once; decodes 4-10x slower than q4), q4 (4 bits and a "
        "float16 scale per channel, the same size: faster, less faithful re-ranking), q4a (4 bits "
        "on each channel's own range, the same size: lower error, no better re-ranking "
        "agreement) or f16 (uncompressed float16, 794 KiB); a loaded map keeps its own "

@@ -14,8 +14,8 @@ float16 low end and step per component [D] each, then per run of equal width (wi
 its bit planes, each `np.packbits` of [N, m] bits. The encoder picks each component's grid
 (`_grid`: its full range or a narrower one, clipping the tails) for the least squared error:
 on the demo 2.7 dB less error than the full range, in the same layout. Decoding costs a
-[N, live] x [live, D] product: 3-4x q4's time per keyframe (docs/performance.md). The default
-since issue 34 closed: on the demo it changes about a quarter as many re-ranked winners as q4.
+[N, live] x [live, D] product: 4x q4's time per ViT-B keyframe on free cores, up to 10x on busy
+ones (docs/performance.md). The default: on the demo it changes 3 re-ranked winners of 520, q4 19.
 
 "q4a" (issue 34): 4 bits a value on a grid of each channel's own range, x = (q - z) s with q in
 0..15: the step s = base 2^(e / 16) (one uint8 e per channel, one float32 base per keyframe: the
