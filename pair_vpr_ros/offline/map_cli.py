@@ -5,7 +5,7 @@
     pairvpr-map info maps/site                 # keyframes per robot/session, model, index, sizes
     pairvpr-map info maps/site --json
     pairvpr-map merge maps/r1 maps/r2 --out maps/site
-    pairvpr-map compact maps/site --out maps/site-compact   # growth policy + dense codec q4
+    pairvpr-map compact maps/site --out maps/site-compact   # growth policy + dense codec p4
     pairvpr-map prune-milvus maps/site.db --maps maps       # lists stale rows; --yes removes
 """
 
@@ -71,8 +71,8 @@ def _compact_parser(sub) -> None:
     compact.add_argument("map", metavar="IN", help="folder of a saved place map (format 3)")
     compact.add_argument("--out", metavar="OUT", required=True, help="new folder (must not exist)")
     compact.add_argument(
-        "--codec", choices=CODECS, default="q4",
-        help="how OUT stores dense tokens (default %(default)s: 4 bits a value)",
+        "--codec", choices=CODECS, default="p4",
+        help="how OUT stores dense tokens (default %(default)s: 4 bits a value on a basis)",
     )  # fmt: skip
     compact.add_argument(
         "--no-policy", action="store_true",

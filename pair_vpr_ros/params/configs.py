@@ -47,7 +47,7 @@ def geometry_config(values: Mapping[str, Any]) -> GeometryConfig:
 
 def index_config(values: Mapping[str, Any]) -> IndexConfig:
     """The place map's `IndexConfig` of a full parameter set (kind + the milvus settings)."""
-    codec = values.get("dense_codec", "q4")
+    codec = values.get("dense_codec", IndexConfig.dense_codec)
     if values["index"] != "milvus":
         return IndexConfig(kind=values["index"], dense_codec=codec)
     names = ("milvus_uri", "milvus_collection", "milvus_index", "milvus_token_env")

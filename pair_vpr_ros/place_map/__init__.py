@@ -12,10 +12,10 @@ A map directory (format 3; docs/map-storage.md) holds `manifest.json` (format_ve
 generation, dims, dense codec, index settings, model fingerprint, its own CRC32), the keyframe
 store `map-<g>.sqlite` (SQLite in WAL mode: a row per keyframe with its descriptor, dense CRC32
 and row CRC32; features; an index snapshot's name for non-flat kinds), the append-only
-`dense-<h>.q4` (4-bit tokens, default) or `.f16`, and `map.lock` (writer lock). A save commits
-only the keyframes added since the last one (one SQLite commit); a load reads the store and the
-index, dense tokens and features on demand, and copies nothing. Formats 1 and 2 load (legacy.py)
-and are converted by the next save.
+`dense-<h>.p4` (default: a basis per map), `.q4`, `.q4a` or `.f16`, and `map.lock` (writer
+lock). A save commits only the keyframes added since the last one (one SQLite commit); a load
+reads the store and the index, dense tokens and features on demand, and copies nothing. Formats 1
+and 2 load (legacy.py) and are converted by the next save.
 
 Detected on load (MapError naming the file): missing files, a changed manifest (CRC32), unknown
 format version, a damaged or foreign store, a keyframe row failing its CRC32, an index snapshot

@@ -59,9 +59,10 @@ class IndexConfig:
     milvus_token_env: environment variable holding the Milvus token ("" or unset: none); the
         token itself is never stored, logged or taken as a parameter.
     dense_codec: how the map stores dense tokens (not a search setting, but carried here so the
-        map's settings travel as one): "q4" (4-bit, 200 KiB per ViT-B keyframe), "q4a" (4-bit
-        on each channel's range, same size) or "f16" (uncompressed, 794 KiB); dense_codec.py.
-        A loaded map keeps its own.
+        map's settings travel as one): "p4" (a basis per map, 200 KiB per ViT-B keyframe),
+        "q4" (4-bit per channel, same size, faster to decode), "q4a" (4-bit on each channel's
+        range, same size) or "f16" (uncompressed, 794 KiB); dense_codec.py. A loaded map keeps
+        its own.
     milvus_consistency: how a search sees the map's own latest inserts: "Bounded" (default: no
         wait for the server's time tick; the rows written in the last 10 s are searched in
         the node too), "Session" or "Strong" (the server waits for the tick, ~200 ms).
@@ -81,7 +82,7 @@ class IndexConfig:
     milvus_collection: str = "pairvpr_keyframes"
     milvus_index: str = "IVF_FLAT"
     milvus_token_env: str = "PAIRVPR_MILVUS_TOKEN"
-    dense_codec: str = "q4"
+    dense_codec: str = "p4"
     milvus_consistency: str = "Bounded"
 
     def __post_init__(self) -> None:

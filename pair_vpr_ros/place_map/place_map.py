@@ -44,7 +44,7 @@ class PlaceMap(MapSaving):
     index: "flat" (exact) | "ivf" (exact below 25,000 keyframes, then k-means lists: ~1e6
         keyframes; training pauses an add, see place_map/ivf.py) | "hnsw" | an IndexConfig
         (kind "milvus": a Milvus collection, see place_map/milvus/index.py and docs/milvus.md);
-        its `dense_codec` ("q4" default, "p4", "q4a", "f16") is how dense tokens are stored.
+        its `dense_codec` ("p4" default, "q4", "q4a", "f16") is how dense tokens are stored.
     dense_cache_size: dense entries kept in memory (LRU). verify_dense_reads: CRC32-check
     entries read from disk. work_dir: parent of the working folder of a never-saved map (default:
     $TMPDIR); put it on the disk of the map directory so the first save moves the dense file.

@@ -219,10 +219,10 @@ def test_compact_applies_the_policy_and_the_codec_and_round_trips(tiny_model, tm
     assert main([*args, "--exclude-recent-s", "2.5"]) == 0  # EXACT_MATCH's window
     assert capsys.readouterr().out.startswith(
         f"compacted 6 keyframes into {tmp_path / 'out'}: 4 stored, 2 represented (2 new), "
-        "dense tokens q4; "
+        "dense tokens p4; "  # the default codec
     )
     with PlaceMap.load(tmp_path / "out", read_only=True) as m:
-        assert len(m) == 4 and m.index_config.dense_codec == "q4"
+        assert len(m) == 4 and m.index_config.dense_codec == "p4"
         assert [r.representative for r in m.growth.represented()] == [0, 1]
         for i in range(4):
             assert m.meta(i) == src.meta(i) and m.features(i) == src.features(i)
@@ -255,7 +255,7 @@ def test_compact_of_a_map_without_signatures_only_re_encodes(tmp_path, capsys):
         f"note: {tmp_path / 'in'} has no appearance signatures (saved before map_growth): its "
         "keyframes are only re-encoded\n"
     )
-    assert "3 stored, 0 represented (0 new), dense tokens q4" in captured.out
+    assert "3 stored, 0 represented (0 new), dense tokens p4" in captured.out
 
 
 def test_the_rule_follows_one_link_and_checks_pose_and_appearance():

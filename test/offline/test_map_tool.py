@@ -31,7 +31,7 @@ def test_info_reports_sessions_model_index_and_sizes(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "keyframes: 3 stored (1 with features, 0 with an appearance signature), 0 " in text
     assert "  r1/mon: 3 (0..2, 10.000..12.000)" in text
-    assert f"dense tokens: {list(info.dense_shape)} as q4\n" in text  # the default codec
+    assert f"dense tokens: {list(info.dense_shape)} as p4\n" in text  # the default codec
     assert main(["info", str(a), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["total_bytes"] == info.total_bytes
 

@@ -10,7 +10,15 @@ import numpy as np
 import pytest
 
 from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
-from pair_vpr_ros.place_map.dense_codec import BASIS_FROM, decode, encode, entry_bytes, head_bytes
+from pair_vpr_ros.place_map.dense_codec import (
+    BASIS_FROM,
+    _grid,
+    _toward,
+    decode,
+    encode,
+    entry_bytes,
+    head_bytes,
+)
 from pair_vpr_ros.place_map.dense_store import DenseStore
 from pair_vpr_ros.place_map.growth.compact import compact_map
 from pair_vpr_ros.place_map.merge import merge_maps
@@ -145,3 +153,21 @@ def test_merge_and_compact_recode_into_one_basis(tmp_path: Path) -> None:
             np.testing.assert_array_equal(m.dense_basis.enc16, basis_a.enc16)
             got = m.get_dense(range(len(m))).astype(np.float32)
             assert np.abs(got - inputs).max() < 0.1 * np.abs(inputs).max()
+
+
+def test_each_component_gets_the_grid_of_least_error() -> None:
+    """The encoder's grid clips a bell-shaped component's tails where that removes error (few
+    bits), never giving more error than its full range (min to max) on the tokens it weighs."""
+    y = np.random.default_rng(0).normal(size=(128, 6)).astype(np.float32)
+    levels = np.array([1, 1, 3, 3, 15, 255], np.float32)
+
+    def error(lo: np.ndarray, step: np.ndarray) -> np.ndarray:  # as the decoder rebuilds y
+        s, low = step.astype(np.float32), lo.astype(np.float32)
+        q = np.clip(np.rint((y - low) / s), 0, levels)
+        return np.square(q * s + low - y).sum(0)
+
+    full_lo = _toward(y.min(0), down=True)
+    full = error(full_lo, _toward((y.max(0) - full_lo.astype(np.float32)) / levels, down=False))
+    got = error(*_grid(y, levels))
+    assert (got <= full).all()
+    assert got[:4].sum() < 0.5 * full[:4].sum()  # 1 and 2 bits: far less error

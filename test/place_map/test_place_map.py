@@ -9,7 +9,7 @@ from test_place_map_persist import stored
 
 from pair_vpr_ros.errors import ConfigError, MapError
 from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
-from pair_vpr_ros.place_map.dense_codec import decode, encode, entry_bytes
+from pair_vpr_ros.place_map.dense_codec import decode, encode, entry_bytes, head_bytes
 from pair_vpr_ros.place_map.index import DescriptorIndex
 
 DIM, SHAPE = 8, (4, 8)
@@ -103,7 +103,7 @@ def test_hnsw_shortcut_and_config_validation() -> None:
         IndexConfig(kind="hnsw", ef_search=0)
 
 
-@pytest.mark.parametrize("codec", ["q4", "q4a", "f16"])
+@pytest.mark.parametrize("codec", ["p4", "q4", "q4a", "f16"])
 def test_dense_round_trip(codec: str) -> None:
     index = IndexConfig(dense_codec=codec)
     with PlaceMap(DIM, SHAPE, "fp", index, dense_cache_size=2) as m:
@@ -114,8 +114,9 @@ def test_dense_round_trip(codec: str) -> None:
             want = dense_for(i).astype(np.float16)
             if codec == "f16":
                 np.testing.assert_array_equal(row, want)
-            else:  # 4 bits: within half a step of each value (q4: max |x| of the channel / 7;
-                # q4a: (max - min) / 15, up to 2.2 % more as a code of 32 steps an octave)
+            else:  # 4 bits: within half a step of each value (q4, and p4 before its basis: max
+                # |x| of the channel / 7; q4a: (max - min) / 15, up to 2.2 % more as a code of
+                # 32 steps an octave)
                 step = np.abs(want).max(axis=0).astype(np.float32) / 7
                 if codec == "q4a":
                     step = np.ptp(want, axis=0).astype(np.float32) / 15 * 1.03
@@ -140,13 +141,16 @@ def test_q4a_keeps_constant_channels_and_zeros() -> None:
 def test_bytes_per_keyframe(tmp_path) -> None:
     with PlaceMap(512, (529, 768), index=IndexConfig(dense_codec="f16")) as m:
         assert m.bytes_per_keyframe == 529 * 768 * 2 + 512 * 4  # ViT-B/322: float16 + float32
-    with PlaceMap(512, (529, 768)) as m:  # default q4: 4 bits + a float16 scale per channel
-        assert m.bytes_per_keyframe == 529 * 768 // 2 + 768 * 2 + 512 * 4 <= 200 * 1024 + 2048
+    for codec in ("p4", "q4"):  # the default p4: q4's bytes (4 bits + a float16 scale a channel)
+        with PlaceMap(512, (529, 768), index=IndexConfig(dense_codec=codec)) as m:
+            assert m.bytes_per_keyframe == 529 * 768 // 2 + 768 * 2 + 512 * 4 <= 202 * 1024
     with PlaceMap(DIM, SHAPE, "fp") as m:
+        assert m.index_config.dense_codec == "p4"
         fill(m, random_descs(3))
         m.save(tmp_path / "map")
-        (dense,) = (tmp_path / "map").glob("dense-*.q4")
-        assert dense.stat().st_size == 3 * (m.bytes_per_keyframe - 4 * DIM)
+        (dense,) = (tmp_path / "map").glob("dense-*.p4")  # p4's head holds its basis
+        size = head_bytes(SHAPE, "p4") + 3 * (m.bytes_per_keyframe - 4 * DIM)
+        assert dense.stat().st_size == size
 
 
 def test_metadata_round_trip_with_and_without_pose() -> None:

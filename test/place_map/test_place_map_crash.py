@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 from test_bad_input_map import MAPS
-from test_place_map_persist import DIM, N0, SHAPE, add_range, assert_holds
+from test_place_map_persist import CODEC, DIM, N0, SHAPE, add_range, assert_holds
 
 from pair_vpr_ros.errors import MapError
 from pair_vpr_ros.place_map import IndexConfig, PlaceMap, persist
@@ -88,7 +88,7 @@ def _map_of(mode: str, saved: Path) -> Path:
     + [("fresh", s) for s in ("dense", "store", "manifest", "committed")],
 )
 def test_save_killed_at_step_leaves_a_loadable_map(tmp_path: Path, saved: Path, mode, step):
-    codec = "f16" if mode == "convert" else "q4"
+    codec = "f16" if mode == "convert" else CODEC  # the default: p4
     saved = _map_of(mode, saved)
     child = run_child(tmp_path, mode, str(saved), step)
     assert child.wait(timeout=60) == 17  # it really died at that step
@@ -96,7 +96,7 @@ def test_save_killed_at_step_leaves_a_loadable_map(tmp_path: Path, saved: Path, 
     with PlaceMap.load(saved, expected_fingerprint="fp-a") as m:
         done = step in persist.SAVE_STEPS[COMMITTED:]
         assert_holds(
-            m, new if done else list(range(N0)), codec if mode != "fresh" or not done else "q4"
+            m, new if done else list(range(N0)), codec if mode != "fresh" or not done else CODEC
         )
         add_range(m, len(m), len(m) + 1)  # and the map can be continued and saved again
         m.save(saved)

@@ -9,11 +9,15 @@ import shutil
 import threading
 from pathlib import Path
 
+import numpy as np
 import pytest
 import test_place_map_persist as persist_tests
 from test_bad_input_map import MAPS
 from test_place_map_persist import (
+    CODEC,
     DIM,
+    ENTRY,
+    HEAD,
     N0,
     SHAPE,
     add_range,
@@ -21,10 +25,11 @@ from test_place_map_persist import (
     dense_for,
     desc_for,
     files,
+    stored,
 )  # fmt: skip
 
 from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
-from pair_vpr_ros.place_map.dense_codec import entry_bytes
+from pair_vpr_ros.place_map.dense_codec import BASIS_FROM
 
 saved = persist_tests.saved  # fixture: a format-3 map of N0 keyframes in tmp_path / "map"
 
@@ -54,6 +59,26 @@ def test_an_old_map_loads_with_a_note_and_the_next_save_converts_it(tmp_path: Pa
         assert m.index_config.dense_codec == "f16"  # a loaded map keeps its own codec
 
 
+def test_a_p4_map_of_its_first_encoder_decodes_as_then_and_continues(tmp_path: Path) -> None:
+    """test/data/maps/format-3-p4: written by main at 631c860 (p4's components all on their full
+    range); its tokens decode to the values that code gave, and later keyframes take the grids
+    of today's encoder in the same layout."""
+    d = Path(shutil.copytree(MAPS / "format-3-p4", tmp_path / "map"))
+    then = np.load(MAPS / "format-3-p4.npy")  # [20, 4, 8] float16
+    with PlaceMap.load(d, verify_dense=True) as m:
+        assert (m.index_config.dense_codec, m.dense_basis.start) == ("p4", BASIS_FROM)
+        assert len(m.dense_basis.recoded) == BASIS_FROM and not m.load_note
+        np.testing.assert_array_equal(m.get_dense(range(20)), then)
+        add_range(m, 20, 23)
+        m.save(d)
+    with PlaceMap.load(d, verify_dense=True) as m:
+        np.testing.assert_array_equal(m.get_dense(range(20)), then)
+        for i in range(20, 23):
+            np.testing.assert_array_equal(
+                m.get_dense([i])[0], stored(dense_for(i), "p4", m.dense_basis)
+            )
+
+
 def test_a_read_only_load_of_an_old_map_changes_nothing(tmp_path: Path) -> None:
     d = Path(shutil.copytree(MAPS / "format-2", tmp_path / "map"))
     before = {p.name: p.read_bytes() for p in d.iterdir()}
@@ -63,14 +88,16 @@ def test_a_read_only_load_of_an_old_map_changes_nothing(tmp_path: Path) -> None:
 
 
 def test_an_incremental_save_writes_the_new_keyframes_only(saved: Path) -> None:
-    """The store and the dense file grow by what was added; nothing is rewritten."""
-    store, dense = saved / "map-1.sqlite", saved / "dense-1.q4"
+    """The store and the dense file grow by what was added; nothing is rewritten (but p4's head,
+    written once when its basis is fitted at the 17th keyframe)."""
+    store, dense = saved / "map-1.sqlite", saved / f"dense-1.{CODEC}"
     with PlaceMap.load(saved) as m:
-        head = dense.read_bytes()
+        before = dense.read_bytes()
         add_range(m, N0, N0 + 40)
         m.save(saved)
-    assert dense.read_bytes()[: len(head)] == head
-    assert dense.stat().st_size == (N0 + 40) * entry_bytes(SHAPE, "q4")
+        assert CODEC != "p4" or m.dense_basis is not None
+    assert dense.read_bytes()[HEAD : len(before)] == before[HEAD:]
+    assert dense.stat().st_size == HEAD + (N0 + 40) * ENTRY
     assert store.stat().st_size < 64 * 1024  # 52 small rows: no copy of anything
     with PlaceMap.load(saved) as m:
         assert_holds(m, list(range(N0 + 40)))

@@ -10,9 +10,11 @@ import pytest
 
 from pair_vpr_ros.errors import MapError, MapFingerprintError
 from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
-from pair_vpr_ros.place_map.dense_codec import decode, encode
+from pair_vpr_ros.place_map.dense_codec import Basis, decode, encode, entry_bytes, head_bytes
 
 DIM, SHAPE, N0 = 8, (4, 8), 12
+CODEC = IndexConfig().dense_codec  # the default: these maps are made with it
+ENTRY, HEAD = entry_bytes(SHAPE, CODEC), head_bytes(SHAPE, CODEC)
 
 
 def desc_for(i: int) -> np.ndarray:
@@ -24,9 +26,14 @@ def dense_for(i: int) -> np.ndarray:
     return np.arange(32, dtype=np.float32).reshape(SHAPE) * 0.25 + i
 
 
-def stored(tokens: np.ndarray, codec: str = "q4") -> np.ndarray:
-    """What a map of `codec` gives back for `tokens` (q4: the 4-bit decoded values)."""
-    return decode(encode(tokens.astype(np.float16), codec), tokens.shape, codec)
+def stored(tokens: np.ndarray, codec: str = CODEC, basis: Basis | None = None) -> np.ndarray:
+    """What a map of `codec` gives back for `tokens` (q4: the 4-bit decoded values; p4: coded
+    with the map's `basis`, q4 in an entry without it)."""
+    t = tokens.astype(np.float16)
+    if codec == "p4" and basis is not None:
+        return basis.decode(basis.encode(t, entry_bytes(t.shape, "p4")), t.shape[0])
+    codec = "q4" if codec == "p4" else codec
+    return decode(encode(t, codec), t.shape, codec)
 
 
 def meta_for(i: int) -> KeyframeMeta:
@@ -44,11 +51,14 @@ def add_range(m: PlaceMap, start: int, stop: int) -> None:
         assert m.add(desc_for(i), dense_for(i), meta_for(i), features_for(i)) == i
 
 
-def assert_holds(m: PlaceMap, ids: list[int], codec: str = "q4") -> None:
+def assert_holds(m: PlaceMap, ids: list[int], codec: str = CODEC) -> None:
     """The map holds exactly keyframes `ids` (content of keyframe i = *_for(ids[i]))."""
     assert len(m) == len(ids)
+    basis = m.dense_basis if codec == "p4" else None
     for kf_id, i in enumerate(ids):
-        np.testing.assert_array_equal(m.get_dense([kf_id])[0], stored(dense_for(i), codec))
+        coded = basis is not None and not len(basis.recoded) <= kf_id < basis.start
+        expect = stored(dense_for(i), codec, basis if coded else None)
+        np.testing.assert_array_equal(m.get_dense([kf_id])[0], expect)
         np.testing.assert_allclose(m.get_desc([kf_id])[0], desc_for(i), atol=1e-6)
         assert m.meta(kf_id) == KeyframeMeta(kf_id, *list(meta_for(i).__dict__.values())[1:])
         assert m.features(kf_id) == features_for(i)
@@ -96,7 +106,7 @@ def test_empty_map_round_trip(tmp_path: Path) -> None:
 
 
 def test_continue_after_load_and_save_to_same_dir(saved: Path) -> None:
-    layout = ["dense-1.q4", "manifest.json", "map-1.sqlite", "map-1.sqlite.desc", "map.lock"]
+    layout = [f"dense-1.{CODEC}", "manifest.json", "map-1.sqlite", "map-1.sqlite.desc", "map.lock"]
     assert files(saved) == layout
     manifest = (saved / "manifest.json").read_bytes()
     with PlaceMap.load(saved) as m:
@@ -107,7 +117,7 @@ def test_continue_after_load_and_save_to_same_dir(saved: Path) -> None:
     # Incremental saves: the dense file is appended, the store takes the new rows, the manifest
     # is not rewritten.
     assert files(saved) == layout and (saved / "manifest.json").read_bytes() == manifest
-    assert (saved / "dense-1.q4").stat().st_size == (N0 + 4) * (16 + 8 * 2)
+    assert (saved / f"dense-1.{CODEC}").stat().st_size == HEAD + (N0 + 4) * ENTRY
     with PlaceMap.load(saved) as m:
         assert_holds(m, list(range(N0 + 4)))
 
@@ -131,7 +141,7 @@ def test_save_after_clear_replaces_the_dense_file(saved: Path) -> None:
         assert m.add(desc_for(7), dense_for(7), meta_for(7)) == 0
         m.save(saved)
     assert files(saved) == [
-        "dense-2.q4",
+        f"dense-2.{CODEC}",
         "manifest.json",
         "map-2.sqlite",
         "map-2.sqlite.desc",
@@ -165,7 +175,7 @@ def test_fresh_map_saved_over_an_existing_map(saved: Path) -> None:
         assert len(m) == 2
         np.testing.assert_array_equal(m.get_dense([1])[0], stored(dense_for(6)))
     assert files(saved) == [
-        "dense-2.q4",
+        f"dense-2.{CODEC}",
         "manifest.json",
         "map-2.sqlite",
         "map-2.sqlite.desc",
@@ -211,10 +221,10 @@ def test_missing_directory(tmp_path: Path) -> None:
 
 
 def test_damaged_dense_entry_is_detected_by_crc(saved: Path) -> None:
-    flip_byte(saved / "dense-1.q4", 5 * 32 + 3)  # inside keyframe 5
+    flip_byte(saved / f"dense-1.{CODEC}", HEAD + 5 * ENTRY + 3)  # inside keyframe 5
     with PlaceMap.load(saved) as m:
         np.testing.assert_array_equal(m.get_dense([4])[0], stored(dense_for(4)))
-        with pytest.raises(MapError, match=r"keyframe 5 in .*dense-1.q4 fail their CRC32"):
+        with pytest.raises(MapError, match=rf"keyframe 5 in .*dense-1.{CODEC} fail their CRC32"):
             m.get_dense([4, 5])
     with pytest.raises(MapError, match="keyframe 5 .* fail their CRC32 check"):
         PlaceMap.load(saved, verify_dense=True)

@@ -44,7 +44,7 @@ class CompactResult:
     stored: int = 0
     represented_before: int = 0
     represented: int = 0
-    codec: str = "q4"
+    codec: str = "p4"
     bytes_in: int = 0
     bytes_out: int = 0
     notes: list[str] = field(default_factory=list)
@@ -61,13 +61,13 @@ def compact_map(
     src: str | os.PathLike,
     out: str | os.PathLike,
     *,
-    codec: str = "q4",
+    codec: str = "p4",
     policy: bool = True,
     growth: GrowthConfig | None = None,
     fingerprint: str | None = None,
 ) -> CompactResult:
     """Compact the saved map `src` into the new folder `out` (module docstring) -> result.
-    codec: "q4", "p4", "q4a" or "f16" (p4 of a p4 map keeps its basis); policy False: re-encode
+    codec: "p4", "q4", "q4a" or "f16" (p4 of a p4 map keeps its basis); policy False: re-encode
     only; fingerprint: refuse a map of another model. ConfigError (`out` exists, bad codec),
     MapError (`src` not a map, damaged, of an old format), MapFingerprintError; `out` is not
     created then."""
