@@ -30,7 +30,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import torch
-from bench_map_growth import DIM, SHAPE, Keyframes
+from bench_map_growth import DIM, SHAPE, Keyframes, work_folder
 
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
 from pair_vpr_ros.loops.detector import DetectorConfig
@@ -119,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work-dir", type=Path, default=None,
                         help="where the map is built (default: a temporary folder)")  # fmt: skip
     args = parser.parse_args(argv)
-    with tempfile.TemporaryDirectory(dir=args.work_dir) as tmp:
+    with tempfile.TemporaryDirectory(dir=work_folder(parser, args.work_dir)) as tmp:
         d = Path(tmp) / "map"
         t0 = time.perf_counter()
         build(d, args.keyframes)

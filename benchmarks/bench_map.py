@@ -29,6 +29,7 @@ from pathlib import Path
 
 import faiss
 import numpy as np
+from bench_map_growth import work_folder
 from map_data import lowrank, trajectory, trajectory_queries
 from tqdm import tqdm
 
@@ -241,7 +242,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--mem-keyframes", type=int, default=64, help="keyframes in the saved map")
     p.add_argument("--work-dir", default=None, help="folder for the saved test map")
     p.add_argument("--seed", type=int, default=0, help="random seed")
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    work_folder(p, args.work_dir)
+    return args
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -193,7 +193,8 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(PHASES[args.phase](Path(args.dir), args.n, args.codec)))
         return 0
     rows = []
-    with tempfile.TemporaryDirectory(prefix="bench-growth-", dir=args.work_dir) as tmp:
+    work = work_folder(p, args.work_dir)
+    with tempfile.TemporaryDirectory(prefix="bench-growth-", dir=work) as tmp:
         for n in (int(v) for v in args.sizes.split(",")):
             rows.append(run_size(n, args.codec, Path(tmp)))
             print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
@@ -201,6 +202,19 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=2) + "\n")
     return 0
+
+
+def work_folder(parser: argparse.ArgumentParser, path: str | None) -> str | None:
+    """`--work-dir`, made when missing (parents too); a path that cannot be a folder exits with
+    parser.error (status 2) saying why."""
+    if path is None:
+        return None
+    try:
+        Path(path).mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        parser.error(f"--work-dir {path}: cannot make this folder ({err.strerror}); pass a folder "
+                     "on a disk with room for the maps")  # fmt: skip
+    return path
 
 
 if __name__ == "__main__":
