@@ -76,19 +76,16 @@ def sigmas(cov: np.ndarray) -> tuple[float, float]:
 
 
 def with_floor(
-    cov: np.ndarray,
-    t: np.ndarray,
-    rot_deg: float,
-    trans_m: float,
-    trans_rel: float,
-    scaled: bool = True,
+    cov: np.ndarray, t: np.ndarray, config: Any, cameras: tuple, scaled: bool = True
 ) -> np.ndarray:
-    """6x6 covariance plus independent floor noise: rot_deg on each rotation axis and, for a
-    pose with a scale, (trans_m + trans_rel |t|) on each translation axis."""
+    """6x6 covariance of a pose between `cameras` plus the independent floor noise of `config`
+    (`PoseConfig`): `rotation_floor_deg` on each rotation axis and, for a pose with a scale,
+    (floor_translation_m + floor_translation_rel |t|) on each translation axis."""
     out = cov.copy()
-    out[3:, 3:] += np.eye(3) * np.radians(rot_deg) ** 2
+    out[3:, 3:] += np.eye(3) * np.radians(rotation_floor_deg(config, *cameras)) ** 2
     if scaled:
-        out[:3, :3] += np.eye(3) * (trans_m + trans_rel * float(np.linalg.norm(t))) ** 2
+        trans = config.floor_translation_m + config.floor_translation_rel * np.linalg.norm(t)
+        out[:3, :3] += np.eye(3) * float(trans) ** 2
     return out
 
 

@@ -102,8 +102,7 @@ def depth_agreement(q, m, pairs, r, t, cov, c) -> tuple[int, int] | None:
     own = [_own_sigma(f, pairs[ok, col]) for f, col in ((q, 0), (m, 1))]
     s = (r @ point_covariances(rays_q, zq[ok], px, q.camera.fx, *ab, own[0]) @ r.T
          + point_covariances(rays_m, zm[ok], px, m.camera.fx, *ab, own[1]))  # fmt: skip
-    pose_cov = cv.with_floor(cov, t, cv.rotation_floor_deg(c, q.camera, m.camera),
-                             c.floor_translation_m, c.floor_translation_rel)  # fmt: skip
+    pose_cov = cv.with_floor(cov, t, c, (q.camera, m.camera))
     jac = np.zeros((len(seen), 3, 6))  # d gap / d (d_t, d_rot): I, -[R X_q]x
     jac[:, :, :3] = np.eye(3)
     x, y, z = seen.T

@@ -161,9 +161,8 @@ def relative_pose(
     c = config or PoseConfig()
     out = _relative_pose(query, match, c, neighbours)
     if out.status:
-        rot = cv.rotation_floor_deg(c, query.camera, match.camera)
-        trans = (c.floor_translation_m, c.floor_translation_rel, out.status != SCALE_FREE)
-        out.covariance = cv.with_floor(out.covariance, out.translation, rot, *trans)
+        cameras, scaled = (query.camera, match.camera), out.status != SCALE_FREE
+        out.covariance = cv.with_floor(out.covariance, out.translation, c, cameras, scaled)
     return out
 
 
