@@ -38,7 +38,7 @@ import numpy as np
 
 from pair_vpr_ros.geometry.features import Features, pack_features
 from pair_vpr_ros.place_map import IndexConfig, KeyframeMeta, PlaceMap
-from pair_vpr_ros.place_map.dense_codec import CODECS
+from pair_vpr_ros.place_map.dense_codec import CODECS, DEFAULT_CODEC
 
 DIM, SHAPE, ADD, QUERIES, LOADS = 512, (529, 768), 100, 20, 5
 
@@ -182,7 +182,7 @@ def report(rows: list[dict]) -> None:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--sizes", default="1000,5000,20000", help="keyframe counts (comma list)")
-    p.add_argument("--codec", default="p4", choices=CODECS, help="dense_codec")
+    p.add_argument("--codec", default=DEFAULT_CODEC, choices=CODECS, help="dense_codec")
     p.add_argument("--work-dir", default=None, help="where the maps are written (then deleted)")
     p.add_argument("--json", default=None, help="also write the figures to this file")
     p.add_argument("--phase", choices=list(PHASES), help=argparse.SUPPRESS)

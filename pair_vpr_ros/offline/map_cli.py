@@ -16,7 +16,7 @@ import json
 import sys
 
 from pair_vpr_ros.cli import run_cli
-from pair_vpr_ros.place_map.dense_codec import CODECS
+from pair_vpr_ros.place_map.dense_codec import CODECS, DEFAULT_CODEC
 from pair_vpr_ros.place_map.growth.compact import compact_map
 from pair_vpr_ros.place_map.growth.policy import GrowthConfig
 from pair_vpr_ros.place_map.index import INDEX_KINDS
@@ -71,7 +71,7 @@ def _compact_parser(sub) -> None:
     compact.add_argument("map", metavar="IN", help="folder of a saved place map (format 3)")
     compact.add_argument("--out", metavar="OUT", required=True, help="new folder (must not exist)")
     compact.add_argument(
-        "--codec", choices=CODECS, default="p4",
+        "--codec", choices=CODECS, default=DEFAULT_CODEC,
         help="how OUT stores dense tokens (default %(default)s: 4 bits a value on a basis)",
     )  # fmt: skip
     compact.add_argument(

@@ -12,6 +12,7 @@ from typing import Any
 from pair_vpr_ros.identity import DEFAULT_ROBOT, RULE
 from pair_vpr_ros.images.pixels import MAX_PIXELS
 from pair_vpr_ros.params.fleet import FLEET_PARAMS
+from pair_vpr_ros.place_map.dense_codec import DEFAULT_CODEC
 
 # A tuple default: a fixed-size double array, or (ParamSpec.strings) a string array of any size.
 Value = bool | int | float | str | tuple[float, ...] | tuple[str, ...]
@@ -66,11 +67,11 @@ PARAMS: tuple[ParamSpec, ...] = (
        "lists: large maps), hnsw (graph) or milvus (a Milvus collection: milvus_uri; optional "
        "package: pip install 'pair_vpr_ros[milvus]')",
        choices=("flat", "hnsw", "ivf", "milvus"), **RO),
-    _p("dense_codec", "p4", "how a new map stores each keyframe's dense tokens: p4 (200 KiB "
-       "per ViT-B keyframe: a basis per map fitted on its first 16 keyframes for the pair "
-       "decoder's input layer, 1.2 MB once; decodes 4-10x slower than q4), q4 (4 bits and a "
-       "float16 scale per channel, the same size: faster, less faithful re-ranking), q4a (4 bits "
-       "on each channel's own range, the same size: lower error, no better re-ranking "
+    _p("dense_codec", DEFAULT_CODEC, "how a new map stores each keyframe's dense tokens: p4 "
+       "(200 KiB per ViT-B keyframe: a basis per map fitted on its first 16 keyframes for the "
+       "pair decoder's input layer, 1.2 MB once; decodes 4-10x slower than q4), q4 (4 bits and "
+       "a float16 scale per channel, the same size: faster, less faithful re-ranking), q4a (4 "
+       "bits on each channel's own range, the same size: lower error, no better re-ranking "
        "agreement) or f16 (uncompressed float16, 794 KiB); a loaded map keeps its own "
        "(docs/performance.md, compact keyframes)", choices=("p4", "q4", "q4a", "f16"), **RO),
     _p("milvus_uri", "", "index milvus: a milvus-lite file (path ending in .db, created if "

@@ -47,6 +47,7 @@ import numpy as np
 from pair_vpr_ros.errors import ConfigError, MapError
 
 CODECS = ("p4", "q4a", "q4", "f16")
+DEFAULT_CODEC = "p4"  # what a new map uses (IndexConfig, compact, the node's dense_codec)
 # p4: the keyframes the basis is fitted on (module docstring); part of the format: it sizes the
 # head of every p4 file, so another value needs another codec name
 BASIS_FROM = 16

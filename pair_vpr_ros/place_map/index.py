@@ -17,7 +17,7 @@ import faiss
 import numpy as np
 
 from pair_vpr_ros.errors import ConfigError, MapError
-from pair_vpr_ros.place_map.dense_codec import check_codec
+from pair_vpr_ros.place_map.dense_codec import DEFAULT_CODEC, check_codec
 from pair_vpr_ros.place_map.ivf import IvfIndex, Training, check_loaded, omp_threads, read_bounded
 from pair_vpr_ros.place_map.milvus.collection import check_milvus_settings
 
@@ -82,7 +82,7 @@ class IndexConfig:
     milvus_collection: str = "pairvpr_keyframes"
     milvus_index: str = "IVF_FLAT"
     milvus_token_env: str = "PAIRVPR_MILVUS_TOKEN"
-    dense_codec: str = "p4"
+    dense_codec: str = DEFAULT_CODEC
     milvus_consistency: str = "Bounded"
 
     def __post_init__(self) -> None:

@@ -24,6 +24,7 @@ from pathlib import Path
 
 from pair_vpr_ros.errors import MapError
 from pair_vpr_ros.hashing import sha256_file
+from pair_vpr_ros.place_map.dense_codec import CODECS
 from pair_vpr_ros.place_map.files import TMP_SUFFIX, remove_quietly, write_bytes_durably
 
 MANIFEST_NAME = "manifest.json"
@@ -143,9 +144,7 @@ def _check_fields(m: Manifest) -> None:
         raise ValueError("dense_shape entries must be integers > 0")
     if m.dense_dtype != "float16" or not isinstance(m.fingerprint, str):
         raise ValueError("dense_dtype must be float16 and fingerprint a string")
-    if m.dense_codec not in ("f16", "q4", "q4a", "p4") or (
-        m.format_version < 3 and m.dense_codec != "f16"
-    ):
+    if m.dense_codec not in CODECS or (m.format_version < 3 and m.dense_codec != "f16"):
         raise ValueError(f"unknown dense_codec {m.dense_codec!r}")
     roles = _ROLE_RE_V3 if m.format_version >= 3 else _ROLE_RE
     if set(m.files) != set(roles):

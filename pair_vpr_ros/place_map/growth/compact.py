@@ -24,7 +24,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from pair_vpr_ros.errors import ConfigError, MapError, MapFingerprintError
-from pair_vpr_ros.place_map.dense_codec import check_codec
+from pair_vpr_ros.place_map.dense_codec import DEFAULT_CODEC, check_codec
 from pair_vpr_ros.place_map.growth.policy import GrowthConfig, find_representative, is_recent
 from pair_vpr_ros.place_map.growth.tables import GrowthTables, Represented
 from pair_vpr_ros.place_map.manifest import read_manifest
@@ -44,7 +44,7 @@ class CompactResult:
     stored: int = 0
     represented_before: int = 0
     represented: int = 0
-    codec: str = "p4"
+    codec: str = DEFAULT_CODEC
     bytes_in: int = 0
     bytes_out: int = 0
     notes: list[str] = field(default_factory=list)
@@ -61,7 +61,7 @@ def compact_map(
     src: str | os.PathLike,
     out: str | os.PathLike,
     *,
-    codec: str = "p4",
+    codec: str = DEFAULT_CODEC,
     policy: bool = True,
     growth: GrowthConfig | None = None,
     fingerprint: str | None = None,
