@@ -41,8 +41,8 @@ from pair_vpr_ros.place_map.manifest import (
     remove_generation,
     write_manifest,
 )
-from pair_vpr_ros.place_map.parts import MapParts, check_count, index_config
-from pair_vpr_ros.place_map.store import KeyframeStore, SavedCrcs
+from pair_vpr_ros.place_map.parts import MapParts, SavedCrcs, check_count, index_config
+from pair_vpr_ros.place_map.store import KeyframeStore
 
 SAVE_STEPS = ("dense", "index", "store", "manifest", "committed", "cleaned")
 _SAVE_HOOK: Callable[[str], None] | None = None  # tests: called with each SAVE_STEPS name

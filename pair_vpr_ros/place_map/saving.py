@@ -27,8 +27,8 @@ from pair_vpr_ros.place_map.files import (
     write_cache,
 )
 from pair_vpr_ros.place_map.manifest import MANIFEST_NAME, Manifest, read_manifest, remove_stale
-from pair_vpr_ros.place_map.parts import MapParts
-from pair_vpr_ros.place_map.store import KeyframeStore, SavedCrcs
+from pair_vpr_ros.place_map.parts import MapParts, SavedCrcs
+from pair_vpr_ros.place_map.store import KeyframeStore
 
 # The class `load` is called on (PlaceMap): saving.py never imports place_map.py, which imports it.
 MapT = TypeVar("MapT", bound="MapSaving")

@@ -16,7 +16,6 @@ from __future__ import annotations
 import sqlite3
 import struct
 import zlib
-from array import array
 from collections.abc import Iterator
 from pathlib import Path
 from urllib.parse import quote
@@ -318,30 +317,3 @@ def _meta(row: tuple) -> KeyframeMeta:
     robot, session = row[11], row[12]
     pose_or_none = None if pose[0] is None else tuple(pose)
     return KeyframeMeta(kf_id, stamp, frame_id, pose_or_none, source, robot, session)
-
-
-class SavedCrcs:
-    """The dense CRC32s of a loaded map (DenseStore.crcs): the saved ones read from the store
-    when an entry is read (a load reads none), those of entries added since kept here."""
-
-    def __init__(self, lookup, saved: int) -> None:
-        self._lookup, self._saved, self._new = lookup, int(saved), array("I")
-
-    def __len__(self) -> int:
-        return self._saved + len(self._new)
-
-    def __getitem__(self, i: int) -> int:
-        i = i + len(self) if i < 0 else i
-        return self._new[i - self._saved] if i >= self._saved else self._lookup(i)
-
-    def append(self, crc: int) -> None:
-        self._new.append(crc)
-
-    def pop(self) -> int:
-        if self._new:
-            return self._new.pop()
-        self._saved -= 1
-        return self._lookup(self._saved)
-
-    def materialised(self) -> array:
-        return array("I", (self[i] for i in range(len(self))))
