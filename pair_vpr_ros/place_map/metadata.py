@@ -1,4 +1,5 @@
-"""Keyframe metadata (stamp, frame, optional pose, source, robot, session) and features in SQLite.
+"""Keyframe metadata (stamp, frame, optional pose, source, robot, session, rig camera) and
+features in SQLite.
 
 Maps of format version 1 have no robot / session columns: loading one adds them to the working
 copy, filled with the identity the loader names (`from_saved(..., legacy=...)`); the next save
@@ -58,6 +59,8 @@ class KeyframeMeta:
     pose: (x, y, z, qx, qy, qz, qw) in the odometry frame, or None when unknown.
     source: free text (bag name, topic).
     robot, session: who recorded it (identity.py; "" = unnamed, e.g. a library user's map).
+    camera: which camera of a rig took it, its index in the rig's cameras (loops/rig.py); 0 for
+    a single camera and for every keyframe of a map saved before rigs (issue 49).
     """
 
     id: int = -1
@@ -67,6 +70,7 @@ class KeyframeMeta:
     source: str = ""
     robot: str = ""
     session: str = ""
+    camera: int = 0
 
 
 def validate_meta(meta: KeyframeMeta) -> KeyframeMeta:
@@ -84,9 +88,12 @@ def validate_meta(meta: KeyframeMeta) -> KeyframeMeta:
         raise MapError(
             f"keyframe pose must be 7 finite numbers (x, y, z, qx, qy, qz, qw) or None, got {pose}"
         )
+    camera = meta.camera
+    if isinstance(camera, bool) or not isinstance(camera, int) or not 0 <= camera < 2**31:
+        raise MapError(f"keyframe camera must be a rig camera index >= 0, got {camera!r}")
     return KeyframeMeta(
         meta.id, stamp, str(meta.frame_id), pose, str(meta.source), str(meta.robot),
-        str(meta.session),
+        str(meta.session), int(camera),
     )  # fmt: skip
 
 

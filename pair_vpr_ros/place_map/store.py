@@ -31,7 +31,7 @@ _SCHEMA = (
     id INTEGER PRIMARY KEY, stamp REAL NOT NULL, frame_id TEXT NOT NULL, source TEXT NOT NULL,
     x REAL, y REAL, z REAL, qx REAL, qy REAL, qz REAL, qw REAL, robot TEXT NOT NULL,
     session TEXT NOT NULL, descriptor BLOB NOT NULL, dense_crc INTEGER NOT NULL,
-    crc INTEGER NOT NULL, desc_crc INTEGER NOT NULL)""",
+    crc INTEGER NOT NULL, desc_crc INTEGER NOT NULL, camera INTEGER NOT NULL DEFAULT 0)""",
     "CREATE TABLE IF NOT EXISTS features (id INTEGER PRIMARY KEY, crc INTEGER NOT NULL, "
     "data BLOB NOT NULL)",
     "CREATE TABLE IF NOT EXISTS state (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
@@ -40,13 +40,18 @@ _SCHEMA = (
 _META = "id, stamp, frame_id, source, x, y, z, qx, qy, qz, qw, robot, session"
 _COLUMNS = _META + ", descriptor, dense_crc, crc, desc_crc"
 _CHUNK = 4096  # rows per fetch when a load scans the table
+# The rig camera of a keyframe (issue 49). Stores written before it have no such column: read,
+# their keyframes are camera 0; the first keyframe of another camera added to one adds it
+# (`_camera_column`, the one migration). A camera-0 row is written and checked as before it.
+_CAMERA = "camera INTEGER NOT NULL DEFAULT 0"
 
 
-def row_crc(row: tuple) -> int:
-    """CRC32 of a keyframe row's values (all columns but `crc`, in _COLUMNS order)."""
+def row_crc(row: tuple, camera: int = 0) -> int:
+    """CRC32 of a keyframe row's values (all columns but `crc`, in _COLUMNS order), and of its
+    camera when that is not 0 (so camera-0 rows keep the CRC they had before the column)."""
     *meta, desc, dense_crc = row
     # + 0.0: SQLite gives -0.0 back as 0.0 (a REAL of integral value is stored as an integer)
-    meta = [v + 0.0 if isinstance(v, float) else v for v in meta]
+    meta = [v + 0.0 if isinstance(v, float) else v for v in meta] + ([camera] if camera else [])
     return zlib.crc32(desc + struct.pack("<I", dense_crc), zlib.crc32(repr(meta).encode()))
 
 
@@ -72,6 +77,26 @@ class KeyframeStore:
             raise self.damaged(f"is not a readable SQLite database ({err})") from err
         except (sqlite3.Error, UnicodeDecodeError) as err:
             raise self.damaged(f"is not a readable SQLite database ({err})") from err
+        self._has_camera: bool | None = None  # known once asked (`_camera_column`)
+
+    def _camera_column(self, add: bool = False) -> bool:
+        """Whether the keyframe table has the camera column; `add`: give it one (an old store
+        taking its first keyframe of a camera other than 0; in the open transaction, so a
+        rollback takes it back with the rows)."""
+        if self._has_camera is None:
+            rows = self._conn.execute("PRAGMA table_info(keyframes)").fetchall()
+            self._has_camera = any(r[1] == "camera" for r in rows)
+        if add and not self._has_camera:
+            self._conn.execute(f"ALTER TABLE keyframes ADD COLUMN {_CAMERA}")
+            self._has_camera = True
+        return self._has_camera
+
+    def _select(self) -> str:
+        """The keyframe columns a read takes: _COLUMNS, then the camera (0 in an old store)."""
+        try:
+            return _COLUMNS + (", camera" if self._camera_column() else ", 0")
+        except (sqlite3.Error, UnicodeDecodeError) as err:
+            raise self.damaged(f"cannot be read ({err})") from err
 
     def _connect(self) -> sqlite3.Connection:
         # Callers serialise access (the pipeline's lock), so any thread may use the connection.
@@ -123,9 +148,11 @@ class KeyframeStore:
         pose = meta.pose if meta.pose is not None else (None,) * 7
         values = (meta.id, meta.stamp, meta.frame_id, meta.source, *pose, meta.robot,
                   meta.session, np.asarray(desc, "<f4").tobytes(), int(dense_crc))  # fmt: skip
+        cam = [meta.camera] if meta.camera and self._camera_column(add=True) else []
         self._conn.execute(
-            f"INSERT INTO keyframes ({_COLUMNS}) VALUES ({','.join('?' * 17)})",
-            (*values, row_crc(values), zlib.crc32(values[13])),
+            f"INSERT INTO keyframes ({_COLUMNS}{', camera' * len(cam)}) "
+            f"VALUES ({','.join('?' * (17 + len(cam)))})",
+            (*values, row_crc(values, meta.camera), zlib.crc32(values[13]), *cam),
         )
         if features:
             self._conn.execute(
@@ -152,6 +179,7 @@ class KeyframeStore:
         except BaseException:
             if not self._conn.in_transaction:
                 self.rolled_back = True  # the caller drops the rows from the live map too
+                self._has_camera = None  # a camera column added since went with them
                 self._conn.execute("BEGIN IMMEDIATE")
             raise
         self._conn.execute("BEGIN IMMEDIATE")
@@ -185,12 +213,13 @@ class KeyframeStore:
             for statement in _SCHEMA:
                 dst.execute(statement)
             dst.execute("BEGIN")
-            tables = [("keyframes", _COLUMNS), ("features", "id, crc, data")]
+            tables = [("keyframes", _COLUMNS + ", camera"), ("features", "id, crc, data")]
             if self.growth().present():  # a store written before them has none to copy
                 tables += list(GROWTH_TABLES.items())
             for table, columns in tables:
                 marks = ",".join("?" * len(columns.split(", ")))
-                rows = self._conn.execute(f"SELECT {columns} FROM {table} ORDER BY 1")
+                read = self._select() if table == "keyframes" else columns
+                rows = self._conn.execute(f"SELECT {read} FROM {table} ORDER BY 1")
                 while batch := rows.fetchmany(_CHUNK):
                     dst.executemany(f"INSERT INTO {table} ({columns}) VALUES ({marks})", batch)
             dst.executemany("INSERT INTO state (key, value) VALUES (?, ?)", state.items())
@@ -263,11 +292,11 @@ class KeyframeStore:
         desc = row[13]
         if row[0] != kf_id or not isinstance(desc, bytes) or not isinstance(row[14], int):
             raise self.damaged(f"has a bad row where keyframe {kf_id} should be")
-        if row_crc(row[:15]) != row[15]:
+        if not isinstance(row[17], int) or row_crc(row[:15], row[17]) != row[15]:
             raise self.damaged(f"holds keyframe {kf_id} with a wrong CRC32 (a damaged row)")
 
     def get(self, kf_id: int) -> KeyframeMeta | None:
-        row = self._one(f"SELECT {_COLUMNS} FROM keyframes WHERE id = ?", int(kf_id))
+        row = self._one(f"SELECT {self._select()} FROM keyframes WHERE id = ?", int(kf_id))
         if row is None:
             return None
         self._check_row(row, int(kf_id))
@@ -275,7 +304,8 @@ class KeyframeStore:
 
     def all(self) -> list[KeyframeMeta]:
         out = []
-        for kf_id, row in enumerate(self._rows(f"SELECT {_COLUMNS} FROM keyframes ORDER BY id")):
+        rows = self._rows(f"SELECT {self._select()} FROM keyframes ORDER BY id")
+        for kf_id, row in enumerate(rows):
             self._check_row(row, kf_id)
             out.append(_meta(row))
         return out
@@ -316,4 +346,4 @@ def _meta(row: tuple) -> KeyframeMeta:
     kf_id, stamp, frame_id, source, *pose = row[:11]
     robot, session = row[11], row[12]
     pose_or_none = None if pose[0] is None else tuple(pose)
-    return KeyframeMeta(kf_id, stamp, frame_id, pose_or_none, source, robot, session)
+    return KeyframeMeta(kf_id, stamp, frame_id, pose_or_none, source, robot, session, row[17])
