@@ -142,9 +142,10 @@ def check_frame_ids(frame_ids: Mapping[str, str]) -> None:
         seen[frame_id] = name
 
 
-def rig_from_dict(data: Any, where: str) -> Rig:
+def parse_rig(data: Any, where: str) -> tuple[list[RigCamera], dict[str, Any]]:
     """A rig file's content (YAML: ``cameras: [{name, camera_to_base, image_topic, ...}]``,
-    optional ``stamp_tolerance``, ``max_delay``, ``base_frame``) -> Rig; ConfigError naming
+    optional ``stamp_tolerance``, ``max_delay``, ``base_frame``) -> its cameras and the Rig's
+    other settings; a camera may lack camera_to_base (to come from tf). ConfigError naming
     `where` (the file) otherwise."""
     if not isinstance(data, Mapping) or not isinstance(data.get("cameras"), list):
         raise ConfigError(f"{where}: a rig file needs a list 'cameras' of cameras, each with "
@@ -171,9 +172,16 @@ def rig_from_dict(data: Any, where: str) -> Rig:
         settings = {k: float(data[k]) for k in ("stamp_tolerance", "max_delay") if k in data}
     except (TypeError, ValueError) as err:
         raise ConfigError(f"{where}: stamp_tolerance and max_delay are seconds: {err}") from err
-    base = str(data.get("base_frame", Rig.base_frame))
+    if "base_frame" in data:
+        settings["base_frame"] = str(data["base_frame"])
+    return cams, settings
+
+
+def rig_from_dict(data: Any, where: str) -> Rig:
+    """`parse_rig`, every camera with its extrinsic -> Rig (ConfigError naming `where`)."""
+    cams, settings = parse_rig(data, where)
     try:
-        return Rig(tuple(cams), base_frame=base, **settings)
+        return Rig(tuple(cams), **settings)
     except ConfigError as err:
         raise ConfigError(f"{where}: {err}") from err
 
@@ -228,3 +236,19 @@ def to_base(record: LoopRecord, rig: Rig) -> None:
     record.qx, record.qy, record.qz, record.qw = matrix_quaternion(out[:3, :3])
     record.covariance = tuple(float(v) for v in (cov + cov.T).ravel() / 2)
     record.pose_frame = rig.base_frame
+
+
+def static_chain(
+    edges: Mapping[str, tuple[str, Sequence[float]]], base: str, frame: str
+) -> Pose | None:
+    """The pose of `frame` in `base` from static transforms (tf: child -> (parent, pose of the
+    child in the parent)), composed along the chain; None when `frame` does not lead to `base`."""
+    out, seen = np.eye(4), set()
+    while frame != base:
+        if frame not in edges or frame in seen:
+            return None
+        seen.add(frame)
+        parent, pose = edges[frame]
+        out = _matrix(pose) @ out
+        frame = parent
+    return (*(float(v) for v in out[:3, 3]), *matrix_quaternion(out[:3, :3]))  # type: ignore
