@@ -90,10 +90,14 @@ class FrameIntake:
             return
         self._last_queued = stamp
         frame = Frame(stamp=stamp, rgb=rgb, frame_id=msg.header.frame_id, source=topic)
-        if self.frames.put((frame, time.monotonic())):
+        self._enqueue(frame)
+
+    def _enqueue(self, item: Frame | list[Frame], what: str = "frame") -> None:
+        """Queue a frame (or a rig keyframe) for the worker; a full queue drops its oldest."""
+        if self.frames.put((item, time.monotonic())):
             self.stats.counts.dropped += 1
             self.get_logger().warning(
-                "frame queue full: dropping the oldest frame (the model is slower than the "
+                f"frame queue full: dropping the oldest {what} (the model is slower than the "
                 "camera; raise min_frame_interval or queue_size)",
                 throttle_duration_sec=10.0,
             )

@@ -168,13 +168,7 @@ class RigIntake:
                 self.stats.counts.rate_limited += len(group)
                 continue
             self._last_queued = group[0].stamp
-            if self.frames.put((group, time.monotonic())):
-                self.stats.counts.dropped += 1
-                self.get_logger().warning(
-                    "frame queue full: dropping the oldest rig keyframe (the model is slower "
-                    "than the cameras; raise min_frame_interval or queue_size)",
-                    throttle_duration_sec=10.0,
-                )
+            self._enqueue(group, "rig keyframe")  # ros/intake.py
 
     def rig_diagnostics(self) -> dict[str, str]:
         """The rig's counts for /diagnostics ({} without a rig)."""
