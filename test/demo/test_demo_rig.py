@@ -5,13 +5,14 @@ cameras and /tf_static."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 import pytest
 from test_demo_world import read_bag
 
-from pair_vpr_ros.demo import generate_world, render_frame
+from pair_vpr_ros.demo import generate_world, render_frame, rig_summary
 from pair_vpr_ros.demo.bag import write_world_bag
 from pair_vpr_ros.demo.camera import Camera, to_camera
 from pair_vpr_ros.demo.rig import (
@@ -78,3 +79,27 @@ def test_a_rig_bag_holds_both_cameras_and_their_poses(tmp_path):
 def test_a_reversed_lap_that_is_no_later_lap_is_refused(laps):
     with pytest.raises(ConfigError, match=r"reverse_laps=.*: each a lap in 1\.\.2"):
         generate_world(3, frames=60, reverse_laps=laps)
+
+
+def _run(folder, name, opposite, precision, ate):
+    (folder / name).mkdir(parents=True)
+    (folder / f"{name}_posegraph").mkdir()
+    summary = {"evaluation": {"precision": precision, "recall": 0.9}, "loops": 7,
+               "directions": {"opposite": {"recall": opposite, "positives": 50},
+                              "same": {"recall": 0.99}},
+               "pipeline_counts": {"pose_metric": 5}}  # fmt: skip
+    (folder / name / "summary.json").write_text(json.dumps(summary))
+    errors = {"optimised": {"ate_rmse": ate}, "odometry": {"ate_rmse": 3.0}}
+    (folder / f"{name}_posegraph" / "posegraph.json").write_text(json.dumps({"errors": errors}))
+
+
+def test_the_rig_summary_puts_both_runs_and_the_targets_side_by_side(tmp_path, capsys):
+    _run(tmp_path, "front_only", 0.1, 0.99, 0.3)
+    _run(tmp_path, "rig", 0.9, 0.97, 0.2)
+    assert rig_summary.main([str(tmp_path)]) == 0
+    out = json.loads((tmp_path / "rig_summary.json").read_text())
+    assert (out["front_only"]["opposite_recall"], out["rig"]["ate_m"]) == (0.1, 0.2)
+    assert out["targets"] == {"rig opposite_recall >= 0.8": True, "rig precision >= 0.98": False,
+                              "rig ate_m <= front_only ate_m": True}  # fmt: skip
+    assert "rig precision >= 0.98: NOT met" in capsys.readouterr().out
+    assert rig_summary.main([str(tmp_path / "nothing")]) == 2  # not run yet: says so
