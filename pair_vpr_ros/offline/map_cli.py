@@ -131,6 +131,8 @@ def _run(args: argparse.Namespace) -> int | None:
         growth = GrowthConfig(exclude_recent_s=args.exclude_recent_s)
         compacted = compact_map(args.map, args.out, codec=args.codec, policy=not args.no_policy,
                                 growth=growth, fingerprint=args.fingerprint)  # fmt: skip
+        for warning in compacted.warnings:
+            print(f"warning: {warning}", file=sys.stderr)
         for note in compacted.notes:
             print(f"note: {note}", file=sys.stderr)
         print(compacted.line())

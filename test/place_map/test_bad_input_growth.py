@@ -64,7 +64,7 @@ CASES = {
     ),
     "IN of an old format": (
         lambda t: Path(shutil.copytree(MAPS / "format-2", t / "old")), [], 1,
-        "input map {t}/old is of format version 2: compact reads format 3; load it in the node "
+        "input map {t}/old is of format version 2: compact reads formats 3-4; load it in the node "
         "or a replay (--map-dir) and save it once to convert it, then compact",
     ),
     "a damaged signature": (
@@ -131,6 +131,7 @@ def test_a_full_disk_while_recording_a_growth_row_is_a_map_error(tmp_path):
         with pytest.raises(MapError) as err:
             tables.add_link(1, 0, (0, 0, 0, 0, 0, 0, 1))
         assert str(err.value) == (
-            "recording a growth row failed: database or disk is full; free disk space (or load "
-            "the map's last save) and go on"
+            f"keyframe store {tmp_path / 'a' / 'map-1.sqlite'} could not record a growth row: the "
+            "disk is full (database or disk is full): free disk space there (SQLite also writes "
+            "temporary files to $TMPDIR) and retry"
         )

@@ -40,13 +40,13 @@ def test_an_old_map_loads_with_a_note_and_the_next_save_converts_it(tmp_path: Pa
     with PlaceMap.load(d, legacy_identity=("", "")) as m:  # v1: keyframes named at load
         assert_holds(m, list(range(N0)), "f16")  # float16 tokens, bit for bit
         assert f"is of format version {version}" in m.load_note
-        assert "converted to format 3 by the next save into it" in m.load_note
+        assert "converted to format 4 by the next save into it" in m.load_note
         add_range(m, N0, N0 + 2)
         m.save(d)
         add_range(m, N0 + 2, N0 + 3)
         m.save(d)  # incremental from here
     manifest = json.loads((d / "manifest.json").read_text())
-    assert (manifest["format_version"], manifest["dense_codec"]) == (3, "f16")
+    assert (manifest["format_version"], manifest["dense_codec"]) == (4, "f16")
     assert files(d) == [
         "dense-1.f16",
         "manifest.json",

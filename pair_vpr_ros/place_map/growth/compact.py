@@ -28,7 +28,7 @@ from pair_vpr_ros.place_map.dense_codec import DEFAULT_CODEC, check_codec
 from pair_vpr_ros.place_map.growth.policy import GrowthConfig, find_representative, is_recent
 from pair_vpr_ros.place_map.growth.tables import GrowthTables, Represented
 from pair_vpr_ros.place_map.manifest import read_manifest
-from pair_vpr_ros.place_map.merge import publish_map, remove_stale
+from pair_vpr_ros.place_map.merge import compacting, publish_map, remove_stale, work_folder
 from pair_vpr_ros.place_map.place_map import PlaceMap
 
 CHUNK = 64  # keyframes whose dense tokens are read at once
@@ -48,6 +48,7 @@ class CompactResult:
     bytes_in: int = 0
     bytes_out: int = 0
     notes: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)  # e.g. IN misses saved keyframes
 
     def line(self) -> str:
         return (
@@ -68,34 +69,36 @@ def compact_map(
 ) -> CompactResult:
     """Compact the saved map `src` into the new folder `out` (module docstring) -> result.
     codec: "p4", "q4", "q4a" or "f16" (p4 of a p4 map keeps its basis); policy False: re-encode
-    only; fingerprint: refuse a map of another model. ConfigError (`out` exists, bad codec),
-    MapError (`src` not a map, damaged, of an old format), MapFingerprintError; `out` is not
-    created then."""
+    only; fingerprint: refuse a map of another model. ConfigError (`out`
+    exists, bad codec), OutputError (`out`'s folder not writable), MapError (`src` not a map,
+    damaged, of an old format; a full disk), MapFingerprintError; `out` is not created then. A
+    map whose store misses saved keyframes (its -wal lost) is compacted from what it holds,
+    with a warning (the way to go on with it)."""
     check_codec(codec)
     source, target = Path(src).expanduser().resolve(), Path(out).expanduser().resolve()
     _check_paths(source, target)
     remove_stale(target)
-    with _open(source, fingerprint) as m:
-        result = CompactResult(out=str(target), keyframes_in=len(m), codec=codec)
-        result.bytes_in = _bytes(source)
-        tables = m.growth
-        counts = tables.counts()
-        result.represented_before = counts.represented
-        if policy and counts.signatures == 0:
-            result.notes.append(
-                f"{source} has no appearance signatures (saved before map_growth): its "
-                "keyframes are only re-encoded"
-            )
-        dropped = _dropped(m, tables, growth or GrowthConfig()) if policy else {}
-        # named as merge's, so that remove_stale clears it after a kill
-        work = target.parent / f".{target.name}.merging-{os.getpid()}.work"
-        work.mkdir(exist_ok=True)
-        try:
-            new = _copy(m, tables, dropped, codec, work)
-            result.stored, result.represented = len(new), new.growth.counts().represented
-            publish_map(new, target)
-        finally:
-            shutil.rmtree(work, ignore_errors=True)
+    work = work_folder(target)  # named as merge's, so that remove_stale clears it after a kill
+    try:
+        with _open(source, fingerprint) as m:
+            result = CompactResult(out=str(target), keyframes_in=len(m), codec=codec)
+            result.warnings += [m.load_note] if m.load_note else []
+            result.bytes_in = _bytes(source)
+            tables = m.growth
+            counts = tables.counts()
+            result.represented_before = counts.represented
+            if policy and counts.signatures == 0:
+                result.notes.append(
+                    f"{source} has no appearance signatures (saved before map_growth): its "
+                    "keyframes are only re-encoded"
+                )
+            dropped = _dropped(m, tables, growth or GrowthConfig()) if policy else {}
+            with compacting(target, work):
+                new = _copy(m, tables, dropped, codec, work)
+                result.stored, result.represented = len(new), new.growth.counts().represented
+                publish_map(new, target)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
     result.bytes_out = _bytes(target)
     return result
 
@@ -120,11 +123,11 @@ def _open(source: Path, fingerprint: str | None) -> PlaceMap:
         raise MapError(f"input map {source} cannot be compacted: {err}") from err
     if version < 3:
         raise MapError(
-            f"input map {source} is of format version {version}: compact reads format 3; load "
+            f"input map {source} is of format version {version}: compact reads formats 3-4; load "
             "it in the node or a replay (--map-dir) and save it once to convert it, then compact"
         )
-    try:
-        m = PlaceMap.load(source, read_only=True)
+    try:  # keyframes its -wal lost: compacted from what it holds, with a warning
+        m = PlaceMap.load(source, read_only=True, missing_ok=True)
     except MapError as err:
         raise type(err)(f"input map {source} cannot be compacted: {err}") from err
     if fingerprint is not None and m.fingerprint != fingerprint:
@@ -139,7 +142,6 @@ def _open(source: Path, fingerprint: str | None) -> PlaceMap:
 def _dropped(m: PlaceMap, tables: GrowthTables, config: GrowthConfig) -> dict[int, tuple]:
     """{id: (representative id, distance)} of the keyframes the policy drops, in id order."""
     dropped: dict[int, tuple] = {}
-
     metas = m.all_meta()
 
     def stamp_and_identity(kf_id: int) -> tuple[float, str, str]:

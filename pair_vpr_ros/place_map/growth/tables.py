@@ -22,23 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pair_vpr_ros.errors import MapError
-
-GROWTH_SCHEMA = (
-    "CREATE TABLE IF NOT EXISTS signatures (id INTEGER PRIMARY KEY, data BLOB NOT NULL, "
-    "crc INTEGER NOT NULL)",
-    "CREATE TABLE IF NOT EXISTS links (a INTEGER NOT NULL, b INTEGER NOT NULL, tx REAL, ty REAL, "
-    "tz REAL, qx REAL, qy REAL, qz REAL, qw REAL, crc INTEGER NOT NULL, PRIMARY KEY (a, b))",
-    "CREATE INDEX IF NOT EXISTS links_b ON links (b)",
-    "CREATE TABLE IF NOT EXISTS represented (stamp REAL NOT NULL, robot TEXT NOT NULL, "
-    "session TEXT NOT NULL, representative INTEGER NOT NULL, distance REAL NOT NULL, "
-    "crc INTEGER NOT NULL)",
-)
-# table -> its columns, in the order a copy writes them
-GROWTH_TABLES = {
-    "signatures": "id, data, crc",
-    "links": "a, b, tx, ty, tz, qx, qy, qz, qw, crc",
-    "represented": "stamp, robot, session, representative, distance, crc",
-}
+from pair_vpr_ros.place_map.schema import GROWTH_SCHEMA, GROWTH_TABLES
 
 
 def _crc(values: tuple) -> int:
@@ -70,26 +54,30 @@ class GrowthCounts:
 
 class GrowthTables:
     """The growth tables of one open keyframe store (`KeyframeStore.growth()`): `conn` is the
-    store's connection (its open transaction, when it has one), `damaged` its error maker."""
+    store's connection (its open transaction, when it has one), `damaged` its error maker for
+    a damaged row, `failure(err, what)` for a failed SQLite call (a full disk said as one),
+    `begin` opens the store's write transaction (when it has none) before a write."""
 
-    def __init__(self, conn: sqlite3.Connection, damaged, writable: bool) -> None:
+    def __init__(
+        self, conn: sqlite3.Connection, damaged, writable: bool, failure=None, begin=None
+    ) -> None:
         self._conn, self._damaged, self._writable = conn, damaged, writable
+        self._failure = failure or (lambda err, what: damaged(f"{what} ({err})"))
+        self._begin = begin or (lambda: None)
 
     # ------------------------------------------------------------------------ writing
 
-    def _write(self, sql: str, values: tuple) -> None:
+    def _write(self, sql: str, values: tuple, crc_of: tuple | None = None) -> None:
         if not self._writable:
             raise MapError("cannot record growth rows in a map loaded with read_only=True")
         try:
+            self._begin()
             if not self.present():
                 for statement in GROWTH_SCHEMA:  # inside the open transaction: durable at save
                     self._conn.execute(statement)
-            self._conn.execute(sql, (*values, _crc(values)))
+            self._conn.execute(sql, (*values, _crc(values if crc_of is None else crc_of)))
         except sqlite3.Error as err:  # a full disk: the keyframe rows' own error, said alike
-            raise MapError(
-                f"recording a growth row failed: {err}; free disk space (or load the map's last "
-                "save) and go on"
-            ) from err
+            raise self._failure(err, "could not record a growth row") from err
 
     def add_signature(self, kf_id: int, signature: np.ndarray) -> None:
         """signature [S] float (stored float16)."""
@@ -158,7 +146,7 @@ class GrowthTables:
         try:
             return self._conn.execute(sql, args).fetchone()
         except (sqlite3.Error, UnicodeDecodeError) as err:
-            raise self._damaged(f"cannot be read ({err})") from err
+            raise self._failure(err, "cannot be read") from err
 
     def _all(self, sql: str, *args) -> list[tuple]:
         if not self.present():
@@ -166,7 +154,7 @@ class GrowthTables:
         try:
             return self._conn.execute(sql, args).fetchall()
         except (sqlite3.Error, UnicodeDecodeError) as err:
-            raise self._damaged(f"cannot be read ({err})") from err
+            raise self._failure(err, "cannot be read") from err
 
 
 def invert(pose: tuple[float, ...]) -> tuple[float, ...]:
