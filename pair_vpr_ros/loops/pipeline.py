@@ -42,6 +42,7 @@ from pair_vpr_ros.loops.growth import (
     MapGrowth,
     appearance_signature,
     live_posed_loops,
+    live_scores,
     recognised_ids,
     shift_pose,
 )
@@ -247,7 +248,8 @@ class LoopClosurePipeline(PipelineMaps):
         if places and self.growth.lender(self._place_map, posed) is not None:
             packed = b""  # a known place anew: a linked keyframe lends its features
         outcome.keyframe_id = self._place_map.add(desc, dense, meta, packed)
-        self.growth.stored(self._place_map, outcome.keyframe_id, signature, posed)
+        scores = live_scores(outcome, self.config.global_weight)
+        self.growth.stored(self._place_map, outcome.keyframe_id, signature, posed, scores)
         self.maps.added(replace(meta, id=outcome.keyframe_id))
         pending = self._place_map.index_diagnostics.get("map_keyframes_pending", 0)
         self.counts.map_keyframes_pending = pending

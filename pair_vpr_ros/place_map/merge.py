@@ -270,9 +270,9 @@ def _copy_growth(m: PlaceMap, merged: PlaceMap, offset: int) -> None:
         signature = tables.signature(kf_id)
         if signature is not None:
             merged.growth.add_signature(kf_id + offset, signature)
-        for other, t_other_kf in tables.links(kf_id):
+        for other, t_other_kf, score in tables.scored_links(kf_id):
             if other < kf_id:
-                merged.growth.add_link(kf_id + offset, other + offset, t_other_kf)
+                merged.growth.add_link(kf_id + offset, other + offset, t_other_kf, score)
 
 
 def publish_map(merged: PlaceMap, target: Path) -> None:

@@ -20,10 +20,12 @@ import zlib
 
 from pair_vpr_ros.errors import MapError
 
-SCHEMA_VERSION = 0
+SCHEMA_VERSION = 1
 # Each step: (the version it makes, table, column, declaration). A table that does not exist
 # yet is created later with every column (its CREATE statement), so it needs no step.
-MIGRATIONS: tuple[tuple[int, str, str, str], ...] = ()
+MIGRATIONS: tuple[tuple[int, str, str, str], ...] = (
+    (1, "links", "score", "REAL"),  # issue 48: the re-rank score that made the growth link
+)
 STORE_ID = "store_id"  # the `state` key of the store's identity (named by manifest.json)
 
 KEYFRAMES_SCHEMA = (
@@ -36,12 +38,14 @@ KEYFRAMES_SCHEMA = (
     "data BLOB NOT NULL)",
     "CREATE TABLE IF NOT EXISTS state (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
 )
-# The growth tables (growth/tables.py): signatures, links and represented keyframes
+# The growth tables (growth/tables.py): signatures, links (with the re-rank score that made
+# the link since schema version 1; NULL in rows written before) and represented keyframes
 GROWTH_SCHEMA = (
     "CREATE TABLE IF NOT EXISTS signatures (id INTEGER PRIMARY KEY, data BLOB NOT NULL, "
     "crc INTEGER NOT NULL)",
     "CREATE TABLE IF NOT EXISTS links (a INTEGER NOT NULL, b INTEGER NOT NULL, tx REAL, ty REAL, "
-    "tz REAL, qx REAL, qy REAL, qz REAL, qw REAL, crc INTEGER NOT NULL, PRIMARY KEY (a, b))",
+    "tz REAL, qx REAL, qy REAL, qz REAL, qw REAL, crc INTEGER NOT NULL, score REAL, "
+    "PRIMARY KEY (a, b))",
     "CREATE INDEX IF NOT EXISTS links_b ON links (b)",
     "CREATE TABLE IF NOT EXISTS represented (stamp REAL NOT NULL, robot TEXT NOT NULL, "
     "session TEXT NOT NULL, representative INTEGER NOT NULL, distance REAL NOT NULL, "
@@ -50,7 +54,7 @@ GROWTH_SCHEMA = (
 # table -> its columns, in the order a copy writes them
 GROWTH_TABLES = {
     "signatures": "id, data, crc",
-    "links": "a, b, tx, ty, tz, qx, qy, qz, qw, crc",
+    "links": "a, b, tx, ty, tz, qx, qy, qz, qw, crc, score",
     "represented": "stamp, robot, session, representative, distance, crc",
 }
 META = "id, stamp, frame_id, source, x, y, z, qx, qy, qz, qw, robot, session"

@@ -240,6 +240,28 @@ def test_compact_applies_the_policy_and_the_codec_and_round_trips(tiny_model, tm
     assert (result.stored, result.represented) == (6, 0)
 
 
+def test_a_link_keeps_its_re_rank_score_and_compact_applies_the_threshold(tiny_model, tmp_path):
+    """Issue 48, loose end 2: each link keeps the re-rank score with which its keyframe's query
+    recognised the match (the live rule's third condition); compact represents a keyframe only
+    by one it recognised at or above --score-threshold, as the live map_growth would have."""
+    pipe, out = drive(tiny_model, "all", order=[0, 1, 2, 3, 0, 1], codec="f16")
+    pipe.save_map(tmp_path / "in")
+    scores = []
+    for q in (4, 5):
+        ((match, _, score),) = pipe.place_map.growth.scored_links(q)
+        assert (match, score) == (q - 4, out[q].loop.pair_score)  # global_weight 0
+        scores.append(score)
+    pipe.close()
+    args = ["compact", str(tmp_path / "in"), "--exclude-recent-s", "2.5", "--score-threshold"]
+    assert main([*args, str(min(scores)), "--out", str(tmp_path / "at")]) == 0
+    assert main([*args, str(max(scores) + 1.0), "--out", str(tmp_path / "above")]) == 0
+    with PlaceMap.load(tmp_path / "at", read_only=True) as at:
+        assert (len(at), at.growth.counts().represented) == (4, 2)
+    with PlaceMap.load(tmp_path / "above", read_only=True) as above:
+        assert (len(above), above.growth.counts().represented) == (6, 0)
+        assert [s for _, _, s in above.growth.scored_links(4)] == [scores[0]]  # carried
+
+
 def test_compact_of_a_map_without_signatures_only_re_encodes(tmp_path, capsys):
     m = PlaceMap(desc_dim=8, dense_shape=(2, 3), fingerprint="fp", index=IndexConfig(
         dense_codec="f16"))  # fmt: skip

@@ -78,6 +78,17 @@ CASES = {
         "keyframe store {t}/a/map-1.sqlite holds the link of keyframes 2 and 0 with a wrong "
         "CRC32 (a damaged row)",
     ),
+    "a damaged link score": (  # issue 48: a link's CRC32 covers its re-rank score
+        lambda t: _damage(_with_growth(t / "a"), "UPDATE links SET score = 5.0") or t / "a", [],
+        1, "keyframe store {t}/a/map-1.sqlite holds the link of keyframes 2 and 0 with a wrong "
+        "CRC32 (a damaged row)",
+    ),
+    "a store of a newer schema": (
+        lambda t: _damage(_with_growth(t / "a"), "PRAGMA user_version = 9") or t / "a", [], 1,
+        "input map {t}/a cannot be compacted: keyframe store {t}/a/map-1.sqlite has schema "
+        "version 9, this pair_vpr_ros reads up to 1: it was written by a newer pair_vpr_ros; use "
+        "that release",
+    ),
     "a bad codec": (lambda t: _with_growth(t / "a"), ["--codec", "q2"], 2, ""),
 }  # fmt: skip
 

@@ -4,9 +4,12 @@ OUT`).
 
 Keyframes are visited in id order, as the pipeline met them. A keyframe whose links to earlier
 keyframes (its loops with a confident pose) lead to a kept keyframe of its appearance
-(`find_representative`, the pipeline's rule on pose and appearance; the map keeps no pair scores,
-so compact cannot also ask, as the pipeline does, that the model recognised the keyframe from its
-representative without help of a sequence) is dropped and recorded as represented; the others are
+(`find_representative`, the pipeline's rule on pose and appearance) that its own re-ranking
+recognised (the live rule's third condition: the re-rank score its link keeps is at or above
+`score_threshold`; a keyframe one hop away whose score the keyframe's links do not keep may not
+represent it, so compact never drops a keyframe the live rule would have stored) is dropped and
+recorded as represented. Links written before scores were kept (issue 48) are judged on pose and
+appearance alone, as before, and the result says how many keyframes were. The others are
 copied (descriptor, dense tokens re-encoded, metadata, features, signature) with new ids 0, 1, 2,
 ...; a keyframe linked to one stored without features (its lender) is never dropped. The links
 between kept keyframes and the represented rows (their representatives renumbered, or followed to a
@@ -66,10 +69,12 @@ def compact_map(
     policy: bool = True,
     growth: GrowthConfig | None = None,
     fingerprint: str | None = None,
+    score_threshold: float = 0.0,
 ) -> CompactResult:
     """Compact the saved map `src` into the new folder `out` (module docstring) -> result.
     codec: "p4", "q4", "q4a" or "f16" (p4 of a p4 map keeps its basis); policy False: re-encode
-    only; fingerprint: refuse a map of another model. ConfigError (`out`
+    only; fingerprint: refuse a map of another model; score_threshold: the detector's (the
+    re-rank score a representative must have had, the live rule's). ConfigError (`out`
     exists, bad codec), OutputError (`out`'s folder not writable), MapError (`src` not a map,
     damaged, of an old format; a full disk), MapFingerprintError; `out` is not created then. A
     map whose store misses saved keyframes (its -wal lost) is compacted from what it holds,
@@ -92,7 +97,13 @@ def compact_map(
                     f"{source} has no appearance signatures (saved before map_growth): its "
                     "keyframes are only re-encoded"
                 )
-            dropped = _dropped(m, tables, growth or GrowthConfig()) if policy else {}
+            rule = Rule(growth or GrowthConfig(), score_threshold)
+            dropped = _dropped(m, tables, rule) if policy else {}
+            if rule.unscored:
+                result.notes.append(
+                    f"{rule.unscored} keyframes of {source} have links without a re-rank score "
+                    "(saved before issue 48): they were judged on pose and appearance alone"
+                )
             with compacting(target, work):
                 new = _copy(m, tables, dropped, codec, work)
                 result.stored, result.represented = len(new), new.growth.counts().represented
@@ -139,16 +150,37 @@ def _open(source: Path, fingerprint: str | None) -> PlaceMap:
     return m
 
 
-def _dropped(m: PlaceMap, tables: GrowthTables, config: GrowthConfig) -> dict[int, tuple]:
+@dataclass
+class Rule:
+    """The growth rule compact applies: the policy's limits and the detector's threshold;
+    `unscored` counts the keyframes judged without scores (links saved before them)."""
+
+    config: GrowthConfig
+    score_threshold: float
+    unscored: int = 0
+
+    def recognised(self, scored: list[tuple[int, tuple, float | None]]) -> set[int] | None:
+        """The earlier keyframes a keyframe's re-ranking recognised, from its links' scores
+        (None: its links keep no score, saved before them)."""
+        if all(score is None for *_, score in scored):
+            self.unscored += 1
+            return None
+        return {k for k, _, score in scored if score is not None and score >= self.score_threshold}
+
+
+def _dropped(m: PlaceMap, tables: GrowthTables, rule: Rule) -> dict[int, tuple]:
     """{id: (representative id, distance)} of the keyframes the policy drops, in id order."""
     dropped: dict[int, tuple] = {}
+    config = rule.config
     metas = m.all_meta()
 
     def stamp_and_identity(kf_id: int) -> tuple[float, str, str]:
         return (metas[kf_id].stamp, *m.identity(metas[kf_id]))
 
-    def kept_signature(query: tuple, kf_id: int):
+    def kept_signature(query: tuple, known: set[int] | None, kf_id: int):
         if kf_id in dropped or is_recent(query, stamp_and_identity(kf_id), config):
+            return None
+        if known is not None and kf_id not in known:  # not recognised: the live rule's 3rd
             return None
         return tables.signature(kf_id)
 
@@ -160,11 +192,13 @@ def _dropped(m: PlaceMap, tables: GrowthTables, config: GrowthConfig) -> dict[in
         query = stamp_and_identity(q)
 
         signature = tables.signature(q)
-        posed = [(k, t_k_q) for k, t_k_q in tables.links(q) if k < q]  # its loops, T_K_Q
-        if signature is None or not posed:
+        scored = [link for link in tables.scored_links(q) if link[0] < q]  # its loops, T_K_Q
+        if signature is None or not scored:
             continue
+        posed, known = [(k, t_k_q) for k, t_k_q, _ in scored], rule.recognised(scored)
         found = find_representative(signature, posed, tables.links,
-                                    functools.partial(kept_signature, query), config)  # fmt: skip
+                                    functools.partial(kept_signature, query, known),
+                                    config)  # fmt: skip
         if found is not None:
             dropped[q] = found
     return dropped
@@ -202,9 +236,9 @@ def _copy_growth(m: PlaceMap, tables: GrowthTables, dropped: dict, new_id: dict,
         return new_id[kf_id]
 
     for a in new_id:
-        for b, t_b_a in tables.links(a):
+        for b, t_b_a, score in tables.scored_links(a):
             if b < a and b in new_id:
-                new.growth.add_link(new_id[a], new_id[b], t_b_a)
+                new.growth.add_link(new_id[a], new_id[b], t_b_a, score)
     for row in tables.represented():
         new.growth.add_represented(replace(row, representative=kept(row.representative)))
     for kf_id, (rep, distance) in dropped.items():
