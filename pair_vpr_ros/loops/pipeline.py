@@ -207,9 +207,9 @@ class LoopClosurePipeline(PipelineMaps):
             outcome.timings_ms["pose"] = 0.0
             for loop in accepted:  # each with its own match's features, from its own map
                 best = match_candidate(outcome, loop)
-                match, lent = self._match_features(best)
+                match, lent = self.match_features(best)
                 # a lent match is posed from its lender's features, camera and odometry
-                near = self._scale_neighbours(best if lent is None else replace(best, id=lent[0]))
+                near = self.scale_neighbours(best, lent)
                 outcome.timings_ms["pose"] += self.geometry.pose(loop, features, match, near)
                 if not loop.pose_status:  # an unposed loop is no sequence to follow (sequence.py)
                     self.detector.end_sequence(track_of(best, self.config.loop_per_map))

@@ -14,6 +14,8 @@ from bag_fixtures import textured
 from exact_match import EXACT_MATCH
 
 from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.fleet.messages import ScoreRequest
+from pair_vpr_ros.fleet.owner import score_request
 from pair_vpr_ros.geometry.camera import CameraModel
 from pair_vpr_ros.geometry.rotations import exp_so3, log_so3
 from pair_vpr_ros.loops import pipeline as pipeline_module
@@ -111,11 +113,22 @@ def test_a_new_appearance_of_a_known_place_is_stored(tiny_model, monkeypatch):
     assert m.features(4) == b"" and m.features(0) != b""
     source, t_4_0 = pipe.growth.feature_source(m, 4)
     assert source == 0 and t_4_0 == pytest.approx((0, 0, 0, 0, 0, 0, 1), abs=1e-2)
-    lent, shift = pipe._match_features(Candidate(4, 4.0, "cam", 1.0, 1))
+    lent, shift = pipe.match_features(Candidate(4, 4.0, "cam", 1.0, 1))
     assert shift == (0, t_4_0) and lent is not None  # (source id, T_match_source)
-    assert lent.keypoints.shape == pipe._match_features(Candidate(0, 0.0, "cam", 1.0, 1))[
+    assert lent.keypoints.shape == pipe.match_features(Candidate(0, 0.0, "cam", 1.0, 1))[
         0].keypoints.shape  # fmt: skip
-    assert pipe._match_features(Candidate(1, 1.0, "cam", 1.0, 1))[1] is None  # its own
+    assert pipe.match_features(Candidate(1, 1.0, "cam", 1.0, 1))[1] is None  # its own
+    # issue 48, loose end 3: another robot's request for keyframe 4 is answered as the local
+    # path answers: posed with its lender's features, composed into its own frame
+    req = ScoreRequest("b", "s1", b"", 0, "robot", "default", 7, 50.0, [4], [1.0],
+                       m.get_dense([0])[0], m.features(0))  # fmt: skip
+    loop, response = score_request(pipe, req, "robot", "default")
+    rec = loop.record
+    assert (rec.match_id, rec.accepted, rec.pose_status, response.pose_status) == (
+        4, True, "metric", "metric",
+    )  # fmt: skip
+    pose = (rec.tx, rec.ty, rec.tz, rec.qx, rec.qy, rec.qz, rec.qw)
+    assert pose == pytest.approx(compose(t_4_0, (0, 0, 0, 0, 0, 0, 1)), abs=2e-2)
     pipe.close()
     # with the policy off every keyframe keeps its own features
     pipe, out = drive(tiny_model, "all")
