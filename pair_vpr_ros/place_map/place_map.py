@@ -105,7 +105,8 @@ class PlaceMap(MapSaving):
         try:
             self._tmp = Path(tempfile.mkdtemp(prefix="pairvpr-map-", dir=work_dir))
         except OSError as err:
-            raise MapError(f"cannot create a working folder in {work_dir}: {err}") from err
+            where = work_dir or tempfile.gettempdir()  # $TMPDIR: a full one said as such
+            raise MapError(f"cannot create a working folder in {where}: {os_reason(err)}") from err
         self._remove_tmp = weakref.finalize(self, shutil.rmtree, self._tmp, True)
 
     def _fresh_dense(self) -> DenseStore:

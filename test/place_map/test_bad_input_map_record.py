@@ -273,3 +273,38 @@ def test_a_full_disk_at_out_says_so(tmp_path, capsys, monkeypatch, command, page
         f"{tmp_path} (or pick another --out) and run it again\n"
     )
     assert tree_digest(tmp_path) == before  # no --out, no work folder
+
+
+def test_a_full_tmpdir_under_a_new_map_says_so(tmp_path, monkeypatch) -> None:
+    """Finding 5 for the node and the replay: a never-saved map works in $TMPDIR (or work_dir);
+    there a full disk reads as one, at its folder or at its keyframe store."""
+    import errno
+    import tempfile
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with monkeypatch.context() as mp:
+        mp.setattr(tempfile, "mkdtemp", full)
+        with pytest.raises(MapError) as err:
+            PlaceMap(DIM, SHAPE, "fp-a")
+    assert str(err.value) == (
+        f"cannot create a working folder in {tempfile.gettempdir()}: the disk is full (No space "
+        "left on device)"
+    )
+    connect = sqlite3.connect
+
+    def limited(path, *args, **kwargs):
+        conn = connect(path, *args, **kwargs)
+        conn.execute("PRAGMA max_page_count = 1")
+        return conn
+
+    monkeypatch.setattr(store.sqlite3, "connect", limited)
+    with pytest.raises(MapError) as err:
+        PlaceMap(DIM, SHAPE, "fp-a", work_dir=tmp_path)
+    (work,) = tmp_path.iterdir()
+    assert str(err.value) == (
+        f"keyframe store {work / 'store-work-1.sqlite'} cannot be opened: the disk is full "
+        "(database or disk is full): free disk space there (SQLite also writes temporary files "
+        "to $TMPDIR) and retry"
+    )
