@@ -29,6 +29,7 @@ class MapParts:
     note: str = ""  # what the loader should log (an old format, keyframes named at load)
     generation: int = 0
     desc_cache: tuple[int, int] | None = None  # (count, CRC32) of the flat descriptor cache
+    manifest: Manifest | None = None  # format 3+: the record a save writes again
 
 
 def check_count(index: DescriptorIndex, count: int, path: Path) -> DescriptorIndex:

@@ -50,7 +50,9 @@ def test_a_map_saved_before_the_camera_column_reads_camera_0_and_grows(tmp_path:
     with sqlite3.connect(_sqlite(d)) as db:
         columns = [r[1] for r in db.execute("PRAGMA table_info(keyframes)")]
     assert "camera" not in columns  # the fixture was written before issue 49
-    with PlaceMap.load(d) as m:
+    with PlaceMap.load(d, read_only=True) as m:  # read as it is: camera 0, nothing written
+        assert {k.camera for k in m.all_meta()} == {0} and m.meta(0).camera == 0
+    with PlaceMap.load(d) as m:  # opened for writing: schema version 2 (place_map/schema.py)
         n = len(m)
         assert {k.camera for k in m.all_meta()} == {0}
         assert _add(m, 100, 1) == n and _add(m, 101, 0) == n + 1
