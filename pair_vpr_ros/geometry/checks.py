@@ -159,13 +159,14 @@ def radial_check(
     if rss0 <= 0.0 or len(res0) < 20:
         return None
 
-    def cost(k1: float) -> float:
-        return float(np.sum(refit(k1)[2] ** 2))
+    def cost(k1: float) -> float:  # a k1 whose model folds over inside the image: no fit
+        value = float(np.sum(refit(k1)[2] ** 2))
+        return value if math.isfinite(value) else math.inf
 
     k1 = _golden(cost, -K1_RANGE, K1_RANGE)
     r1, t1, res1 = refit(k1)
     rss1 = float(np.sum(res1**2))
-    if rss1 <= 0.0 or len(res0) * math.log(rss0 / rss1) < LIKELIHOOD_RATIO:
+    if not 0.0 < rss1 < math.inf or len(res0) * math.log(rss0 / rss1) < LIKELIHOOD_RATIO:
         return None
     if rss1 > EXPLAINED * rss0:
         return None

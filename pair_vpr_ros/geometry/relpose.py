@@ -239,7 +239,7 @@ def _metric(q, m, pairs, side, z, c: PoseConfig) -> RelativePose:
     s_t, s_r = cv.sigmas(cov)
     if s_t > c.max_translation_sigma_m or s_r > c.max_rotation_sigma_deg:
         return _fail(f"pose too uncertain (std {s_t:.2f} m, {s_r:.2f} deg)", n)
-    out = RelativePose(METRIC, "", n, r, t, cov, pairs[fit.inliers])
+    out = RelativePose(METRIC, "", n, r, t, cov.copy(), pairs[fit.inliers])
     lens = radial_check((q.camera, m.camera), *metric_lens_refit(fit)) if c.lens_check else None
     if lens is not None:
         out.covariance, out.reason, out.lens_k1 = lens.widen(cov, True), lens.reason(), lens.k1
@@ -248,21 +248,15 @@ def _metric(q, m, pairs, side, z, c: PoseConfig) -> RelativePose:
     var, words = split_variances(split_keys(*px, centres), metric_refit(fit, c), cov[3:, 3:])
     out.covariance[3:, 3:] += np.eye(3) * var
     out.reason = _why(out.reason, words)
-    if is_planar(fit.points):  # the essential matrix cannot check a pose of a plane
-        return out
-    chi2, angle = _model_disagreement(q, m, pairs, out, c)
-    if chi2 > CHI2_3DOF_95:
-        # The pose is kept as a weaker factor: a back end's robust kernel and a covariance
-        # that admits the error cannot bend the graph (refusing it cost demo-world loops).
+    chi2, angle = (0.0, 0.0) if is_planar(fit.points) else _model_disagreement(q, m, pairs, out, c)
+    if chi2 > CHI2_3DOF_95:  # (the essential matrix of a plane cannot check a pose)
+        # A weaker factor, not a refusal: refusing cost demo-world loops, and a covariance that
+        # admits the error cannot bend the graph.
         out.covariance[3:, 3:] += np.eye(3) * math.radians(angle / 2) ** 2
-        out.reason = _why(
-            out.reason,
-            (
-                f"PnP and essential-matrix rotations disagree by {angle:.2f} deg (chi-square "
-                f"{chi2:.0f}): intrinsics, distortion or timing wrong? check camera_info or the "
-                "camera_* parameters"
-            ),
-        )
+        why = (f"PnP and essential-matrix rotations disagree by {angle:.2f} deg (chi-square "
+               f"{chi2:.0f}): intrinsics, distortion or timing wrong? check camera_info or the "
+               "camera_* parameters")  # fmt: skip
+        out.reason = _why(out.reason, why)
     problem = agreement_problem(q, m, pairs, fit, out.covariance, c)
     return _fail(problem, n) if problem else out
 

@@ -5,10 +5,10 @@ Every call takes the keypoints as detected (distorted pixels) and each camera's 
 real images. Conventions: `absolute_pose` gives (R, t) with X_cam = R X + t for 3-D points X and
 their pixels in that camera (P3P); `relative_pose` gives (R, unit t) with X_b = R X_a + t for
 matched pixels of cameras a and b (5-point essential matrix; PoseLib keeps the solution with the
-points in front of both cameras). The options were chosen on the suite's real frames and the demo
-world (docs/relative-pose.md): PoseLib's own defaults, a fixed seed (the same loop gets the same
-pose in the node and the replay), and a Cauchy loss on the inliers whose scale is the inlier
-threshold, so that an inlier keeps at least half its weight.
+points in front of both cameras). The options were set on the suite's real frames
+(docs/relative-pose.md): PoseLib's own defaults, a fixed seed (the same loop gets the same pose
+in the node and the replay), and its Cauchy loss at half the inlier threshold (an inlier at the
+threshold keeps a fifth of the weight; the covariance uses the same weights, `loss_weights`).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pair_vpr_ros.geometry.camera import CameraModel
 SEED = 0
 MIN_ITERATIONS = 1000  # PoseLib's default; 200 moved TUM's medians by up to 0.24 deg
 LOSS = "CAUCHY"
-LOSS_SCALE = 0.5  # of the inlier threshold: the Cauchy weight 1 / (1 + (r / s)^2) >= 0.2 there
+LOSS_SCALE = 0.5  # x threshold (1 px at 2 px: PoseLib's default); 0.25 or 1: medians within 0.1 deg
 
 
 def ransac_options(threshold_px: float, relative: bool, seed: int = SEED) -> dict:
