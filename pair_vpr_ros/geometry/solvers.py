@@ -21,7 +21,7 @@ from pair_vpr_ros.geometry.camera import CameraModel
 SEED = 0
 MIN_ITERATIONS = 1000  # PoseLib's default; 200 moved TUM's medians by up to 0.24 deg
 LOSS = "CAUCHY"
-LOSS_SCALE = 0.5  # x threshold (1 px at 2 px: PoseLib's default); 0.25 or 1: medians within 0.1 deg
+LOSS_SCALE = 0.5  # x threshold (1 px at 2 px: PoseLib's default); 0.25, 1: medians within 0.1 deg
 
 
 def ransac_options(threshold_px: float, relative: bool, seed: int = SEED) -> dict:
