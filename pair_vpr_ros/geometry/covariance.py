@@ -16,7 +16,7 @@ Then `with_systematic` adds errors that bend every residual alike and so hide in
 per-camera term `systematic_px` (a rolling shutter read out while the camera turns, an image
 stamp off by a few ms; docs/real-cameras.md says how to choose it) as that many pixels' angle
 at the focal length on each rotation axis, at least `floor_rotation_deg`, and the translation
-floor (a + b |t|). The model checks (`relpose.py`, `lens.py`) add what the data show.
+floor (a + b |t|). The model checks (`checks.py`) add what the data show.
 """
 
 from __future__ import annotations

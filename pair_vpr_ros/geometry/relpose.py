@@ -100,7 +100,7 @@ class PoseConfig:
     floor_rotation_deg: float = 0.0
     floor_translation_m: float = 0.005
     floor_translation_rel: float = 0.01
-    lens_check: bool = True  # look for lens distortion nobody declared (lens.py)
+    lens_check: bool = True  # look for lens distortion nobody declared (checks.radial_check)
 
     def __post_init__(self) -> None:
         for name in ("ratio", "ransac_px", "essential_px", "max_rotation_sigma_deg",
@@ -135,7 +135,7 @@ class RelativePose:
     """Result for one loop: status "metric" / "metric-odometry" / "scale-free" with R [3, 3],
     t [3], covariance [6, 6], the inlier count and the inlier matches [N, 2] (query, match
     keypoint indices), or status "" with the reason (a scale-free pose: why it has no scale).
-    `lens_k1`: the radial distortion that fits far better than the cameras' own model (lens.py;
+    `lens_k1`: the radial distortion that fits far better than the cameras' own model (checks.py;
     0: none found)."""
 
     status: str = ""

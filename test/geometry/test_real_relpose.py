@@ -106,8 +106,8 @@ def test_tum_distortion_left_out_never_gives_a_tight_wrong_pose(kind, depth):
 
 def test_an_undeclared_lens_is_found_and_said_once_per_camera():
     """The TUM frames bent by a radial k1 = -0.2 that the camera model is not told: the inliers
-    fit a radial k1 far better (lens.py), the covariance widens until it admits the error,
-    and the geometry says so once for the camera however many loops show it."""
+    fit a radial k1 far better (checks.radial_check), the covariance widens until it admits
+    the error, and the geometry says so once for the camera however many loops show it."""
     feats, truths = tum_warped_features(-0.2), tum_truths()
     pairs = [(1, 0), (3, 1), (4, 2), (5, 4), (6, 2), (7, 3)]
     rows = pose_rows(feats, {p: truths[p] for p in pairs})
