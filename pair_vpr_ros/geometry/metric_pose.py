@@ -34,6 +34,10 @@ from pair_vpr_ros.geometry.depth_noise import point_covariances
 # inliers number 18-22 on pairs 32 deg apart: a fixed count of 15 refused good poses.
 AGREEING_FRACTION = 0.3
 MIN_AGREEING = 8
+# Residuals smaller than the depth-noise model allows scale it down, at most this far: the
+# stereo chessboard's corners show 0.31 of the assumed noise (RMS), the demo's rendered depth
+# is exact; the last pose code's variance factor had the same bound.
+MIN_DEPTH_SCALE = 0.1
 
 
 @dataclass
@@ -153,11 +157,11 @@ def _covariance(pts, px, camera, pose, s_z, c) -> tuple[np.ndarray, float] | Non
     if dof <= 0:
         return None
 
-    def chi2(s: float) -> float:
-        whiten = np.linalg.inv(noise + s * s * np.eye(2))
+    def chi2(s: float, g: float = 1.0) -> float:
+        whiten = np.linalg.inv(g * noise + s * s * np.eye(2))
         return float(np.einsum("ni,nij,nj->", res, whiten, res))
 
-    sigma, factor = _posterior_sigma(chi2, dof, c.floor_px, c.ransac_px)
+    sigma, g, factor = _posterior_noise(chi2, dof, c.floor_px, c.ransac_px)
 
     def raw(rr, tt):
         p = pts @ rr.T + tt
@@ -165,7 +169,7 @@ def _covariance(pts, px, camera, pose, s_z, c) -> tuple[np.ndarray, float] | Non
 
     jac = cv.jacobian(raw, r, t).reshape(len(res), 2, 6)
     w = solvers.loss_weights(np.linalg.norm(res, axis=1), c.ransac_px)
-    s_i = (noise + sigma**2 * np.eye(2)) * factor  # each residual's covariance
+    s_i = (g * noise + sigma**2 * np.eye(2)) * factor  # each residual's covariance
     cov = cv.sandwich(
         np.einsum("n,nki,nkj->ij", w, jac, jac),
         np.einsum("n,nki,nkl,nlj->ij", w**2, jac, s_i, jac),
@@ -173,18 +177,28 @@ def _covariance(pts, px, camera, pose, s_z, c) -> tuple[np.ndarray, float] | Non
     return None if cov is None else (cov, sigma)
 
 
-def _posterior_sigma(chi2, dof: int, floor: float, ceiling: float) -> tuple[float, float]:
-    """(pixel sigma in [floor, ceiling] at which chi2(sigma) = dof; variance factor > 1 when
-    even the ceiling leaves chi2 above dof: the points' noise is larger than modelled)."""
+def _posterior_noise(chi2, dof: int, floor: float, ceiling: float) -> tuple[float, float, float]:
+    """(pixel sigma, depth-noise scale g, variance factor) at which the inliers' whitened
+    chi2(sigma, g) equals its degrees of freedom: the pixel sigma in [floor, ceiling] (g = 1);
+    residuals smaller than even the floor and the depth model allow shrink the depth noise
+    instead (g down to `MIN_DEPTH_SCALE`: a rendered or well-matched depth is better than the
+    Kinect model); ones larger than the ceiling allows scale everything (factor > 1)."""
     if chi2(floor) <= dof:
-        return floor, 1.0
+        if chi2(floor, MIN_DEPTH_SCALE) >= dof:
+            return floor, _bisect(lambda g: chi2(floor, g), dof, MIN_DEPTH_SCALE, 1.0), 1.0
+        return floor, MIN_DEPTH_SCALE, 1.0
     if chi2(ceiling) >= dof:
-        return ceiling, chi2(ceiling) / dof
-    lo, hi = math.log(floor), math.log(ceiling)
-    for _ in range(30):  # chi2 falls as sigma grows
-        mid = (lo + hi) / 2
-        lo, hi = (mid, hi) if chi2(math.exp(mid)) > dof else (lo, mid)
-    return math.exp(hi), 1.0
+        return ceiling, 1.0, chi2(ceiling) / dof
+    return _bisect(chi2, dof, floor, ceiling), 1.0, 1.0
+
+
+def _bisect(fun, target: float, lo: float, hi: float) -> float:
+    """x in [lo, hi] (log-spaced bisection) where the falling fun(x) crosses target."""
+    a, b = math.log(lo), math.log(hi)
+    for _ in range(30):
+        mid = (a + b) / 2
+        a, b = (mid, b) if fun(math.exp(mid)) > target else (a, mid)
+    return math.exp(b)
 
 
 def _inverse_covariance(r: np.ndarray, t: np.ndarray, cov: np.ndarray) -> np.ndarray:
