@@ -141,11 +141,19 @@ def test_save_and_load_reattach_the_collection(milvus, tmp_path):
         writer = m._index.writer
     assert sorted(p.name for p in (tmp_path / "map").glob("index-*")) == ["index-1-0.milvus"]
     with PlaceMap.load(tmp_path / "map", "fp") as m:
-        assert (len(m), m._index.writer, m.search(desc_for(9), 5)) == (N, writer, want)
+        assert (len(m), m._index.writer) == (N, writer)
+        assert_same_answer(m.search(desc_for(9), 5), want)
         add_range(m, N, N + 3)  # continues under its writer key
         assert m.search(desc_for(N + 1), 1)[0][0] == N + 1
     with PlaceMap.load(tmp_path / "map", "fp", read_only=True) as m:
-        assert m.search(desc_for(9), 5) == want
+        assert_same_answer(m.search(desc_for(9), 5), want)
+
+
+def assert_same_answer(got: list, want: list) -> None:
+    """Same ids in the same order; scores to float32 rounding (a server scores a sealed segment
+    with other kernels than the growing one it searched before the save: last bits differ)."""
+    assert [i for i, _ in got] == [i for i, _ in want]
+    np.testing.assert_allclose([s for _, s in got], [s for _, s in want], atol=1e-6)
 
 
 def test_load_names_and_removes_rows_without_dense_tokens(milvus, tmp_path, caplog):
