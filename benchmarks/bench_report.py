@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -77,7 +78,7 @@ def outcome(i: int, k: int, loop: bool, rng: np.random.Generator) -> FrameOutcom
     return out
 
 
-def run_size(n: int, k: int, loops: float) -> dict:
+def run_size(n: int, k: int, loops: float, keep: str | None = None) -> dict:
     world = generate_world(7, frames=60)
     images = [render_frame(world, i, (320, 240)) for i in range(0, 60, 3)]
     rng = np.random.default_rng(0)
@@ -104,6 +105,8 @@ def run_size(n: int, k: int, loops: float) -> dict:
         page_s = write_page(writer, log, PageInputs(summary, ev, keyframes, revisits))
         size = sum(p.stat().st_size for p in (Path(tmp) / "report").rglob("*") if p.is_file())
         rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        if keep:
+            shutil.copytree(Path(tmp) / "report", Path(keep) / f"report-{n}", dirs_exist_ok=True)
     return {"keyframes": n, "bytes_per_keyframe": round(size / n), "total_mb": size / 1e6,
             "stream_ms_per_keyframe": 1e3 * stream_s / n, "page_s": page_s,
             "rss_mb": rss / 1024, "rss_growth_mb": (rss - rss0) / 1024}  # fmt: skip
@@ -114,16 +117,18 @@ def main() -> None:
     p.add_argument("--sizes", default="1000,10000", help="keyframe counts, comma-separated")
     p.add_argument("--top-k", type=int, default=5, help="candidates per keyframe (default 5)")
     p.add_argument("--loops", type=float, default=0.5, help="share of keyframes with a loop")
+    p.add_argument("--keep", metavar="DIR", help="copy each size's report to DIR/report-N")
     p.add_argument("--one", type=int, help=argparse.SUPPRESS)  # a child process: one size
     args = p.parse_args()
     if args.one is not None:
-        print(json.dumps(run_size(args.one, args.top_k, args.loops)))
+        print(json.dumps(run_size(args.one, args.top_k, args.loops, args.keep)))
         return
     print("| keyframes | bytes / keyframe | total MB | streaming ms / keyframe | page s | "
           "peak RSS MB (growth) |\n|---|---|---|---|---|---|")  # fmt: skip
     for n in (int(v) for v in args.sizes.split(",")):
+        keep = ["--keep", args.keep] if args.keep else []
         cmd = [sys.executable, __file__, "--one", str(n), "--top-k", str(args.top_k),
-               "--loops", str(args.loops)]  # fmt: skip
+               "--loops", str(args.loops), *keep]  # fmt: skip
         r = json.loads(subprocess.run(cmd, capture_output=True, text=True, check=True).stdout)
         print(f"| {n:,} | {r['bytes_per_keyframe']:,} | {r['total_mb']:.0f} | "
               f"{r['stream_ms_per_keyframe']:.2f} | {r['page_s']:.2f} | {r['rss_mb']:.0f} "

@@ -34,9 +34,9 @@ def print_results(summary: Any) -> None:
         )
     if summary.suggestion is not None:
         _print_suggestion(summary.suggestion)
-    print(f"outputs in {summary.out_dir}")
     if summary.report is not None:
         print(f"report: {summary.report['index']} (open it in a browser)")
+    print(f"outputs in {summary.out_dir}")
 
 
 def _print_suggestion(s: dict) -> None:
@@ -47,6 +47,5 @@ def _print_suggestion(s: dict) -> None:
         f"{s['global_floor']:g}) {reached} precision {s['target_precision']:g} on this bag: "
         f"expected precision {_fmt(e['precision'])}, recall {_fmt(e['recall'])} "
         f"({e['accepted']} loops, {e['false']} false); written to {s['path']}"
+        + (f" ({len(s['warnings'])} warnings in it)" if s["warnings"] else "")
     )
-    for warning in s["warnings"]:
-        print(f"warning: {warning}", file=sys.stderr)
