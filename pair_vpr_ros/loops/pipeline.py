@@ -289,7 +289,7 @@ class LoopClosurePipeline(PipelineMaps):
             return scores
 
         def verify(match: Candidate) -> tuple[int, float]:
-            stored, lent = self._match_features(match)
+            stored, lent = self.match_features(match)
             inliers, ratio, points = self.geometry.verify_points(features, stored)
             if lent is None:  # lent features are another image's points: not drawn
                 outcome.matches[match.rank_before] = points

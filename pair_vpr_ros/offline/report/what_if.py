@@ -38,8 +38,10 @@ class StoredGeometry:
         return self.pipe.geometry.unpack(place_map.features(kf_id)) if kf_id >= 0 else None
 
     def _pair(self, kf: LoggedKeyframe, cand: Candidate):
+        """(the query's stored features, the match's as the pipeline verifies it: its own, or
+        those a linked keyframe lends; `PipelineMaps.match_features`)."""
         query = self._features(self.pipe.place_map, kf.map_id)
-        return query, self._features(self.pipe.maps.map_of(cand), cand.id)
+        return query, self.pipe.match_features(cand)[0]
 
     def verify(self, kf: LoggedKeyframe, cand: Candidate) -> tuple[tuple[int, float], bool]:
         """((inliers, ratio), estimated): the run's result when it verified this pair."""
