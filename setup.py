@@ -37,6 +37,8 @@ setup(
         "matplotlib>=3.7",
         "pyyaml>=5.4",
         "jinja2>=3.1",  # the replay's report pages (offline/report/html)
+        # the pose estimation core (geometry/solvers.py): minimal solvers, LO-RANSAC, refinement
+        "poselib==2.0.5",
     ],
     extras_require={
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],

@@ -233,6 +233,7 @@ def _finish(
         summary.warnings.append(f"no image of {summary.topic} could be used, e.g.: {first}")
     summary.stamps_backwards, summary.stamps_repeated = counts.backwards, counts.repeated
     summary.warnings += counts.stamp_warnings(summary.topic)
+    summary.warnings += pipe.geometry.camera_warnings  # once per camera (lens distortion)
     summary.candidates = len(run.records)
     summary.pipeline_counts = pipe.counts.to_dict()
     try:
