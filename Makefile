@@ -1,4 +1,5 @@
-# Entry points (see README): `make demo`, `make demo-live`, `make demo-fleet` and `make test`.
+# Entry points (see README): `make demo`, `make demo-live`, `make demo-fleet`, `make demo-rig`
+# and `make test`.
 # Each sets up .venv itself. `make demo-live LAUNCH=1` starts the nodes with `ros2 launch`.
 # `make docs` builds the documentation site into site/ (warnings are errors).
 VENV ?= .venv
@@ -8,7 +9,7 @@ export MPLBACKEND := Agg
 
 LAUNCH ?= 0
 
-.PHONY: setup demo demo-live demo-fleet demo-model ros-cli-env test test-quick lint docs clean
+.PHONY: setup demo demo-live demo-fleet demo-rig demo-model ros-cli-env test test-quick lint docs clean
 
 setup:
 	@VENV=$(VENV) bash scripts/setup_env.sh
@@ -25,6 +26,10 @@ ros-cli-env: setup
 
 demo-fleet: setup
 	@bash scripts/demo_fleet.sh $(VENV)
+
+# issue 49: front camera alone vs front + rear on a world with a lap driven the other way round
+demo-rig: setup
+	@bash scripts/demo_rig.sh $(VENV)
 
 test: setup
 	$(PY) -m pytest -q --durations=25 test

@@ -18,7 +18,12 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (
             f"share/{PACKAGE}/config",
-            ["config/vpr_node.yaml", "config/demo.yaml", "config/posegraph_node.yaml"],
+            [
+                "config/vpr_node.yaml",
+                "config/demo.yaml",
+                "config/demo_rig.yaml",
+                "config/posegraph_node.yaml",
+            ],
         ),
         (
             f"share/{PACKAGE}/launch",

@@ -8,7 +8,8 @@
 ``/ground_truth``: the true pose of ``base_link`` in ``map``, both ``nav_msgs/Odometry``. The
 camera sits ``Camera.height_m`` above ``base_link``, looking along its x axis
 (``camera.CAMERA_TO_BASE``); the image frame ``camera`` is an optical frame (x right, y down,
-z forward).
+z forward). With ``rear=True`` also the rear camera's ``/rear_camera/...`` topics and both
+cameras' poses on ``/tf_static`` (``demo.rig``).
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
 from rosbags.typesys import Stores, get_typestore
 from tqdm import tqdm
 
-from pair_vpr_ros.demo.camera import Camera
+from pair_vpr_ros.demo import rig
+from pair_vpr_ros.demo.camera import Camera, camera_to_base
 from pair_vpr_ros.demo.depth import depth_to_mm, render_depth
 from pair_vpr_ros.demo.odometry import OdometryNoise, drifting_odometry
 from pair_vpr_ros.demo.render import render_frame
@@ -42,6 +44,7 @@ MAP_FRAME = "map"
 ODOM_FRAME = "odom"
 BASE_FRAME = "base_link"
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
 JPEG_QUALITY = 90
 
 
@@ -73,6 +76,7 @@ def write_world_bag(
     depth: bool = True,
     mono: bool = False,
     local_odometry: bool = False,
+    rear: bool = False,
 ) -> Path:
     """Write every frame of `world` to `path` and return it.
 
@@ -84,6 +88,7 @@ def write_world_bag(
     `mono=True` writes what a grey camera gives: mono8 images (grey JPEGs if `compressed`), the
     BT.601 luma of the rendered colours. `local_odometry=True`: `/odom` starts at the origin of
     its own frame, as a robot's does (else at the true start pose: odom = map at start).
+    `rear=True`: the rear camera's topics and /tf_static too (``demo.rig``).
     """
     path = Path(path)
     odometry = odometry or OdometryNoise()
@@ -93,7 +98,7 @@ def write_world_bag(
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     try:
         folder = tmp / (path.stem if _is_file(path) else path.name)
-        _write(world, folder, compressed, progress, odometry, depth, mono, local_odometry)
+        _write(world, folder, compressed, progress, odometry, depth, mono, local_odometry, rear)
         _remove(path)  # only now: a failed write keeps the old output
         (folder / f"{folder.name}.mcap" if _is_file(path) else folder).replace(path)
     except (OSError, WriterError) as err:
@@ -139,6 +144,7 @@ def _write(
     depth: bool,
     mono: bool = False,
     local_odometry: bool = False,
+    rear: bool = False,
 ) -> None:
     """Serialise every frame's messages with identical header stamps and log times."""
     ts = get_typestore(Stores.ROS2_JAZZY)
@@ -163,6 +169,10 @@ def _write(
             conns[DEPTH_TOPIC] = writer.add_connection(
                 DEPTH_TOPIC, "sensor_msgs/msg/Image", typestore=ts
             )
+        rear_topics = [(rig.REAR_IMAGE_TOPIC, image_type), (rig.REAR_CAMERA_INFO_TOPIC, info_type)]
+        rear_topics += [(rig.REAR_DEPTH_TOPIC, "sensor_msgs/msg/Image")] if depth else []
+        for topic, msgtype in [*rear_topics, (rig.TF_STATIC_TOPIC, TF_TYPE)] if rear else []:
+            conns[topic] = writer.add_connection(topic, msgtype, typestore=ts)
         rate = world.config.rate_hz
         for i in tqdm(range(world.num_frames), desc="frames", unit="frame", disable=not progress):
             stamp_ns = int(world.stamps_ns[i])
@@ -178,8 +188,27 @@ def _write(
             if depth:
                 metres = render_depth(world.layout, world.poses[i], cam, world.occluders_of(i))
                 messages += ((DEPTH_TOPIC, _depth_msg(t, stamp, depth_to_mm(metres))),)
+            if rear:
+                messages += _rear_messages(t, stamp, world, i, cam, compressed, mono, depth)
             for topic, msg in messages:
                 writer.write(conns[topic], stamp_ns, ts.serialize_cdr(msg, msg.__msgtype__))
+
+
+def _rear_messages(t, stamp, world, i, cam, compressed, mono, depth) -> tuple:
+    """The rear camera's messages of frame `i` (/tf_static once, with the first frame)."""
+    frame = rig.REAR_FRAME
+    out = (
+        (rig.REAR_IMAGE_TOPIC, _image_msg(t, stamp, rig.render_rear(world, i), compressed, mono,
+                                          frame)),
+        (rig.REAR_CAMERA_INFO_TOPIC, _camera_info_msg(t, stamp, cam, frame)),
+    )  # fmt: skip
+    if depth:
+        out += ((rig.REAR_DEPTH_TOPIC, _depth_msg(t, stamp, depth_to_mm(rig.rear_depth(world, i)),
+                                                  frame)),)  # fmt: skip
+    if i == 0:
+        poses = {CAMERA_FRAME: camera_to_base(cam), frame: rig.rear_to_base(cam)}
+        out += ((rig.TF_STATIC_TOPIC, rig.tf_static_msg(t, stamp, poses)),)
+    return out
 
 
 def _from_start(poses: np.ndarray) -> np.ndarray:
@@ -191,11 +220,11 @@ def _from_start(poses: np.ndarray) -> np.ndarray:
     return np.stack([c * dx + s * dy, -s * dx + c * dy, yaw], axis=1)
 
 
-def _depth_msg(t: dict, stamp: object, mm: np.ndarray) -> object:
+def _depth_msg(t: dict, stamp: object, mm: np.ndarray, frame: str = CAMERA_FRAME) -> object:
     """sensor_msgs Image, 16UC1 millimetres [H, W] uint16, little-endian."""
     h, w = mm.shape
     return t["sensor_msgs/msg/Image"](
-        header=t["std_msgs/msg/Header"](stamp=stamp, frame_id=CAMERA_FRAME),
+        header=t["std_msgs/msg/Header"](stamp=stamp, frame_id=frame),
         height=h,
         width=w,
         encoding="16UC1",
@@ -205,11 +234,11 @@ def _depth_msg(t: dict, stamp: object, mm: np.ndarray) -> object:
     )
 
 
-def _camera_info_msg(t: dict, stamp: object, cam: Camera) -> object:
+def _camera_info_msg(t: dict, stamp: object, cam: Camera, frame: str = CAMERA_FRAME) -> object:
     """sensor_msgs CameraInfo of the demo camera: pinhole, square pixels, no distortion."""
     f, cx, cy = cam.f, cam.cx, cam.cy
     return t["sensor_msgs/msg/CameraInfo"](
-        header=t["std_msgs/msg/Header"](stamp=stamp, frame_id=CAMERA_FRAME),
+        header=t["std_msgs/msg/Header"](stamp=stamp, frame_id=frame),
         height=cam.height,
         width=cam.width,
         distortion_model="plumb_bob",
@@ -226,11 +255,12 @@ def _camera_info_msg(t: dict, stamp: object, cam: Camera) -> object:
 
 
 def _image_msg(
-    t: dict, stamp: object, rgb: np.ndarray, compressed: bool, mono: bool = False
-) -> object:
+    t: dict, stamp: object, rgb: np.ndarray, compressed: bool, mono: bool = False,
+    frame: str = CAMERA_FRAME,
+) -> object:  # fmt: skip
     """sensor_msgs Image (rgb8, or mono8 with `mono`) or CompressedImage (jpeg) of `rgb`
     [H, W, 3] uint8."""
-    header = t["std_msgs/msg/Header"](stamp=stamp, frame_id=CAMERA_FRAME)
+    header = t["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
     pixels = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if mono else rgb[..., ::-1]  # grey or BGR
     if compressed:
         ok, buf = cv2.imencode(".jpg", pixels, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])

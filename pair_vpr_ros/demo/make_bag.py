@@ -20,6 +20,7 @@ from pair_vpr_ros.demo.bag import (
 )
 from pair_vpr_ros.demo.dataset import write_place_dataset
 from pair_vpr_ros.demo.odometry import OdometryNoise
+from pair_vpr_ros.demo.rig import REAR_IMAGE_TOPIC, RIG_REVERSE_LAPS
 from pair_vpr_ros.demo.world import WorldConfig, generate_world
 from pair_vpr_ros.errors import UsageError
 
@@ -102,6 +103,13 @@ def build_parser() -> argparse.ArgumentParser:
         "dusk; odometry from each robot's own origin) and fleet.json; --frames is per drive "
         "(default 300 with --fleet)",
     )
+    parser.add_argument(
+        "--rig",
+        action="store_true",
+        help=f"a robot with a rear camera too ({REAR_IMAGE_TOPIC}, its camera_info and depth, "
+        "both cameras' poses on /tf_static; issue 49), and lap 1 driven the other way round: "
+        "the world of make demo-rig",
+    )
     parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
     parser.add_argument("--dataset", type=Path, help="also write a place dataset to this folder")
     parser.add_argument(
@@ -120,6 +128,8 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> None:
     if args.out is None and args.dataset is None:
         raise UsageError("give an output bag path (OUT) and/or --dataset DIR")
+    if args.fleet and args.rig:
+        raise UsageError("--rig and --fleet do not go together: fleet robots have one camera")
     if args.fleet:
         if args.out is None:
             raise UsageError("--fleet needs an output folder (OUT)")
@@ -132,6 +142,7 @@ def _run(args: argparse.Namespace) -> None:
             laps=args.laps,
             width=args.size[0],
             height=args.size[1],
+            reverse_laps=RIG_REVERSE_LAPS if args.rig else (),
         )
         path = write_world_bag(
             world,
@@ -144,10 +155,12 @@ def _run(args: argparse.Namespace) -> None:
             odometry=OdometryNoise(
                 scale_error=args.odom_scale_error, yaw_rate_bias_deg_s=args.odom_yaw_bias
             ),
+            rear=args.rig,
         )
         print(
             f"wrote {path}: {world.num_frames} frames {args.size[0]}x{args.size[1]} "
-            f"({'jpeg' if args.compressed else 'mono8' if args.mono else 'rgb8'}), "
+            f"({'jpeg' if args.compressed else 'mono8' if args.mono else 'rgb8'}"
+            f"{', front and rear cameras, lap 1 the other way round' if args.rig else ''}), "
             f"{world.config.laps} laps = "
             f"{world.loops} loops, {len(world.revisit_pairs())} revisit frames, "
             f"seed {args.seed}, {time.perf_counter() - start:.1f} s"

@@ -2,7 +2,10 @@
 
 Lap 0 is the first visit (day, right lane, camera straight ahead). Every later lap is a revisit
 with a lateral offset of 1-3 m, a heading offset of 10-25 deg, another lighting and other parked
-cars and people, so each lap after the first gives one set of loop closures.
+cars and people, so each lap after the first gives one set of loop closures. Laps named in
+`WorldConfig.reverse_laps` go round the other way, in the other lane (a U-turn where they start
+and end): a forward camera sees their streets from the other side; a rear camera sees them as
+lap 0's forward camera did (demo/rig.py).
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ class WorldConfig:
     height: int = 240  # image height, px
     speed: float = 9.0  # m/s wanted; the loop size is picked for it, then it is fitted exactly
     start_time: float = 1_700_000_000.0  # s, stamp of frame 0
+    reverse_laps: tuple[int, ...] = ()  # laps driven the other way round (1 .. laps - 1)
 
     def validate(self) -> None:
         """Raise ConfigError for values the generator cannot honour."""
@@ -51,6 +55,10 @@ class WorldConfig:
             raise ConfigError(f"image size {self.width}x{self.height}: each side must be 16-4096")
         if self.rate_hz <= 0 or self.speed <= 0:
             raise ConfigError(f"rate_hz={self.rate_hz}, speed={self.speed}: must be positive")
+        if not all(isinstance(k, int) and 1 <= k < self.laps for k in self.reverse_laps):
+            raise ConfigError(
+                f"reverse_laps={self.reverse_laps}: each a lap in 1..{self.laps - 1}"
+            )
 
 
 @dataclass(eq=False)
@@ -151,7 +159,9 @@ def _drive(
     lap = index * config.laps // config.frames
     s = (index * config.laps / config.frames - lap) * lap_length
     lateral, heading = _ramped(offsets, lap, s, ramp=min(25.0, lap_length / 4))
-    tangent = np.interp(s, path_s, path_yaw)
+    back = np.isin(lap, config.reverse_laps)  # the other way round: the path from its end
+    s = np.where(back, lap_length - s, s)
+    tangent = np.interp(s, path_s, path_yaw) + np.where(back, math.pi, 0.0)
     right = LANE_OFFSET + lateral  # m to the right of the centre line
     poses = np.stack(
         [

@@ -86,7 +86,8 @@ def score_request(
     for rank, (kf_id, sim) in enumerate(pairs, start=1):
         meta = pm.meta(kf_id)
         cands.append(Candidate(kf_id, meta.stamp, meta.frame_id, float(sim), rank,
-                               robot=meta.robot, session=meta.session))  # fmt: skip
+                               robot=meta.robot, session=meta.session,
+                               camera=meta.camera))  # fmt: skip
     scores = map_pair_scores(pipe.model, pm, req.dense, req.candidate_ids, pipe.rerank_chunk)
     c = pipe.config
     best = rank_by_pair_score(cands, scores, c.global_weight)[0]
@@ -95,6 +96,7 @@ def score_request(
         match_id=best.id, match_stamp=best.stamp, match_frame_id=best.frame_id,
         pair_score=best.pair_score, global_similarity=best.global_similarity,
         rank_before=best.rank_before, rank_after=1, candidates=len(cands), scored=len(cands),
+        match_camera=best.camera,  # the owner's rig camera (the request names no query camera)
     )  # fmt: skip
     below = best.rerank_score(c.global_weight) < c.score_threshold
     record.reason = "score below threshold" if below else ""

@@ -118,6 +118,8 @@ class LoopDetector:
 
     config: DetectorConfig = field(default_factory=DetectorConfig)
     clock: Callable[[], float] = time.perf_counter  # s, for the re-rank budget (tests fake it)
+    # a rig keyframe's cameras share its budget: each query's share (ms), None: the config's
+    budget_ms: float | None = None
 
     def __post_init__(self) -> None:
         self._tracks = DecisionTracks(self.config)
@@ -221,7 +223,7 @@ class LoopDetector:
         while the time spent so far plus the next step's predicted cost (this query's mean per
         candidate) stays within the budget. The first call always runs, so re-ranking takes at
         most max(budget, one call)."""
-        budget_ms = self.config.rerank_budget_ms
+        budget_ms = self.config.rerank_budget_ms if self.budget_ms is None else self.budget_ms
         if budget_ms <= 0:
             return rank_by_pair_score(candidates, rerank(candidates), self.config.global_weight)
         start, done, parts = self.clock(), 0, []
@@ -251,6 +253,7 @@ class LoopDetector:
             query_session=session,
             match_robot=cand.robot,
             match_session=cand.session,
+            match_camera=cand.camera,
             pair_score=cand.pair_score,
             global_similarity=cand.global_similarity,
             rank_before=cand.rank_before,

@@ -19,7 +19,8 @@ class Frame:
     """One camera frame: RGB uint8 [H,W,3], header stamp in seconds, optional pose
     (x, y, z, qx, qy, qz, qw), optional aligned depth [H,W] float32 metres (NaN / 0: none) and
     the camera's intrinsics (needed for a relative pose); stereo: the rectified right image
-    [H,W,3] and the baseline (m), keyframes without depth get it from them (geometry/stereo.py)."""
+    [H,W,3] and the baseline (m), keyframes without depth get it from them (geometry/stereo.py);
+    camera_id: the camera's index in a rig (loops/rig.py; 0: the only camera)."""
 
     stamp: float
     rgb: np.ndarray
@@ -30,6 +31,7 @@ class Frame:
     camera: CameraModel | None = None
     right: np.ndarray | None = None
     baseline: float = 0.0
+    camera_id: int = 0
 
 
 @dataclass

@@ -112,7 +112,7 @@ class MapSearch:
         meta = (self.live if prior < 0 else self.priors[prior]).meta(kf_id)
         return Candidate(
             kf_id, meta.stamp, meta.frame_id, float(sim), rank,
-            robot=meta.robot, session=meta.session, prior=prior,
+            robot=meta.robot, session=meta.session, prior=prior, camera=meta.camera,
         )  # fmt: skip
 
     def dense(self, cands: Sequence[Candidate]) -> np.ndarray:
@@ -129,12 +129,13 @@ class MapSearch:
         return out
 
     def near(self, match: Candidate, span: int) -> tuple[KeyframeMeta, list[KeyframeMeta]]:
-        """(the match's metadata, that of the keyframes of its map, robot and session within
-        `span` ids of it: recorded just before or after it)."""
+        """(the match's metadata, that of the keyframes of its map, robot, session and camera
+        within `span` ids of it: recorded just before or after it)."""
         place_map = self.map_of(match)
         ids = [i for i in range(match.id - span, match.id + span + 1)
                if i != match.id and 0 <= i < len(place_map)]  # fmt: skip
-        near = [m for m in map(place_map.meta, ids) if (m.robot, m.session) == match.group[1:]]
+        near = [m for m in map(place_map.meta, ids)
+                if (m.robot, m.session, m.camera) == (*match.group[1:], match.camera)]  # fmt: skip
         return place_map.meta(match.id), near
 
     def close_priors(self) -> None:

@@ -50,6 +50,8 @@ from pair_vpr_ros.loops.map_search import MapSearch
 from pair_vpr_ros.loops.pipeline_maps import PipelineMaps
 from pair_vpr_ros.loops.recency import ClockWatch
 from pair_vpr_ros.loops.records import Candidate, LoopRecord, rerank_score
+from pair_vpr_ros.loops.rig import Rig, to_base
+from pair_vpr_ros.loops.rig_frames import any_new
 from pair_vpr_ros.loops.scoring import dense_pair_scores, encode_for_map
 from pair_vpr_ros.loops.sequence import track_of
 from pair_vpr_ros.model import PairVPRModel, preprocess_batch
@@ -74,14 +76,17 @@ class LoopClosurePipeline(PipelineMaps):
         *,
         identity: Identity | None = None,
         prior_maps: list[PlaceMap] | None = None,
+        rig: Rig | None = None,
     ) -> None:
         """identity: the robot and session of every frame (default `Identity()`). prior_maps:
-        read-only maps searched with the live one (`map_search`); the pipeline closes them."""
+        read-only maps searched with the live one (`map_search`); the pipeline closes them.
+        rig: several cameras (loops/rig.py): loops posed in its base frame (`process_groups`)."""
         self.model = model
         self.detector = LoopDetector(config or DetectorConfig())
         self.index_kind = index
         self.rerank_chunk = rerank_chunk
         self.identity = identity or Identity()
+        self.rig = rig
         self._place_map = place_map if place_map is not None else self._new_map()
         for checked in (self._place_map, *(prior_maps or ())):
             self._check_fingerprint(checked)
@@ -90,7 +95,7 @@ class LoopClosurePipeline(PipelineMaps):
         self._clock = ClockWatch()
         self._jump_s = 0.0  # a clock jump not yet reported in an outcome
         self._last_encoded: float | None = None
-        self._last_desc: np.ndarray | None = None
+        self._last_desc: dict[int, np.ndarray] = {}  # each camera's last keyframe descriptor
         self._reset_tracking()
         self.counts = PipelineCounts()
         self.geometry = KeyframeGeometry(geometry, self.counts)
@@ -121,7 +126,7 @@ class LoopClosurePipeline(PipelineMaps):
         """Forget the stream so far (frame-rate limit, last keyframe, temporal consistency); the
         map keeps its keyframes, matched by stamp distance like a loaded map's."""
         self._last_encoded = None
-        self._last_desc = None
+        self._last_desc = {}
         self.detector.reset()
 
     # ---- processing ------------------------------------------------------------------------
@@ -137,12 +142,23 @@ class LoopClosurePipeline(PipelineMaps):
         """Frames in time order -> one outcome each, in the same order; the encoder runs on
         batches of up to `batch_size` due frames. A rate-limited frame that follows frames still
         waiting for the encoder waits with them, so outcome i always belongs to frame i."""
+        return self.process_groups(([f] for f in frames), batch_size)
+
+    def process_groups(
+        self, groups: Iterable[list[Frame]], batch_size: int = 8
+    ) -> Iterator[FrameOutcome]:
+        """Rig keyframes (the frames of one instant, one per camera: `rig_frames`; a single
+        camera's are single frames) in time order -> one outcome per frame, in order. A group
+        shares the rate limit and the clock of its first frame, is encoded in one batch
+        (batches hold whole groups, `batch_size` frames or more), is a keyframe when any of its
+        frames differs from its camera's last keyframe, and shares `rerank_budget_ms`."""
         if batch_size < 1:
             raise ConfigError(f"batch size must be >= 1, got {batch_size}")
-        queue: list[Frame | FrameOutcome] = []  # frame order; a Frame waits for the encoder
+        queue: list[list[Frame | FrameOutcome]] = []  # group order; a Frame waits to encode
         waiting = 0
-        for frame in frames:
-            jump = self._clock.check(frame.stamp)
+        for group in groups:
+            stamp = group[0].stamp
+            jump = self._clock.check(stamp)
             if jump:  # the frames before it finish in their session; this one starts a new one
                 if queue:
                     yield from self._run_batch(queue)
@@ -150,13 +166,13 @@ class LoopClosurePipeline(PipelineMaps):
                 self.counts.clock_jumps += 1
                 self._jump_s = jump
                 self._new_session()
-            if self.due(frame.stamp):
-                self._last_encoded = frame.stamp
-                queue.append(frame)
-                waiting += 1
+            if self.due(stamp):
+                self._last_encoded = stamp
+                queue.append(list(group))
+                waiting += len(group)
             else:
-                self.counts.rate_limited += 1
-                queue.append(FrameOutcome(frame.stamp, skipped="rate limited"))
+                self.counts.rate_limited += len(group)
+                queue.append([FrameOutcome(f.stamp, skipped="rate limited") for f in group])
             if waiting >= batch_size or waiting == 0:
                 yield from self._run_batch(queue)
                 queue, waiting = [], 0
@@ -167,30 +183,37 @@ class LoopClosurePipeline(PipelineMaps):
         """RGB uint8 images -> dense float16 [B,N,D], descriptors float32 [B,desc_dim]."""
         return encode_for_map(self.model, preprocess_batch(images, self.model.config.image_size))
 
-    def _run_batch(self, queue: list[Frame | FrameOutcome]) -> Iterator[FrameOutcome]:
+    def _run_batch(self, queue: list[list[Frame | FrameOutcome]]) -> Iterator[FrameOutcome]:
         """Encode the frames of `queue` in one batch; yield every entry's outcome in order."""
-        batch = [f for f in queue if isinstance(f, Frame)]
+        batch = [f for group in queue for f in group if isinstance(f, Frame)]
         if batch:
             t0 = time.perf_counter()
             dense, desc = self.encode([f.rgb for f in batch])
             encode_ms = (time.perf_counter() - t0) * 1e3 / len(batch)
         i = 0
-        for entry in queue:
-            if isinstance(entry, FrameOutcome):  # decided already (rate limited)
-                outcome = entry
-            else:
-                outcome = self._decide(entry, dense[i], desc[i])
-                i += 1
-                outcome.timings_ms["encode"] = encode_ms
-                self.counts.encoded += 1
-            # a jump flushes the queue first, so the frame after it is the first entry here
-            outcome.clock_jump_s, self._jump_s = self._jump_s, 0.0
-            yield outcome
+        for group in queue:
+            frames = [f for f in group if isinstance(f, Frame)]
+            new = bool(frames) and any_new(frames, desc[i:], self._last_desc, self.detector)
+            budget, spent = self.config.rerank_budget_ms, 0.0  # a rig keyframe's, shared
+            for k, entry in enumerate(group):
+                if isinstance(entry, FrameOutcome):  # decided already (rate limited)
+                    outcome = entry
+                else:
+                    if len(frames) > 1 and budget > 0:  # an even share of what is left
+                        self.detector.budget_ms = max((budget - spent) / (len(frames) - k), 1e-6)
+                    outcome = self._decide(entry, dense[i], desc[i], new)
+                    self.detector.budget_ms = None
+                    spent += outcome.timings_ms.get("rerank", 0.0)
+                    i += 1
+                    outcome.timings_ms["encode"] = encode_ms
+                    self.counts.encoded += 1
+                # a jump flushes the queue first, so the frame after it is the first entry here
+                outcome.clock_jump_s, self._jump_s = self._jump_s, 0.0
+                yield outcome
 
-    def _decide(self, frame: Frame, dense: np.ndarray, desc: np.ndarray) -> FrameOutcome:
+    def _decide(self, frame: Frame, dense, desc, new: bool) -> FrameOutcome:
         outcome = FrameOutcome(frame.stamp)
-        last = self._last_desc
-        if not self.detector.is_new_keyframe(None if last is None else float(desc @ last)):
+        if not new:
             self.counts.similar_to_keyframe += 1
             outcome.skipped = "similar to previous keyframe"
             return outcome
@@ -212,16 +235,23 @@ class LoopClosurePipeline(PipelineMaps):
                 near = self.scale_neighbours(best, lent)
                 outcome.timings_ms["pose"] += self.geometry.pose(loop, features, match, near)
                 if not loop.pose_status:  # an unposed loop is no sequence to follow (sequence.py)
-                    self.detector.end_sequence(track_of(best, self.config.loop_per_map))
+                    self.detector.end_sequence(self._track(frame, best))
                 if lent is not None:  # posed to the lender: T_match_query (growth.py)
                     shift_pose(loop, lent[1])
         if self.config.mode == "mapping":
             self._map_keyframe(frame, dense, desc, features, outcome)
-        self._last_desc = desc
+        self._last_desc[frame.camera_id] = desc
         self.counts.keyframes += 1
         self.counts.loops += len(accepted)
         self.counts.rejected += int(bool(decisions) and not accepted)
+        for loop in accepted if self.rig is not None else ():  # camera poses (growth) -> base
+            to_base(loop, self.rig)
         return outcome
+
+    def _track(self, frame: Frame, candidate: Candidate):
+        """A decision's sequence track: its map's (`track_of`), with a rig its camera's too."""
+        track = track_of(candidate, self.config.loop_per_map)
+        return track if frame.camera_id == 0 else (frame.camera_id, track)
 
     def _map_keyframe(self, frame: Frame, dense, desc, features, outcome: FrameOutcome) -> None:
         """Store the keyframe (with its signature and links), or, when a stored keyframe
@@ -241,7 +271,7 @@ class LoopClosurePipeline(PipelineMaps):
                 return
         meta = KeyframeMeta(
             stamp=frame.stamp, frame_id=frame.frame_id, pose=frame.pose, source=frame.source,
-            robot=who.robot, session=who.session,
+            robot=who.robot, session=who.session, camera=frame.camera_id,
         )  # fmt: skip
         packed = self.geometry.pack(features)
         places = self.config.map_growth == "places" and posed
@@ -303,9 +333,10 @@ class LoopClosurePipeline(PipelineMaps):
             record = self.detector.decide(
                 frame.stamp, frame.frame_id, candidates, rerank, verify, step=step,
                 first=fixed or 1, query_identity=(who.robot, who.session),
-                track=track_of(candidates[0], per_map),
+                track=self._track(frame, candidates[0]),
             )  # fmt: skip
             if record is not None:
+                record.query_camera = frame.camera_id
                 self.counts.candidates_scored += record.scored
                 self.counts.rerank_budget_cut += int(0 < record.scored < record.candidates)
                 records.append(record)

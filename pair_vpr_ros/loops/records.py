@@ -50,6 +50,14 @@ class LoopRecord:
     qz: float = float("nan")
     qw: float = float("nan")
     covariance: tuple[float, ...] = ()  # 36 row-major, order (x, y, z, rx, ry, rz); () w/o pose
+    # A rig of several cameras (loops/rig.py): which camera took each keyframe, its index in
+    # the rig's `cameras` (0: the only camera, and every record of a single-camera node).
+    query_camera: int = 0
+    match_camera: int = 0
+    # "": the pose is T_match_query between the two camera frames (the frame ids above); a
+    # frame id (a rig's base frame): the pose of the query keyframe's base in the match
+    # keyframe's base, T_base_a T_a_b T_b_base, with the covariance carried through
+    pose_frame: str = ""
 
     @classmethod
     def field_names(cls) -> list[str]:
@@ -72,6 +80,7 @@ class Candidate:
     robot: str = ""  # who recorded it (identity.py)
     session: str = ""
     prior: int = -1  # -1: the live map; i >= 0: the pipeline's i-th prior map (read-only)
+    camera: int = 0  # the rig camera that took it (loops/rig.py; 0: the only camera)
 
     def rerank_score(self, global_weight: float = 0.0) -> float:
         """What re-ranking sorts by and the threshold compares (`DetectorConfig.global_weight`)."""

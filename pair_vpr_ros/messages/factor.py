@@ -21,11 +21,18 @@ twist.twist.linear.z            1.0 metric (depth), 2.0 scale-free (translation 
                                 3.0 metric, monocular, scale from a short odometry baseline
 twist.twist.angular.x           inliers of the pose fit
 twist.twist.angular.y / .z      query / match keyframe ids in the place map
-twist.covariance                all zeros
+twist.covariance                [0] / [1]: query / match keyframe's rig camera (0: the only
+                                camera); the rest zeros
 ==============================  ==================================================================
 
 A consumer adds ``BetweenFactor(X(match), X(query), T_match_query, covariance)`` after moving it
 from the camera frame to its body frame (camera extrinsics).
+
+A rig of several cameras (``loops/rig.py``, issue 49) gives its loops in the robot's base frame
+instead: both frame ids are the base frame (``LoopRecord.pose_frame``), the pose is
+``T_base_a T_a_b T_b_base`` between the two keyframes' base poses (camera a took the match,
+camera b the query), the covariance carried through, and the twist's covariance names the two
+cameras. A pose graph over base poses takes it as it is (no camera extrinsics to apply).
 
 Robot and session of both keyframes (``LoopFactor.query_robot`` ... ``match_session``, issue 22):
 a loop within one robot-session keeps the encoding above unchanged (its frame ids as they are;
@@ -94,6 +101,10 @@ class LoopFactor:
     query_session: str = ""
     match_robot: str = ""
     match_session: str = ""
+    # the rig cameras of the two keyframes (0: the only camera); a rig's factor is between the
+    # keyframes' base frames (both frame ids the base frame), a single camera's between cameras
+    query_camera: int = 0
+    match_camera: int = 0
 
     def matrix(self) -> np.ndarray:
         """[4, 4] homogeneous T_match_query (maps query-camera points into the match camera)."""
@@ -136,11 +147,12 @@ def factor_from_record(record: Any) -> LoopFactor | None:
         return None
     t = tuple(float(_get(record, k)) for k in ("tx", "ty", "tz"))
     q = tuple(float(_get(record, k)) for k in ("qx", "qy", "qz", "qw"))
+    base = _text(record, "pose_frame")  # a rig's loop: between the two keyframes' bases
     return LoopFactor(
         query_stamp=float(_get(record, "query_stamp")),
         match_stamp=float(_get(record, "match_stamp")),
-        query_frame_id=str(_get(record, "query_frame_id")),
-        match_frame_id=str(_get(record, "match_frame_id")),
+        query_frame_id=base or str(_get(record, "query_frame_id")),
+        match_frame_id=base or str(_get(record, "match_frame_id")),
         translation=t,  # type: ignore[arg-type]
         rotation=q,  # type: ignore[arg-type]
         covariance=tuple(float(v) for v in cov),
@@ -150,7 +162,15 @@ def factor_from_record(record: Any) -> LoopFactor | None:
         match_id=int(_get(record, "match_id")),
         scale_from_odometry=status == "metric-odometry",
         **{name: _text(record, name) for name in IDENTITY},
+        query_camera=_camera(record, "query_camera"),
+        match_camera=_camera(record, "match_camera"),
     )
+
+
+def _camera(record: Any, name: str) -> int:
+    """A camera index that older records (before issue 49) lack: 0."""
+    value = record.get(name) if isinstance(record, Mapping) else getattr(record, name, 0)
+    return int(value or 0)
 
 
 def tag_frame(frame_id: str, robot: str, session: str) -> str:
@@ -212,14 +232,34 @@ def factor_msg(factor: LoopFactor, types: Mapping[str, Callable[..., Any]]) -> A
         pose=types["geometry_msgs/msg/PoseWithCovariance"](
             pose=pose, covariance=np.asarray(factor.covariance, np.float64)
         ),
-        twist=types["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
+        twist=types["geometry_msgs/msg/TwistWithCovariance"](
+            twist=twist, covariance=_camera_slots(factor)
+        ),
     )
+
+
+def _camera_slots(factor: LoopFactor) -> np.ndarray:
+    """twist.covariance: [0] the query's rig camera, [1] the match's, the rest zeros."""
+    out = np.zeros(36)
+    out[:2] = factor.query_camera, factor.match_camera
+    return out
 
 
 def _status(factor: LoopFactor) -> str:
     if not factor.metric:
         return "scale-free"
     return "metric-odometry" if factor.scale_from_odometry else "metric"
+
+
+def _cameras_of(twist: Any) -> tuple[int, int]:
+    """The rig cameras in twist.covariance[0], [1]; (0, 0) where there are none (a message of
+    an older node) or they are no camera indices."""
+    try:
+        slots = [float(v) for v in list(getattr(twist, "covariance", ()))[:2]]
+    except (TypeError, ValueError):
+        return 0, 0
+    cams = [int(v) if math.isfinite(v) and 0 <= v < 2**31 else 0 for v in (*slots, 0.0, 0.0)]
+    return cams[0], cams[1]
 
 
 def factor_from_msg(msg: Any) -> LoopFactor:
@@ -237,6 +277,7 @@ def factor_from_msg(msg: Any) -> LoopFactor:
     ints = (twist.angular.x, twist.angular.y, twist.angular.z)
     if not all(math.isfinite(v) for v in ints):  # inliers and keyframe ids: int() would fail
         raise ValueError(f"not a loop_closure/factor message: twist.angular {ints} not finite")
+    cams = _cameras_of(msg.twist)
     return LoopFactor(
         query_stamp=stamp.sec + stamp.nanosec * 1e-9,
         match_stamp=twist.linear.x + twist.linear.y * 1e-9,
@@ -254,4 +295,6 @@ def factor_from_msg(msg: Any) -> LoopFactor:
         query_session=query_session,
         match_robot=match_robot,
         match_session=match_session,
+        query_camera=cams[0],
+        match_camera=cams[1],
     )

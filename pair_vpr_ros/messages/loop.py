@@ -22,7 +22,9 @@ both publish identical data; the pose-graph tools decode them here too. One acce
     odometry), then the covariance ``cov_00`` .. ``cov_55`` (row, column in x, y, z, rx, ry, rz
     order; NaN without a pose), then four text fields carried by their labels, each
     ``<field>=<text>`` with the value NaN: ``query_robot``, ``query_session``, ``match_robot``,
-    ``match_session`` (``detail_text``).
+    ``match_session`` (``detail_text``). After the covariance come ``query_camera`` and
+    ``match_camera`` (a rig's camera indices, 0 for one camera) and after the identity the text
+    label ``pose_frame=<frame>`` ("" unless the pose is between two rig bases).
     ``layout.dim`` has one ``MultiArrayDimension(label=<name>, size=1, stride=1)`` per value,
     ``layout.data_offset = 0``: look values up by label (``detail_to_dict``).
 
@@ -92,15 +94,23 @@ LOOP_RECORD_FIELDS = (
     "qz",
     "qw",
     "covariance",
+    "query_camera",
+    "match_camera",
+    "pose_frame",
 )
 IDENTITY_FIELDS = ("query_robot", "query_session", "match_robot", "match_session")
 TEXT_FIELDS = (
     "query_frame_id", "match_frame_id", *IDENTITY_FIELDS, "reason", "pose_status", "pose_reason",
+    "pose_frame",
 )  # fmt: skip
+CAMERA_FIELDS = ("query_camera", "match_camera")  # numbers, after the covariance in detail
 POSE_AXES = ("x", "y", "z", "rx", "ry", "rz")  # ROS PoseWithCovariance order
-NUMERIC_FIELDS = tuple(f for f in LOOP_RECORD_FIELDS if f not in (*TEXT_FIELDS, "covariance"))
+NUMERIC_FIELDS = tuple(
+    f for f in LOOP_RECORD_FIELDS if f not in (*TEXT_FIELDS, "covariance", *CAMERA_FIELDS)
+)
 COVARIANCE_LABELS = tuple(f"cov_{r}{c}" for r in range(6) for c in range(6))
-DETAIL_LABELS = (*NUMERIC_FIELDS, "pose_status", *COVARIANCE_LABELS)
+# new labels go last, so that a consumer indexing the old layout keeps working
+DETAIL_LABELS = (*NUMERIC_FIELDS, "pose_status", *COVARIANCE_LABELS, *CAMERA_FIELDS)
 POSE_STATUS_CODES = {"": 0, "metric": 1, "scale-free": 2, "metric-odometry": 3}
 
 
@@ -144,12 +154,25 @@ def detail_data(record: Any) -> list[float]:
     fields (text in their labels) NaN."""
     values = [float(getattr(record, name)) for name in NUMERIC_FIELDS]
     values.append(float(POSE_STATUS_CODES.get(record.pose_status, 0)))
-    return values + covariance_values(record) + [math.nan] * len(IDENTITY_FIELDS)
+    values += covariance_values(record) + [float(cameras(record)[k]) for k in CAMERA_FIELDS]
+    return values + [math.nan] * (len(IDENTITY_FIELDS) + 1)
 
 
 def detail_labels(record: Any) -> tuple[str, ...]:
-    """``DETAIL_LABELS``, then ``<field>=<text>`` for each of ``IDENTITY_FIELDS``."""
-    return (*DETAIL_LABELS, *(f"{k}={v}" for k, v in identity(record).items()))
+    """``DETAIL_LABELS``, then ``<field>=<text>`` for each of ``IDENTITY_FIELDS`` and for
+    ``pose_frame``."""
+    texts = {**identity(record), "pose_frame": pose_frame(record)}
+    return (*DETAIL_LABELS, *(f"{k}={v}" for k, v in texts.items()))
+
+
+def cameras(record: Any) -> dict[str, int]:
+    """The record's rig cameras of both sides (0 when it has none: one camera, old records)."""
+    return {name: int(getattr(record, name, 0) or 0) for name in CAMERA_FIELDS}
+
+
+def pose_frame(record: Any) -> str:
+    """The frame of a rig loop's base-to-base pose; "" for a pose between camera frames."""
+    return str(getattr(record, "pose_frame", "") or "")
 
 
 def _json_value(value: Any) -> Any:
@@ -173,6 +196,10 @@ def record_dict(record: Any) -> dict[str, Any]:
             out[name] = [_json_value(v) for v in cov] if len(cov) == 36 else None
         elif name in IDENTITY_FIELDS:
             out[name] = identity(record)[name]
+        elif name in CAMERA_FIELDS:
+            out[name] = cameras(record)[name]
+        elif name == "pose_frame":
+            out[name] = pose_frame(record)
         else:
             out[name] = _json_value(getattr(record, name))
     return out
@@ -187,8 +214,9 @@ def csv_row(record: Any) -> list[Any]:
     """One CSV row in ``LOOP_RECORD_FIELDS`` order; the covariance is one cell of 36
     space-separated numbers (empty without a pose)."""
     row = []
+    texts = {**identity(record), **cameras(record), "pose_frame": pose_frame(record)}
     for name in LOOP_RECORD_FIELDS:
-        value = identity(record)[name] if name in IDENTITY_FIELDS else getattr(record, name)
+        value = texts[name] if name in texts else getattr(record, name)
         if name == "covariance":
             value = " ".join(repr(float(v)) for v in value) if len(value) == 36 else ""
         row.append(value)
@@ -230,10 +258,11 @@ def loop_closure_fields(record: Any) -> dict[str, Any]:
     out: dict[str, Any] = {
         "header": {
             "stamp": split_stamp(float(record.query_stamp)),
-            "frame_id": str(record.match_frame_id),
+            "frame_id": pose_frame(record) or str(record.match_frame_id),
         }
     }
     out |= identity(record)  # query_robot, query_session, match_robot, match_session
+    out |= cameras(record)  # query_camera, match_camera
     for side in ("query", "match"):
         out[f"{side}_stamp"] = split_stamp(float(getattr(record, f"{side}_stamp")))
         out[f"{side}_id"] = int(getattr(record, f"{side}_id"))

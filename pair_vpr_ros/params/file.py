@@ -12,6 +12,7 @@ import yaml
 
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.params.check import check_value
+from pair_vpr_ros.params.rig import camera_sections
 from pair_vpr_ros.params.table import PARAMS, ParamSpec, Value
 
 INSTALLED_CONFIG = "$(ros2 pkg prefix pair_vpr_ros)/share/pair_vpr_ros/config/vpr_node.yaml"
@@ -109,7 +110,13 @@ def read_params_file(
                 f"parameter file {path}: ros__parameters holds a {type(given).__name__}, not a "
                 f"mapping of parameter names to values ({layout})"
             )
+        try:
+            cameras = camera_sections(given) if "cameras" in specs else {}  # vpr_node's rig
+        except ConfigError as err:
+            raise ConfigError(f"parameter file {path}: {err}") from err
         for name, value in given.items():
+            if name in cameras:  # a rig camera's own parameters: the node declares them
+                continue
             if name in specs and specs[name].strings and value is None:
                 value = ()  # `name: []` in YAML (rcl reads it as unset: the default, empty)
             reason = check_value(name, value, specs)

@@ -157,6 +157,21 @@ PARAMS: tuple[ParamSpec, ...] = (
        0.0, 86400.0, **RO),
     _p("load_map_on_start", False, "load the map in map_dir at start-up (empty if none yet)",
        **RO),
+    # ---- a rig of several cameras (start-up only; docs/rig.md)
+    _p("cameras", (), "several cameras on one robot, e.g. [front, rear]: one map, loops across "
+       "cameras, given between base poses in base_frame; camera <name> has the parameters "
+       "<name>.image_topic (default <name>/image), .camera_info_topic (<name>/camera_info), "
+       ".depth_topic, .right_image_topic, .right_camera_info_topic, .frame_id and "
+       ".camera_to_base (x, y, z, qx, qy, qz, qw; unset: from /tf_static); empty = the one "
+       "camera of image_topic", strings=True, **RO),
+    _p("base_frame", "base_link", "rig: the robot frame its loops are given in, the parent of "
+       "each camera_to_base", **RO),
+    _p("rig_stamp_tolerance", 0.02, "rig: frames of its cameras stamped within this many "
+       "seconds form one rig keyframe (encoded as one batch)", 0.0, 1.0, **RO),
+    _p("rig_max_delay", 0.2, "rig: how long (s, wall clock) a rig keyframe waits for a late "
+       "camera before it goes on without it (counted in /diagnostics)", 0.0, 10.0, **RO),
+    _p("rig_tf_wait", 5.0, "rig: at start-up, how long (s) to wait for /tf_static to give the "
+       "camera_to_base of cameras without one (needs the tf2_msgs package)", 0.0, 60.0, **RO),
     # ---- identity and prior maps (start-up only; docs/fleet.md)
     _p("robot_id", "", "robot of every keyframe and loop ('' = the node's namespace without "
        f"slashes, else '{DEFAULT_ROBOT}'); {RULE}", **RO),

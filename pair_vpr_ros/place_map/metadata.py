@@ -1,6 +1,7 @@
-"""Keyframe metadata (`KeyframeMeta`: stamp, frame, optional pose, source, robot, session), the
-checks of what callers pass a PlaceMap (metadata, descriptors, dense tokens, ids: bad input
-gives a MapError, never a crash), and `MetadataStore`, the metadata table of formats 1 and 2.
+"""Keyframe metadata (`KeyframeMeta`: stamp, frame, optional pose, source, robot, session, rig
+camera), the checks of what callers pass a PlaceMap (metadata, descriptors, dense tokens, ids:
+bad input gives a MapError, never a crash), and `MetadataStore`, the metadata table of formats 1
+and 2.
 
 Maps of format version 1 have no robot / session columns: loading one adds them to the working
 copy, filled with the identity the loader names (`from_saved(..., legacy=...)`). Features
@@ -59,6 +60,8 @@ class KeyframeMeta:
     pose: (x, y, z, qx, qy, qz, qw) in the odometry frame, or None when unknown.
     source: free text (bag name, topic).
     robot, session: who recorded it (identity.py; "" = unnamed, e.g. a library user's map).
+    camera: which camera of a rig took it, its index in the rig's cameras (loops/rig.py); 0 for
+    a single camera and for every keyframe of a map saved before rigs (issue 49).
     """
 
     id: int = -1
@@ -68,6 +71,7 @@ class KeyframeMeta:
     source: str = ""
     robot: str = ""
     session: str = ""
+    camera: int = 0
 
 
 def validate_meta(meta: KeyframeMeta) -> KeyframeMeta:
@@ -88,9 +92,12 @@ def validate_meta(meta: KeyframeMeta) -> KeyframeMeta:
     problem = identity_problem(str(meta.robot), str(meta.session))
     if problem:
         raise MapError(f"keyframe metadata: {problem}")
+    camera = meta.camera
+    if isinstance(camera, bool) or not isinstance(camera, int) or not 0 <= camera < 2**31:
+        raise MapError(f"keyframe camera must be a rig camera index >= 0, got {camera!r}")
     return KeyframeMeta(
         meta.id, stamp, str(meta.frame_id), pose, str(meta.source), str(meta.robot),
-        str(meta.session),
+        str(meta.session), int(camera),
     )  # fmt: skip
 
 

@@ -17,14 +17,19 @@ from __future__ import annotations
 import sqlite3
 import struct
 import zlib
+from collections.abc import Callable
 
 from pair_vpr_ros.errors import MapError
+from pair_vpr_ros.place_map.metadata import KeyframeMeta
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 # Each step: (the version it makes, table, column, declaration). A table that does not exist
 # yet is created later with every column (its CREATE statement), so it needs no step.
 MIGRATIONS: tuple[tuple[int, str, str, str], ...] = (
     (1, "links", "score", "REAL"),  # issue 48: the re-rank score that made the growth link
+    # issue 49: the rig camera that took the keyframe (0: the only camera, and every keyframe
+    # of an older store); a camera-0 row keeps the row CRC32 it had before (`row_crc`)
+    (2, "keyframes", "camera", "INTEGER NOT NULL DEFAULT 0"),
 )
 STORE_ID = "store_id"  # the `state` key of the store's identity (named by manifest.json)
 
@@ -33,7 +38,7 @@ KEYFRAMES_SCHEMA = (
     id INTEGER PRIMARY KEY, stamp REAL NOT NULL, frame_id TEXT NOT NULL, source TEXT NOT NULL,
     x REAL, y REAL, z REAL, qx REAL, qy REAL, qz REAL, qw REAL, robot TEXT NOT NULL,
     session TEXT NOT NULL, descriptor BLOB NOT NULL, dense_crc INTEGER NOT NULL,
-    crc INTEGER NOT NULL, desc_crc INTEGER NOT NULL)""",
+    crc INTEGER NOT NULL, desc_crc INTEGER NOT NULL, camera INTEGER NOT NULL DEFAULT 0)""",
     "CREATE TABLE IF NOT EXISTS features (id INTEGER PRIMARY KEY, crc INTEGER NOT NULL, "
     "data BLOB NOT NULL)",
     "CREATE TABLE IF NOT EXISTS state (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
@@ -61,12 +66,27 @@ META = "id, stamp, frame_id, source, x, y, z, qx, qy, qz, qw, robot, session"
 COLUMNS = META + ", descriptor, dense_crc, crc, desc_crc"
 
 
-def row_crc(row: tuple) -> int:
-    """CRC32 of a keyframe row's values (all columns but `crc`, in COLUMNS order)."""
+def row_crc(row: tuple, camera: int = 0) -> int:
+    """CRC32 of a keyframe row's values (all columns but `crc`, in COLUMNS order), and of its
+    rig camera when that is not 0 (so a camera-0 row keeps the CRC32 of a store before it)."""
     *meta, desc, dense_crc = row
     # + 0.0: SQLite gives -0.0 back as 0.0 (a REAL of integral value is stored as an integer)
-    meta = [v + 0.0 if isinstance(v, float) else v for v in meta]
+    meta = [v + 0.0 if isinstance(v, float) else v for v in meta] + ([camera] if camera else [])
     return zlib.crc32(desc + struct.pack("<I", dense_crc), zlib.crc32(repr(meta).encode()))
+
+
+def keyframe_columns(one: Callable[[str], tuple | None]) -> str:
+    """What a read of keyframe rows selects: COLUMNS, then the rig camera (0 in a store of
+    version < 2, opened read-only: its keyframes are camera 0). `one(sql)`: the store's query."""
+    sql = "SELECT COUNT(*) FROM pragma_table_info('keyframes') WHERE name = 'camera'"
+    return COLUMNS + (", camera" if one(sql)[0] else ", 0")
+
+
+def keyframe_meta(row: tuple) -> KeyframeMeta:
+    """A keyframe row (`keyframe_columns` order, checked) -> its KeyframeMeta."""
+    kf_id, stamp, frame_id, source, *pose = row[:11]
+    pose_or_none = None if pose[0] is None else tuple(pose)
+    return KeyframeMeta(kf_id, stamp, frame_id, pose_or_none, source, *row[11:13], row[17])
 
 
 def create(conn: sqlite3.Connection, growth: bool = True) -> None:
@@ -122,11 +142,13 @@ def copy_store(
         dst.execute("PRAGMA journal_mode=OFF")  # a new file: written, then fsynced whole
         create(dst)
         dst.execute("BEGIN")
-        tables = [("keyframes", COLUMNS), ("features", "id, crc, data")]
+        tables = [("keyframes", COLUMNS + ", camera"), ("features", "id, crc, data")]
         tables += list(GROWTH_TABLES.items()) if growth else []
+        read = keyframe_columns(lambda sql: src.execute(sql).fetchone())
         for table, columns in tables:
             marks = ",".join("?" * len(columns.split(", ")))
-            rows = src.execute(f"SELECT {columns} FROM {table} ORDER BY 1")
+            rows = src.execute(f"SELECT {read if table == 'keyframes' else columns} FROM {table} "
+                               "ORDER BY 1")  # fmt: skip
             while batch := rows.fetchmany(4096):
                 if table == "keyframes" and dense_crcs is not None:
                     batch = [_with_dense_crc(row, dense_crcs[row[0]]) for row in batch]
@@ -139,8 +161,9 @@ def copy_store(
 
 
 def _with_dense_crc(row: tuple, crc: int) -> tuple:
-    """A keyframe row (COLUMNS order) with another dense CRC32, its row CRC32 made again (a row
-    that fails its own check keeps a failing one: damage is never laundered)."""
-    values = (*row[:14], int(crc))
-    intact = row_crc(row[:15]) == row[15]
-    return (*values, row_crc(values) if intact else row[15] ^ 1, row[16])
+    """A keyframe row (COLUMNS order, then the camera) with another dense CRC32, its row CRC32
+    made again (a row that fails its own check keeps a failing one: damage is never
+    laundered)."""
+    values, camera = (*row[:14], int(crc)), row[17]
+    intact = row_crc(row[:15], camera) == row[15]
+    return (*values, row_crc(values, camera) if intact else row[15] ^ 1, row[16], camera)

@@ -144,9 +144,11 @@ class KeyframeStore:
         values = (meta.id, meta.stamp, meta.frame_id, meta.source, *pose, meta.robot,
                   meta.session, np.asarray(desc, "<f4").tobytes(), int(dense_crc))  # fmt: skip
         self.begin()
+        cam = [meta.camera] if meta.camera else []  # a rig camera's (schema version 2)
         self._conn.execute(
-            f"INSERT INTO keyframes ({_COLUMNS}) VALUES ({','.join('?' * 17)})",
-            (*values, row_crc(values), zlib.crc32(values[13])),
+            f"INSERT INTO keyframes ({_COLUMNS}{', camera' * len(cam)}) "
+            f"VALUES ({','.join('?' * (17 + len(cam)))})",
+            (*values, row_crc(values, meta.camera), zlib.crc32(values[13]), *cam),
         )
         if features:
             self._conn.execute(
@@ -272,6 +274,9 @@ class KeyframeStore:
         except (sqlite3.Error, UnicodeDecodeError) as err:  # a damaged page or text
             raise self.failure(err, "cannot be read") from err
 
+    def _read(self) -> str:  # the keyframe columns a read takes (schema.keyframe_columns)
+        return schema.keyframe_columns(self._one)
+
     def _one(self, sql: str, *args) -> tuple | None:
         try:
             return self._conn.execute(sql, args).fetchone()
@@ -282,7 +287,7 @@ class KeyframeStore:
         desc = row[13]
         if row[0] != kf_id or not isinstance(desc, bytes) or not isinstance(row[14], int):
             raise self.damaged(f"has a bad row where keyframe {kf_id} should be")
-        if row_crc(row[:15]) != row[15]:
+        if not isinstance(row[17], int) or row_crc(row[:15], row[17]) != row[15]:
             raise self.damaged(f"holds keyframe {kf_id} with a wrong CRC32 (a damaged row)")
         problem = identity_problem(str(row[11]), str(row[12]))
         if problem:  # a row written before names were checked: never passed on (issue 38)
@@ -292,17 +297,18 @@ class KeyframeStore:
             )
 
     def get(self, kf_id: int) -> KeyframeMeta | None:
-        row = self._one(f"SELECT {_COLUMNS} FROM keyframes WHERE id = ?", int(kf_id))
+        row = self._one(f"SELECT {self._read()} FROM keyframes WHERE id = ?", int(kf_id))
         if row is None:
             return None
         self._check_row(row, int(kf_id))
-        return _meta(row)
+        return schema.keyframe_meta(row)
 
     def all(self) -> list[KeyframeMeta]:
         out = []
-        for kf_id, row in enumerate(self._rows(f"SELECT {_COLUMNS} FROM keyframes ORDER BY id")):
+        rows = self._rows(f"SELECT {self._read()} FROM keyframes ORDER BY id")
+        for kf_id, row in enumerate(rows):
             self._check_row(row, kf_id)
-            out.append(_meta(row))
+            out.append(schema.keyframe_meta(row))
         return out
 
     def features(self, kf_id: int) -> bytes:
@@ -341,10 +347,3 @@ class KeyframeStore:
 def new_id() -> str:
     """A new store identity: 16 random hex digits."""
     return secrets.token_hex(8)
-
-
-def _meta(row: tuple) -> KeyframeMeta:
-    kf_id, stamp, frame_id, source, *pose = row[:11]
-    robot, session = row[11], row[12]
-    pose_or_none = None if pose[0] is None else tuple(pose)
-    return KeyframeMeta(kf_id, stamp, frame_id, pose_or_none, source, robot, session)

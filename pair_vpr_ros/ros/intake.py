@@ -19,6 +19,10 @@ from pair_vpr_ros.images.convert import msg_to_rgb
 from pair_vpr_ros.loops.frames import Frame, frame_due
 from pair_vpr_ros.types import message_pose, message_stamp
 
+SINGLE_CAMERA_TOPICS = (  # a rig's cameras have their own (ros/rig.py)
+    "image_topic", "compressed_image_topic", "depth_topic", "camera_info_topic",
+    "right_image_topic", "right_camera_info_topic",
+)  # fmt: skip
 POSE_TYPES = {
     "odometry": Odometry,
     "pose_stamped": PoseStamped,
@@ -37,6 +41,9 @@ class FrameIntake:
             qos = QoSProfile(
                 depth=max(10, v["queue_size"]), reliability=ReliabilityPolicy.RELIABLE
             )
+        if self.rig is not None:  # each camera its own topics (ros/rig.py); the poses below
+            self._make_rig_subscriptions(v, qos)
+            v = {**v, **dict.fromkeys(SINGLE_CAMERA_TOPICS, "")}
         for msg_type, name in (
             (Image, "image_topic"),
             (CompressedImage, "compressed_image_topic"),
@@ -83,10 +90,14 @@ class FrameIntake:
             return
         self._last_queued = stamp
         frame = Frame(stamp=stamp, rgb=rgb, frame_id=msg.header.frame_id, source=topic)
-        if self.frames.put((frame, time.monotonic())):
+        self._enqueue(frame)
+
+    def _enqueue(self, item: Frame | list[Frame], what: str = "frame") -> None:
+        """Queue a frame (or a rig keyframe) for the worker; a full queue drops its oldest."""
+        if self.frames.put((item, time.monotonic())):
             self.stats.counts.dropped += 1
             self.get_logger().warning(
-                "frame queue full: dropping the oldest frame (the model is slower than the "
+                f"frame queue full: dropping the oldest {what} (the model is slower than the "
                 "camera; raise min_frame_interval or queue_size)",
                 throttle_duration_sec=10.0,
             )
@@ -118,9 +129,33 @@ class FrameIntake:
             if item is not None:
                 self._process(*item)
 
-    def _process(self, frame: Frame, received: float) -> None:
+    def _process(self, item: Frame | list[Frame], received: float) -> None:
+        """One frame, or one rig keyframe (a list of frames, one per camera: ros/rig.py)."""
+        frames = item if isinstance(item, list) else [item]
+        for frame in frames:
+            inputs = self._attach(frame)
+        try:
+            if isinstance(item, list):
+                results = self.maps.process_group(frames)
+            else:
+                results = [self.maps.process(item)]
+            for frame, (outcome, loops) in zip(frames, results, strict=True):
+                self._report(frame, outcome, loops, received)
+        except Exception as err:  # noqa: BLE001 - the worker must outlive any one frame
+            if not self._stop.is_set():
+                self.stats.counts.errors += len(frames)
+                text = f"frame at {frames[0].stamp:.3f} s failed: {type(err).__name__}: {err}"
+                self.get_logger().error(text, throttle_duration_sec=5.0)
+        if inputs.enabled_depth and any(f.depth is None for f in frames):
+            self.get_logger().warning(
+                f"frame without depth: {inputs.last_problem}", throttle_duration_sec=10.0
+            )
+
+    def _attach(self, frame: Frame):
+        """Give `frame` its pose, intrinsics, depth and right image -> its camera's inputs."""
         frame.pose = self.poses.nearest(frame.stamp, self.values["pose_tolerance"])
-        inputs = self.geometry_inputs
+        rig = getattr(self, "rig", None)
+        inputs = self.geometry_inputs if rig is None else self.rig_inputs[frame.camera_id]
         inputs.await_first_camera_info()
         frame.camera = inputs.camera_for(frame.rgb.shape[1], frame.rgb.shape[0])
         frame.depth = inputs.depth_for(frame.stamp)
@@ -129,35 +164,28 @@ class FrameIntake:
         if self._demo_note is None:  # the first frame: is the demo model on a real camera?
             self._demo_note = demo_model_note(self.pipeline.model.fingerprint, frame.rgb)
             self._say_once(self._demo_note)
-        if inputs.enabled_depth and frame.depth is None:
+        return inputs
+
+    def _report(self, frame: Frame, outcome, loops, received: float) -> None:
+        """Counts, latencies and the loops of one processed frame."""
+        self.stats.counts.processed += 1
+        if outcome.clock_jump_s:
             self.get_logger().warning(
-                f"frame without depth: {inputs.last_problem}", throttle_duration_sec=10.0
+                f"image stamps went back {outcome.clock_jump_s:.3f} s (to {frame.stamp:.3f} "
+                "s): a bag played again or a clock reset; starting a new session (the map "
+                "keeps its keyframes; loops only to keyframes stamped at least "
+                "exclude_recent_s apart, and the pair topic only when the match is older)",
+                throttle_duration_sec=10.0,
             )
-        try:
-            outcome, loops = self.maps.process(frame)
-            self.stats.counts.processed += 1
-            if outcome.clock_jump_s:
-                self.get_logger().warning(
-                    f"image stamps went back {outcome.clock_jump_s:.3f} s (to {frame.stamp:.3f} "
-                    "s): a bag played again or a clock reset; starting a new session (the map "
-                    "keeps its keyframes; loops only to keyframes stamped at least "
-                    "exclude_recent_s apart, and the pair topic only when the match is older)",
-                    throttle_duration_sec=10.0,
-                )
-            now_ms = self.get_clock().now().nanoseconds / 1e6
-            self.stats.add_ms("latency", (time.monotonic() - received) * 1e3)
-            self.stats.add_ms("stamp_age", now_ms - frame.stamp * 1e3)
-            for key, ms in outcome.timings_ms.items():
-                self.stats.add_ms(key, ms)
-            if self.values["loop_image"]:
-                self.pictures.keep(outcome, frame.rgb)
-            for loop, match_pose in loops:  # accepted ones (one per map), else the best
-                self._publish_loop(loop, frame.pose, match_pose)
-                self._publish_loop_image(outcome, loop, frame.rgb)
-            if self.fleet is not None:
-                self.fleet.on_outcome(outcome)
-        except Exception as err:  # noqa: BLE001 - the worker must outlive any one frame
-            if not self._stop.is_set():
-                self.stats.counts.errors += 1
-                text = f"frame at {frame.stamp:.3f} s failed: {type(err).__name__}: {err}"
-                self.get_logger().error(text, throttle_duration_sec=5.0)
+        now_ms = self.get_clock().now().nanoseconds / 1e6
+        self.stats.add_ms("latency", (time.monotonic() - received) * 1e3)
+        self.stats.add_ms("stamp_age", now_ms - frame.stamp * 1e3)
+        for key, ms in outcome.timings_ms.items():
+            self.stats.add_ms(key, ms)
+        if self.values["loop_image"]:
+            self.pictures.keep(outcome, frame.rgb)
+        for loop, match_pose in loops:  # accepted ones (one per map), else the best
+            self._publish_loop(loop, frame.pose, match_pose)
+            self._publish_loop_image(outcome, loop, frame.rgb)
+        if self.fleet is not None:
+            self.fleet.on_outcome(outcome)

@@ -152,6 +152,20 @@ class MapControl:
 
         return self.call(run)
 
+    def process_group(
+        self, frames: list[Frame]
+    ) -> list[tuple[FrameOutcome, list[tuple[LoopRecord, Pose | None]]]]:
+        """One rig keyframe (one frame per camera) through the pipeline -> `process`'s result
+        for each frame, in order."""
+
+        def run() -> list[tuple[FrameOutcome, list[tuple[LoopRecord, Pose | None]]]]:
+            pipe = self.pipeline
+            outcomes = list(pipe.process_groups([frames], batch_size=len(frames)))
+            return [(o, [(r, pipe.match_meta(o, r).pose if r.accepted else None)
+                         for r in o.reported()]) for o in outcomes]  # fmt: skip
+
+        return self.call(run)
+
     @property
     def state(self) -> LiveState:
         """The live pipeline after the last map-thread task (never waits)."""

@@ -79,6 +79,7 @@ from pair_vpr_ros.ros.intake import FrameIntake
 from pair_vpr_ros.ros.maps import MapControl
 from pair_vpr_ros.ros.outputs import MARKER_TOPIC, LoopOutputs
 from pair_vpr_ros.ros.parameters import ParameterHandling, declare_all
+from pair_vpr_ros.ros.rig import RigIntake, declare_rig
 from pair_vpr_ros.ros.runtime import FrameQueue, NodeStats, precision_context
 from pair_vpr_ros.ros.services import NodeServices
 from pair_vpr_ros.types import Pose, PoseTrack
@@ -88,13 +89,14 @@ __all__ = ["MARKER_TOPIC", "VprNode", "main"]
 RCLError = rclpy_implementation.RCLError
 
 
-class VprNode(ParameterHandling, FrameIntake, NodeServices, Node):
+class VprNode(ParameterHandling, RigIntake, FrameIntake, NodeServices, Node):
     """Frames in, loop closures out. `start_worker=False` leaves frames queued (tests)."""
 
     def __init__(self, *, start_worker: bool = True, **kwargs) -> None:
         super().__init__("vpr_node", **kwargs)
         v = declare_all(self)
         self.values = v
+        self.rig = declare_rig(self, v)  # None: one camera (ros/rig.py)
         device = check_device(v["device"])
         calibration = calibration_loader(
             v["openvino_calibration"], v["openvino_calibration_topic"], v["max_image_pixels"],
@@ -117,7 +119,7 @@ class VprNode(ParameterHandling, FrameIntake, NodeServices, Node):
         self.maps = MapControl(
             lambda: LoopClosurePipeline(
                 model, config, index=params.index_config(v), geometry=geometry,
-                identity=self.identity, prior_maps=priors.maps,
+                identity=self.identity, prior_maps=priors.maps, rig=self.rig,
             ),
             self._log,
             partial(precision_context, device, autocast),
@@ -166,6 +168,9 @@ class VprNode(ParameterHandling, FrameIntake, NodeServices, Node):
         )
         if self.fleet is not None:
             self.summary += f"; {self.fleet.summary}"
+        if self.rig is not None:
+            cams = ", ".join(f"{c.name} ({c.image_topic})" for c in self.rig.cameras)
+            self.summary += f"; rig of {cams}, loops in {self.rig.base_frame}"
 
     @property
     def pipeline(self) -> LoopClosurePipeline:

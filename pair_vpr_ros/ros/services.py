@@ -38,7 +38,8 @@ class NodeServices:
     # ---- diagnostics, autosave, services --------------------------------------------------------
     def diagnostic_values(self) -> dict[str, str]:
         """Everything `/diagnostics` reports, as strings."""
-        return diagnostic_values(self.values, self.stats, self.frames, self.maps)
+        out = diagnostic_values(self.values, self.stats, self.frames, self.maps)
+        return {**out, **self.rig_diagnostics()}
 
     def _publish_diagnostics(self) -> None:
         values = self.diagnostic_values()

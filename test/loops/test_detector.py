@@ -58,6 +58,9 @@ def test_rerank_picks_best_pair_score_and_keeps_global_rank():
         pose_reason="",
         pose_inliers=-1,
         covariance=(),
+        query_camera=0,
+        match_camera=0,
+        pose_frame="",
     )
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from types import SimpleNamespace
 
@@ -146,3 +147,20 @@ def test_robot_and_session_of_a_loop_between_two_ride_in_the_frame_ids():
     record = {**asdict(posed_record()), "query_robot": "b", "match_session": None}
     assert lf.factor_from_record(record).query_robot == "b"  # JSON null: ""
     assert lf.factor_from_record(record).match_session == ""
+
+
+def test_a_rig_loop_is_between_base_frames_and_names_its_cameras():
+    from pair_vpr_ros.messages.loop import record_dict
+
+    record = posed_record(query_camera=1, match_camera=0, pose_frame="base_link")
+    factor = lf.factor_from_record(record)
+    assert (factor.query_frame_id, factor.match_frame_id) == ("base_link", "base_link")
+    assert (factor.query_camera, factor.match_camera) == (1, 0)
+    assert lf.factor_from_record(record_dict(record)) == factor
+    msg = lf.factor_msg(factor, TS.types)
+    back = TS.deserialize_cdr(TS.serialize_cdr(msg, lf.FACTOR_TYPE), lf.FACTOR_TYPE)
+    assert back.header.frame_id == "base_link" == back.child_frame_id
+    assert back.twist.covariance.tolist() == [1.0] + [0.0] * 35  # [0] query, [1] match camera
+    assert lf.factor_from_msg(back) == factor
+    msg.twist.covariance[:2] = (math.nan, -3.0)  # no camera indices: read as camera 0
+    assert (lf.factor_from_msg(msg).query_camera, lf.factor_from_msg(msg).match_camera) == (0, 0)

@@ -54,13 +54,15 @@ def test_detail_layout_and_values():
         "tx", "ty", "tz", "qx", "qy", "qz", "qw",
     )  # fmt: skip
     assert lm.DETAIL_LABELS[21:24] == ("pose_status", "cov_00", "cov_01")
-    assert lm.DETAIL_LABELS[-1] == "cov_55" and len(lm.DETAIL_LABELS) == 22 + 36
+    assert lm.DETAIL_LABELS[57] == "cov_55" and len(lm.DETAIL_LABELS) == 22 + 36 + 2
+    assert lm.DETAIL_LABELS[58:] == ("query_camera", "match_camera")  # last: old indices hold
     data = lm.detail_data(_record(accepted=False, inlier_ratio=0.5))
     assert data[:14] == [
         12.0, 1700000123.456789, 3.0, 1700000001.25, 2.75, 0.8125, 2.0, 0.0, 10.0, 3.0, -1.0,
         0.5, 0.0, -1.0,
     ]  # fmt: skip
-    assert all(math.isnan(v) for v in data[14:21] + data[22:]) and data[21] == 0.0
+    assert all(math.isnan(v) for v in data[14:21] + data[22:58]) and data[21] == 0.0
+    assert data[58:60] == [0.0, 0.0]  # one camera
     labels = lm.detail_labels(_record())
     assert lm.detail_to_dict(labels, data)["accepted"] == 0.0
     posed = lm.detail_to_dict(labels, lm.detail_data(_posed()))
@@ -68,7 +70,9 @@ def test_detail_layout_and_values():
     assert (posed["cov_00"], posed["cov_12"], posed["cov_55"]) == (0.0, 8.0, 35.0)
     scale_free = lm.detail_to_dict(labels, lm.detail_data(_posed(pose_status="scale-free")))
     assert scale_free["pose_status"] == 2.0
-    with pytest.raises(ValueError, match="detail message has 62 labels but 2 values"):
+    rig = lm.detail_to_dict(labels, lm.detail_data(_record(query_camera=1, match_camera=2)))
+    assert (rig["query_camera"], rig["match_camera"]) == (1.0, 2.0)
+    with pytest.raises(ValueError, match="detail message has 65 labels but 2 values"):
         lm.detail_to_dict(labels, [1.0, 2.0])
 
 
@@ -78,12 +82,13 @@ IDENTITY = dict(query_robot="r1", query_session="s2", match_robot="r0", match_se
 def test_detail_carries_both_sides_identity_in_its_labels():
     record = _record(**IDENTITY)
     labels, data = lm.detail_labels(record), lm.detail_data(record)
-    assert labels[:58] == lm.DETAIL_LABELS and len(data) == 62
-    assert labels[58:] == (
+    assert labels[:60] == lm.DETAIL_LABELS and len(data) == 65
+    assert labels[60:] == (
         "query_robot=r1", "query_session=s2", "match_robot=r0", "match_session=s1",
+        "pose_frame=",
     )  # fmt: skip
-    assert all(math.isnan(v) for v in data[58:])
-    assert lm.detail_text(labels) == IDENTITY
+    assert all(math.isnan(v) for v in data[60:])
+    assert lm.detail_text(labels) == {**IDENTITY, "pose_frame": ""}
     assert "query_robot=r1" not in lm.detail_to_dict(labels, data)  # numbers only
     assert lm.detail_text(lm.DETAIL_LABELS) == {}  # a detail message from an older node
 
@@ -123,14 +128,16 @@ def test_json_has_every_field_in_order():
 def test_csv_row_puts_the_covariance_in_one_cell():
     row = lm.csv_row(_posed())
     assert len(row) == len(lm.LOOP_RECORD_FIELDS)
-    assert row[-1].split() == [repr(v) for v in COV]
-    assert lm.csv_row(_record())[-1] == ""
+    cell = lm.LOOP_RECORD_FIELDS.index("covariance")
+    assert row[cell].split() == [repr(v) for v in COV]
+    assert lm.csv_row(_record())[cell] == ""
+    assert row[cell + 1 :] == [0, 0, ""]  # query_camera, match_camera, pose_frame: one camera
 
 
 def test_loop_messages_bundle():
     msgs = lm.loop_messages(_record())
     assert msgs.pair == lm.pair_data(_record())
-    assert msgs.detail_labels[:58] == lm.DETAIL_LABELS and len(msgs.detail) == 62
+    assert msgs.detail_labels[:60] == lm.DETAIL_LABELS and len(msgs.detail) == 65
     assert json.loads(msgs.json)["match_id"] == 3
     assert msgs.factor is None  # no pose, no factor
     assert lm.loop_messages(_posed()).factor == lm.factor_from_record(_posed())
@@ -154,6 +161,7 @@ def test_typed_fields_of_a_loop_without_a_pose():
         "pair_score": 2.75, "global_similarity": 0.8125, "inlier_ratio": 0.625,
         "rank_before": 2, "rank_after": 0, "candidates": 10, "scored": 3, "inliers": 41,
         "pose_inliers": -1, "accepted": True, "reason": "", "pose_status": 0, "pose_reason": "",
+        "query_camera": 0, "match_camera": 0,
     }  # fmt: skip
     assert all(math.isnan(v) for v in (*pose["position"], *pose["orientation"]))
     assert len(pose["covariance"]) == 36 and all(math.isnan(v) for v in pose["covariance"])

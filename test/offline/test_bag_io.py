@@ -302,7 +302,7 @@ def test_loop_bag_writer_round_trip(tmp_path):
     detail = got["/loop_closure/detail"][2]
     labels = [d.label for d in detail.layout.dim]
     unnamed = [f"{k}=" for k in loop_messages.IDENTITY_FIELDS]  # a record without identity
-    assert labels == [*loop_messages.DETAIL_LABELS, *unnamed]
+    assert labels == [*loop_messages.DETAIL_LABELS, *unnamed, "pose_frame="]
     assert {(d.size, d.stride) for d in detail.layout.dim} == {(1, 1)}
     values = loop_messages.detail_to_dict(labels, detail.data)
     assert {k: values[k] for k in loop_messages.NUMERIC_FIELDS} == {

@@ -213,13 +213,18 @@ CSV_TEXT = (
     "query_session,match_robot,match_session,pair_score,"
     "global_similarity,rank_before,rank_after,candidates,scored,inliers,inlier_ratio,accepted,"
     "reason,"
-    "pose_status,pose_reason,pose_inliers,tx,ty,tz,qx,qy,qz,qw,covariance\r\n"
-    "3,30.0,cam,0,0.0,cam,,,,,5.0,0.9,0,0,4,2,-1,0.0,True,,,,-1,nan,nan,nan,nan,nan,nan,nan,\r\n"
+    "pose_status,pose_reason,pose_inliers,tx,ty,tz,qx,qy,qz,qw,covariance,query_camera,"
+    "match_camera,pose_frame\r\n"
+    "3,30.0,cam,0,0.0,cam,,,,,5.0,0.9,0,0,4,2,-1,0.0,True,,,,-1,nan,nan,nan,nan,nan,nan,nan,,0,0,"
+    "\r\n"
     "5,50.0,cam,1,10.0,cam,,,,,3.0,0.5,0,0,4,2,-1,0.0,False,below threshold,,,-1,nan,nan,nan,"
-    "nan,nan,nan,nan,\r\n"
+    "nan,nan,nan,nan,,0,0,\r\n"
 )
 NO_IDENTITY = dict(query_robot="", query_session="", match_robot="", match_session="")
-NO_POSE = dict(
+NO_POSE = dict(  # and one camera's rig fields
+    query_camera=0,
+    match_camera=0,
+    pose_frame="",
     pose_status="",
     pose_reason="",
     pose_inliers=-1,

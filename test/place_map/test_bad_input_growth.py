@@ -86,7 +86,7 @@ CASES = {
     "a store of a newer schema": (
         lambda t: _damage(_with_growth(t / "a"), "PRAGMA user_version = 9") or t / "a", [], 1,
         "input map {t}/a cannot be compacted: keyframe store {t}/a/map-1.sqlite has schema "
-        "version 9, this pair_vpr_ros reads up to 1: it was written by a newer pair_vpr_ros; use "
+        "version 9, this pair_vpr_ros reads up to 2: it was written by a newer pair_vpr_ros; use "
         "that release",
     ),
     "a bad codec": (lambda t: _with_growth(t / "a"), ["--codec", "q2"], 2, ""),

@@ -164,7 +164,7 @@ def test_message_sizes_on_the_wire(typed_messages):
         query_id=7, match_id=3, pair_score=2.5, scored=5, accepted=True, pose_status=1,
     )  # fmt: skip
     assert len(serialize_message(response)) == 123
-    assert len(serialize_message(m.LoopClosure())) == 516
+    assert len(serialize_message(m.LoopClosure())) == 524  # 516 + the two rig camera ids
 
 
 def test_pose_status_codes_are_the_message_constants(typed_messages):

@@ -29,6 +29,7 @@ from pair_vpr_ros.loops.detector import DetectorConfig
 from pair_vpr_ros.offline.bags.opening import check_bag_path
 from pair_vpr_ros.offline.replay.options import ReplayOptions
 from pair_vpr_ros.offline.replay.printing import print_results
+from pair_vpr_ros.offline.replay.rig import camera_options
 from pair_vpr_ros.offline.replay.run import replay_bag
 from pair_vpr_ros.params.check import flag_help, flag_type
 from pair_vpr_ros.params.configs import detector_config, geometry_config, index_config
@@ -74,7 +75,18 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", metavar="DIR", default="replay_out", help="output folder (default: %(default)s)"
     )
     p.add_argument(
-        "--topic", help="image topic (Image or CompressedImage); needed when the bag has several"
+        "--topic",
+        action="append",
+        help="image topic (Image or CompressedImage); needed when the bag has several. Repeat "
+        "it for a rig of cameras (one map, loops in the base frame; docs/rig.md): each camera "
+        "takes its namespace's camera_info and depth topics and its extrinsic from /tf_static",
+    )
+    p.add_argument(
+        "--rig",
+        metavar="FILE",
+        help="a rig file (YAML; docs/rig.md): several cameras, each with its image, camera_info "
+        "and depth (or right image) topics and camera_to_base, the stamp tolerance of a rig "
+        "keyframe and the base frame; instead of --topic",
     )
     p.add_argument(
         "--pose-topic",
@@ -297,10 +309,11 @@ def _run(args: argparse.Namespace) -> int:
         name: value if getattr(args, name) is None else getattr(args, name)
         for name, value in runtime.items()
     }
+    cameras = camera_options(args)  # one topic, or a rig
     check_bag_path(args.bag)  # a wrong bag path is said before the weights search
     weights = resolve_weights(args.weights, args.params_file)
     options = ReplayOptions(
-        topic=args.topic, pose_topic=args.pose_topic, gt_topic=args.gt_topic,
+        **cameras, pose_topic=args.pose_topic, gt_topic=args.gt_topic,
         depth_topic=args.depth_topic, camera_info_topic=args.camera_info_topic,
         right_topic=args.right_topic, right_camera_info_topic=args.right_camera_info_topic,
         gt_radius=args.gt_radius, depth_tolerance=args.depth_tolerance,

@@ -5,7 +5,7 @@ output bag (`ReplayRun`, `drive`); ``offline.replay.replay_bag`` sets it up and 
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field, replace
 
 from tqdm import tqdm
@@ -14,6 +14,8 @@ from pair_vpr_ros.errors import OutputError, PairVPRError
 from pair_vpr_ros.loops.frames import Frame
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.loops.records import Candidate, LoopRecord
+from pair_vpr_ros.loops.rig import Rig
+from pair_vpr_ros.loops.rig_frames import RigAssembler
 from pair_vpr_ros.messages.loop_image import LoopPictures
 from pair_vpr_ros.offline.bags.loop_writer import LoopBagWriter
 from pair_vpr_ros.offline.bags.reader import BagFrame
@@ -36,6 +38,7 @@ class ReplayRun:
     # keyframes the map did not store (map_growth places): (stamp, keyframes stored before it),
     # queries all the same for the evaluation (report.loop_truth.KeyframeInfo)
     represented: list[tuple[float, int]] = field(default_factory=list)
+    rig: object | None = None  # a rig's RigCounts (rig_groups)
     log: DecisionLog = field(default_factory=DecisionLog)  # every decision, compactly
     report: ReportWriter | None = None  # OUT/report/, written as the run goes
     pictures: LoopPictures | None = None  # --write-bag's loop images
@@ -53,6 +56,37 @@ class ReplayRun:
             self.pending.append(bf)
             yield frame
 
+    def rig_groups(
+        self, pairs: Iterable[tuple[Frame, BagFrame]], rig: Rig, cameras: list[FrameCounts]
+    ) -> Iterator[list[Frame]]:
+        """Every camera's (frame, message), merged by stamp -> rig keyframes; each group's
+        messages are kept in ``pending`` in the group's order (its outcomes' order), the frames
+        the assembler drops (late, a clashing frame id) never are. `cameras`: each camera's
+        counts, summed into ``counts.frames`` as they grow (the progress bar)."""
+        assembler, message = RigAssembler(rig, ordered=True), {}
+        self.rig = assembler.counts
+
+        def out(groups: list[list[Frame]]) -> Iterator[list[Frame]]:
+            for group in groups:
+                self.pending.extend(message.pop(id(f)) for f in group)
+                yield group
+
+        for frame, bf in pairs:
+            self.counts.frames = sum(c.frames for c in cameras)
+            if frame.camera_id == 0:
+                self.stamps.append(bf.stamp)  # the path: one camera's stamps
+            message[id(frame)] = bf  # the assembler holds the frame until it hands it out
+            dropped = _dropped(assembler)
+            groups = assembler.add(frame)
+            if _dropped(assembler) > dropped:  # late or a clashing frame id: never handed out
+                message.pop(id(frame))
+            yield from out(groups)
+        yield from out(assembler.flush())
+
+
+def _dropped(assembler: RigAssembler) -> int:
+    return assembler.counts.frame_id_clash + sum(assembler.counts.late.values())
+
 
 def global_top1_record(record: LoopRecord, best: Candidate) -> LoopRecord:
     """The record ranking by global similarity alone would give: the top FAISS candidate."""
@@ -67,16 +101,19 @@ def global_top1_record(record: LoopRecord, best: Candidate) -> LoopRecord:
 def drive(
     run: ReplayRun,
     pipe: LoopClosurePipeline,
-    frames: Iterator[Frame],
+    frames: Iterator[Frame] | Iterator[list[Frame]],
     batch_size: int,
     writer: LoopBagWriter | None,
     bar: tqdm,
+    groups: bool = False,
 ) -> None:
     """Pipeline outcomes -> records, counts, the decision log, the report's rows, output bag;
-    Ctrl-C stops like a read error."""
+    Ctrl-C stops like a read error. `groups`: `frames` are rig keyframes
+    (`ReplayRun.rig_groups`)."""
     summary = run.summary
+    process = pipe.process_groups if groups else pipe.process_many
     try:
-        for outcome in pipe.process_many(frames, batch_size=batch_size):
+        for outcome in process(frames, batch_size=batch_size):
             bf = run.pending.popleft()
             assert abs(bf.stamp - outcome.stamp) < 1e-9, "outcomes must come in frame order"
             if outcome.keyframe_id is not None:

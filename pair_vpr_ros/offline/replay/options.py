@@ -31,6 +31,8 @@ class ReplayOptions:
     """
 
     topic: str | None = None
+    topics: tuple[str, ...] = ()  # several: a rig, one camera per topic (offline/bags/rig.py)
+    rig_file: str | Path | None = None  # a rig file (loops/rig.py parse_rig): several cameras
     pose_topic: str | None = None
     gt_topic: str | None = None
     depth_topic: str | None = None
@@ -113,6 +115,9 @@ class ReplaySummary:
     session: str = ""
     prior_maps: list[dict[str, Any]] = field(default_factory=list)  # dir, keyframes, sessions
     loops_by_match: dict[str, int] = field(default_factory=dict)  # "robot/session" -> loops
+    rig: dict[str, Any] | None = None  # several cameras: each one's topic and frames, rig counts
+    # recall of revisits driven the same way and the other way (report.directions)
+    directions: dict[str, Any] | None = None
     warnings: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)  # how each topic was picked
     error: str | None = None

@@ -42,6 +42,8 @@ from pair_vpr_ros.offline.replay.drive import ReplayRun, drive
 from pair_vpr_ros.offline.replay.options import ReplayOptions, ReplaySummary
 from pair_vpr_ros.offline.replay.outputs import check_map_dir, prepare_out
 from pair_vpr_ros.offline.replay.report_outputs import finish_report, suggest
+from pair_vpr_ros.offline.replay.rig import RigSource, open_rig
+from pair_vpr_ros.offline.report.directions import direction_recall
 from pair_vpr_ros.offline.report.folder import check_writable, write_report
 from pair_vpr_ros.offline.report.html import ReportWriter
 from pair_vpr_ros.offline.report.html.writer import check_report_folder
@@ -139,10 +141,16 @@ def _replay(bag, out: Path, o: ReplayOptions, folder, model, weights, config, ge
             calibration_notes.append,
         )  # fmt: skip
     with open_bag(bag) as reader:
-        topic = bag_io.choose_image_topic(reader, o.topic)
+        rig, rig_notes = open_rig(reader, o)  # None: one camera
+        if rig is None:
+            topic = bag_io.choose_image_topic(reader, o.topic)
+            described = topic
+        else:
+            topic = rig.cameras[0].image_topic
+            described = ", ".join(c.image_topic for c in rig.cameras)
         found = bag_io.topics_of_types(reader, bag_io.POSE_TYPES)
         chosen = choose_pose_topics(found, o.pose_topic, o.gt_topic, Path(bag).name)
-        summary = ReplaySummary(str(bag), topic, chosen.pose, chosen.gt, out_dir=str(out))
+        summary = ReplaySummary(str(bag), described, chosen.pose, chosen.gt, out_dir=str(out))
         summary.warnings += [chosen.warning] if chosen.warning else []
         poses = _read_pose_topic(reader, summary, chosen.pose)
         truth = poses if chosen.gt == chosen.pose else _read_pose_topic(reader, summary, chosen.gt)
@@ -151,10 +159,15 @@ def _replay(bag, out: Path, o: ReplayOptions, folder, model, weights, config, ge
         weights_path = str(getattr(weights, "value", weights or ""))
         if Path(weights_path).is_file():  # the suggested parameters work from any folder
             weights_path = str(Path(weights_path).resolve())
-        geo, summary.depth_topic, summary.camera_info_topic, notes = open_geometry(
-            reader, o.depth_topic, o.camera_info_topic, o.depth_tolerance,
-            run.counts.geometry_skips,
-        )  # fmt: skip
+        if rig is None:
+            geo, summary.depth_topic, summary.camera_info_topic, notes = open_geometry(
+                reader, o.depth_topic, o.camera_info_topic, o.depth_tolerance,
+                run.counts.geometry_skips,
+            )  # fmt: skip
+        else:  # each camera its own (offline/bags/rig.py)
+            notes = rig_notes
+            summary.depth_topic = ", ".join(c.depth_topic for c in rig.cameras) or None
+            summary.camera_info_topic = ", ".join(c.camera_info_topic for c in rig.cameras)
         summary.notes = [*notes, *chosen.notes]
         for note in summary.notes if o.announce is not None else ():
             o.announce(note)
@@ -168,7 +181,7 @@ def _replay(bag, out: Path, o: ReplayOptions, folder, model, weights, config, ge
         priors = open_prior_maps(o.prior_maps, model.fingerprint, identity, "--prior-map", save_to)
         pipe = LoopClosurePipeline(
             model, config, index=o.index, geometry=geometry, identity=identity,
-            prior_maps=priors.maps,
+            prior_maps=priors.maps, rig=rig,
         )  # fmt: skip
         summary.config = asdict(config)
         who = (identity.robot, identity.session)
@@ -185,23 +198,31 @@ def _replay(bag, out: Path, o: ReplayOptions, folder, model, weights, config, ge
         summary.notes += priors.notes
         for note in priors.notes if o.announce is not None else ():
             o.announce(note)
-        frames = bag_io.iter_frames(
-            reader, topic, poses, o.pose_tolerance, o.max_frames, keep_cdr=o.write_bag,
-            max_pixels=o.max_image_pixels,
-        )  # fmt: skip
-        total = reader.topics[topic].msgcount
-        total = min(total, o.max_frames) if o.max_frames is not None else total
+        if rig is None:
+            frames = bag_io.iter_frames(
+                reader, topic, poses, o.pose_tolerance, o.max_frames, keep_cdr=o.write_bag,
+                max_pixels=o.max_image_pixels,
+            )  # fmt: skip
+            total = reader.topics[topic].msgcount
+            total = min(total, o.max_frames) if o.max_frames is not None else total
+            source = attach(run.frames(frames, Path(bag).name), geo)
+            source = with_right(source, reader, o, geo.counts)
+            source = replay_notes.note_demo_model(source, summary)
+        else:  # the output bag gets the loop topics, not the images
+            rig_source = RigSource(reader, rig, poses, o, str(bag))
+            total, source = rig_source.total, rig_source.groups(run)
         msgtype = reader.topics[topic].msgtype
-        writer = LoopBagWriter(bag_out, topic, msgtype) if o.write_bag else None
+        image_topic = topic if rig is None else None
+        writer = LoopBagWriter(bag_out, image_topic, msgtype) if o.write_bag else None
         summary.warnings += [writer.typed_note] if writer and writer.typed_note else []
-        source = attach(run.frames(frames, Path(bag).name), geo)
-        source = replay_notes.note_demo_model(with_right(source, reader, o, geo.counts), summary)
         start = time.perf_counter()
         with (
             tqdm(total=total, unit="frame", desc="replay", disable=not o.progress) as bar,
             writer if writer is not None else nullcontext(),
         ):
-            drive(run, pipe, source, o.batch_size, writer, bar)
+            drive(run, pipe, source, o.batch_size, writer, bar, groups=rig is not None)
+        if rig is not None:
+            rig_source.fold(run)
         summary.bag_out = str(bag_out) if writer is not None else None
         summary.seconds = time.perf_counter() - start
     if folder is not None:
@@ -251,6 +272,10 @@ def _finish(
             summary.loop_evaluation = evaluation
             summary.evaluation = {**evaluation.to_dict(), "gt_topic": summary.gt_topic}
             summary.warnings += replay_notes.exclusion_notes(keyframes, evaluation)
+            tolerance = pipe.rig.stamp_tolerance if pipe.rig is not None else 0.0
+            summary.directions = direction_recall(
+                run.records, keyframes, o.gt_radius, pipe.config.exclude_recent_s, tolerance
+            )
             if pipe.maps.priors:
                 metas = [m for prior in pipe.maps.priors for m in prior.all_meta()]
                 covered = prior_positions(metas, tracks[2], truth, tracks[1], o.pose_tolerance)
