@@ -11,7 +11,8 @@ setup(
     license="BSD-3-Clause",
     python_requires=">=3.10",
     packages=find_packages(exclude=["test", "test.*"]),
-    package_data={PACKAGE: ["demo/assets/*"]},
+    # the demo model; the replay report's page templates (offline/report/html)
+    package_data={PACKAGE: ["demo/assets/*", "offline/report/html/templates/*"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
@@ -40,6 +41,7 @@ setup(
         "tqdm>=4.60",
         "matplotlib>=3.7",
         "pyyaml>=5.4",
+        "jinja2>=3.1",  # the replay's report pages (offline/report/html)
         # the pose estimation core (geometry/solvers.py): minimal solvers, LO-RANSAC, refinement
         "poselib==2.0.5",
     ],

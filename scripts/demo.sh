@@ -18,4 +18,6 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST MPLBACKEND=Agg
     --odom-topic /odom --gt-topic /ground_truth --camera-to-base "0 0 1.6 -0.5 0.5 -0.5 0.5" \
     --out "$OUT/posegraph"
 echo "demo: pictures in $OUT/replay/trajectory.png, $OUT/replay/pr_curve.png and" \
-    "$OUT/posegraph/posegraph.png; trajectories in $OUT/posegraph/*.tum"
+    "$OUT/posegraph/posegraph.png; trajectories in $OUT/posegraph/*.tum; every decision in" \
+    "$OUT/replay/report/index.html (open it in a browser); a threshold chosen on this bag in" \
+    "$OUT/replay/suggested_params.yaml"

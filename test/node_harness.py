@@ -37,6 +37,7 @@ OUTPUTS = {
     "loop_closure/json": String,
     "loop_closure/markers": MarkerArray,
     "loop_closure/factor": Odometry,
+    "loop_closure/image": Image,
     "/diagnostics": DiagnosticArray,
 }
 

@@ -2,7 +2,8 @@
 (PoseLib) with its covariance, and the rolling-shutter check of a monocular pose.
 
 `verify_pair` is the detector's optional geometric verification (inliers of a fundamental-matrix
-RANSAC on the same matches the pose uses). `essential_fit` gives the rotation and the
+RANSAC on the same matches the pose uses; `verified_matches` also gives the inliers' points,
+which the loop image draws). `essential_fit` gives the rotation and the
 translation direction of T_match_query with the covariance of (direction, rotation) from the
 inliers' Sampson residuals; `essential_refit` and `redraw_variance` serve the checks of
 `checks.py`.
@@ -30,20 +31,32 @@ def verify_pair(
 ) -> tuple[int, float]:
     """-> (fundamental-matrix RANSAC inliers, inliers / matches); (0, 0.0) with fewer than 8
     matches."""
+    inliers, share, _ = verified_matches(a, b, ratio, ransac_px)
+    return inliers, share
+
+
+def verified_matches(
+    a: Features, b: Features, ratio: float = 0.8, ransac_px: float = 3.0
+) -> tuple[int, float, np.ndarray]:
+    """`verify_pair` with its inlier matches: (inliers, inliers / matches, points [I, 4]
+    float32: x, y in a's image, x, y in b's image, pixels as the keypoints); no points with
+    fewer than 8 matches or no fit."""
+    none = np.zeros((0, 4), np.float32)
     if a.kind != b.kind:
-        return 0, 0.0
+        return 0, 0.0, none
     pairs = match_features(a, b, ratio)
     if len(pairs) < 8:
-        return 0, 0.0
+        return 0, 0.0, none
     pa, pb = a.keypoints[pairs[:, 0]], b.keypoints[pairs[:, 1]]
     if not (np.isfinite(pa).all() and np.isfinite(pb).all()):
-        return 0, 0.0  # damaged keypoints verify nothing
+        return 0, 0.0, none  # damaged keypoints verify nothing
     f, mask = cv2.findFundamentalMat(pa, pb, cv2.FM_RANSAC, ransac_px, 0.999)
     # no F fitted: OpenCV may hand back a mask of an earlier call, which counts nothing here
     if f is None or f.shape != (3, 3) or mask is None or len(mask) != len(pairs):
-        return 0, 0.0
-    inliers = int(np.count_nonzero(mask))
-    return inliers, inliers / len(pairs)
+        return 0, 0.0, none
+    keep = mask.ravel() != 0
+    points = np.concatenate([pa[keep], pb[keep]], axis=1).astype(np.float32)
+    return len(points), len(points) / len(pairs), points
 
 
 def skew(v: np.ndarray) -> np.ndarray:

@@ -13,7 +13,7 @@ import numpy as np
 
 from pair_vpr_ros.errors import ConfigError, GeometryInputError
 from pair_vpr_ros.geometry.camera import CameraModel
-from pair_vpr_ros.geometry.epipolar import verify_pair
+from pair_vpr_ros.geometry.epipolar import verified_matches
 from pair_vpr_ros.geometry.features import (
     KINDS,
     Features,
@@ -133,9 +133,18 @@ class KeyframeGeometry:
     @staticmethod
     def verify(query: Features | None, match: Features | None) -> tuple[int, float]:
         """Fundamental-matrix verification; (-1, NaN) when either side has no features."""
+        inliers, ratio, _ = KeyframeGeometry.verify_points(query, match)
+        return inliers, ratio
+
+    @staticmethod
+    def verify_points(
+        query: Features | None, match: Features | None
+    ) -> tuple[int, float, np.ndarray]:
+        """`verify` with the inliers' points [I, 4] float32 (query x, y, match x, y in the
+        keypoints' pixels; `epipolar.verified_matches`), what the loop image draws."""
         if query is None or match is None:
-            return -1, float("nan")
-        return verify_pair(query, match)
+            return -1, float("nan"), np.zeros((0, 4), np.float32)
+        return verified_matches(query, match)
 
     def pose(
         self,

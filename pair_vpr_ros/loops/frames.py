@@ -47,6 +47,10 @@ class FrameOutcome:
     # Candidates in global (FAISS) order with their pair scores: [0] is what ranking by global
     # similarity alone would return.
     candidates: list[Candidate] = field(default_factory=list)
+    # Geometric verification's inlier matches, by the verified candidate's rank_before: [I, 4]
+    # float32 (x, y in the query image, x, y in the match image); what loop images draw. Only
+    # candidates verified on their own features (not features a linked keyframe lends).
+    matches: dict[int, np.ndarray] = field(default_factory=dict)
     timings_ms: dict[str, float] = field(default_factory=dict)
     # > 0: the stamps jumped back this many seconds before this frame, which starts a session
     clock_jump_s: float = 0.0

@@ -319,7 +319,11 @@ class LoopClosurePipeline(PipelineMaps):
             return scores
 
         def verify(match: Candidate) -> tuple[int, float]:
-            return self.geometry.verify(features, self._stored_features(match))
+            stored, lent = self.match_features(match)
+            inliers, ratio, points = self.geometry.verify_points(features, stored)
+            if lent is None:  # lent features are another image's points: not drawn
+                outcome.matches[match.rank_before] = points
+            return inliers, ratio
 
         # A back end compiled for a fixed chunk (OpenVINO) pads shorter calls: whole chunks.
         fixed = getattr(self.model, "chunk_size", None)

@@ -151,15 +151,19 @@ VPR_NODE_HEADER = (
 
 
 def yaml_text(
-    table: tuple[ParamSpec, ...] = PARAMS, header: tuple[str, ...] = VPR_NODE_HEADER
+    table: tuple[ParamSpec, ...] = PARAMS,
+    header: tuple[str, ...] = VPR_NODE_HEADER,
+    values: dict[str, Value] | None = None,
 ) -> str:
     """A parameter file (`config/vpr_node.yaml` by default): every parameter of `table` with its
-    default, its description as a comment, after the comment lines `header`."""
+    default (or its entry in `values`), its description as a comment, after the comment lines
+    `header`."""
     lines = [*header, "/**:", "  ros__parameters:"]
+    values = values or {}
     for p in table:
         bounds = f" [{p.low}, {p.high}]" if p.low is not None else ""
         flag = " (read-only)" if p.read_only else ""
         text = f"{p.description}{bounds}{flag}"
         lines += textwrap.wrap(text, 95, initial_indent="    # ", subsequent_indent="    #   ")
-        lines.append(f"    {p.name}: {_yaml_scalar(p.default)}")
+        lines.append(f"    {p.name}: {_yaml_scalar(values.get(p.name, p.default))}")
     return "\n".join(lines) + "\n"

@@ -195,6 +195,16 @@ PARAMS: tuple[ParamSpec, ...] = (
     _p("publish_rejected", False, "also publish rejected best candidates on the detail and json "
        "topics (accepted = 0)"),
     _p("marker_frame_id", "map", "frame of the loop-closure markers (the poses' frame)"),
+    _p("loop_image", True, "publish loop_closure/image (sensor_msgs/Image, bgr8) for each "
+       "accepted loop: query | match side by side, the verified inlier matches drawn, the "
+       "score and pose written on it (RViz2 and Foxglove show it); false = off, and no "
+       "keyframe image is kept"),
+    _p("loop_image_rejected", False, "with loop_image: also for the best candidate of each "
+       "rejected keyframe, with the reason written on it"),
+    _p("loop_image_memory_mb", 64, "MB of JPEG keyframe images kept for loop_image's match side "
+       "(longer side 320 px, ~10-20 KB a keyframe); when full the oldest go and a loop to one "
+       "of them shows 'no image' (a loaded or prior map's keyframes have none)", 0, 100000,
+       **RO),
     # ---- detector (run time)
     _p("mode", "mapping", "mapping: query, then add keyframes; localization: query only",
        choices=("mapping", "localization")),

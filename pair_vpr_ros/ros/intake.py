@@ -182,7 +182,10 @@ class FrameIntake:
         self.stats.add_ms("stamp_age", now_ms - frame.stamp * 1e3)
         for key, ms in outcome.timings_ms.items():
             self.stats.add_ms(key, ms)
+        if self.values["loop_image"]:
+            self.pictures.keep(outcome, frame.rgb)
         for loop, match_pose in loops:  # accepted ones (one per map), else the best
             self._publish_loop(loop, frame.pose, match_pose)
+            self._publish_loop_image(outcome, loop, frame.rgb)
         if self.fleet is not None:
             self.fleet.on_outcome(outcome)

@@ -14,6 +14,7 @@ the map thread of `MapControl`, the one thread that runs the pipeline and its ma
 Outputs: `loop_closure` (Float64MultiArray `[t_current, t_previous]`, LIO-SAM), `.../detail`
 (labelled Float64MultiArray), `.../json` (String), `.../typed` (pair_vpr_ros_interfaces/
 LoopClosure, docs/interfaces.md), `.../factor` (Odometry, loops with a pose): `loop_messages`;
+`.../image` (Image bgr8: query | match, inlier matches, scores; `messages.loop_image`);
 `loop_closure/markers` (MarkerArray, when both poses are known); `/diagnostics` (~1 Hz).
 
 Services (paths come from the `map_dir` and `build_source` parameters)::
@@ -65,9 +66,11 @@ from pair_vpr_ros.cli import EXIT_ERROR, EXIT_OK
 from pair_vpr_ros.errors import ConfigError, PairVPRError
 from pair_vpr_ros.fleet import InterRobotLoop
 from pair_vpr_ros.identity import resolve_identity
+from pair_vpr_ros.loops.frames import FrameOutcome
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.loops.prior_maps import open_prior_maps
 from pair_vpr_ros.loops.records import LoopRecord
+from pair_vpr_ros.messages.loop_image import LoopPictures
 from pair_vpr_ros.model.devices import check_device
 from pair_vpr_ros.offline.bags.calibration import calibration_loader
 from pair_vpr_ros.ros.fleet import FleetLink
@@ -122,6 +125,9 @@ class VprNode(ParameterHandling, RigIntake, FrameIntake, NodeServices, Node):
             partial(precision_context, device, autocast),
         )  # fmt: skip
         self.frames = FrameQueue(v["queue_size"])
+        # keyframe images for loop_closure/image's match side (kept while loop_image is on)
+        who = (self.identity.robot, self.identity.session)
+        self.pictures = LoopPictures(who, v["loop_image_memory_mb"] << 20)
         # The frame-rate limit, applied before the queue as well (the image callback's own
         # state): frames the pipeline would skip never fill the queue while a keyframe runs.
         self._min_interval = config.min_frame_interval
@@ -198,6 +204,12 @@ class VprNode(ParameterHandling, RigIntake, FrameIntake, NodeServices, Node):
         elif record.accepted:
             counts.loops_unordered += 1
             self.get_logger().warning(note, throttle_duration_sec=10.0)
+
+    def _publish_loop_image(self, outcome: FrameOutcome, record: LoopRecord, rgb) -> None:
+        """`loop_closure/image` of an accepted loop (a rejected one with loop_image_rejected)."""
+        v = self.values
+        if v["loop_image"] and (record.accepted or v["loop_image_rejected"]):
+            self.outputs.publish_image(record, self.pictures.draw(outcome, record, rgb))
 
     def _publish_fleet_loop(self, loop: InterRobotLoop) -> None:
         """An inter-robot loop this robot decided as owner: published like a loop, but never

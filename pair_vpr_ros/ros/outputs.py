@@ -1,7 +1,7 @@
 """The loop-closure outputs of `vpr_node`: one base topic and the topics under it.
 
-`loop_closure` carries the LIO-SAM pair; `detail`, `json`, `factor`, `typed` and `markers` live
-under whatever `loop_closure` resolves to, so one remap moves them all:
+`loop_closure` carries the LIO-SAM pair; `detail`, `json`, `factor`, `typed`, `markers` and
+`image` live under whatever `loop_closure` resolves to, so one remap moves them all:
 `-r loop_closure:=/lio_loop/loop_closure_detection` puts the pair where LIO-SAM listens and the
 rest under `/lio_loop/loop_closure_detection/...`. A sub-topic can still be remapped on its own
 by its resolved name (`-r /loop_closure/json:=/loops_json` without a base remap).
@@ -14,15 +14,18 @@ import importlib
 from collections.abc import Iterable
 from functools import cache
 
+import numpy as np
 from geometry_msgs.msg import Point
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from rclpy.type_support import check_for_type_support
+from sensor_msgs.msg import Image
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from visualization_msgs.msg import Marker, MarkerArray
 
 from pair_vpr_ros.loops.records import LoopRecord
 from pair_vpr_ros.messages import loop as lm
+from pair_vpr_ros.messages import loop_image
 from pair_vpr_ros.messages.factor import FACTOR_MSG_TYPES, FACTOR_TOPIC, factor_msg
 from pair_vpr_ros.types import Pose, split_stamp
 
@@ -42,6 +45,7 @@ SUBTOPICS = {  # output -> its topic relative to the base (loop_messages' names,
         ("factor", FACTOR_TOPIC),
         ("typed", lm.TYPED_TOPIC),
         ("markers", MARKER_TOPIC),
+        ("image", loop_image.IMAGE_TOPIC),
     )
 }
 
@@ -97,6 +101,7 @@ class LoopOutputs:
         self.json = node.create_publisher(String, topics["json"], depth)
         self.factor = node.create_publisher(Odometry, topics["factor"], depth)
         self.markers = node.create_publisher(MarkerArray, topics["markers"], depth)
+        self.image = node.create_publisher(Image, topics["image"], depth)
         self.typed = None
         missing = TYPED_MISSING or typed_unusable([LoopClosure])
         if missing:
@@ -157,6 +162,14 @@ class LoopOutputs:
         if record.accepted and None not in poses:
             self._send(self.markers, loop_marker(record, *poses, marker_frame_id, number))
         return content.pair is not None, note
+
+    def publish_image(self, record: LoopRecord, bgr: np.ndarray) -> None:
+        """Send one loop image (`messages.loop_image.draw_loop`), stamped and framed as the
+        loop's query image."""
+        msg = Image(**loop_image.image_fields(bgr))
+        msg.header.stamp.sec, msg.header.stamp.nanosec = split_stamp(record.query_stamp)
+        msg.header.frame_id = record.query_frame_id
+        self._send(self.image, msg)
 
     def _send(self, publisher, msg) -> None:
         publish_while_up(self._node, publisher, msg)

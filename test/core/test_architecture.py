@@ -4,7 +4,8 @@
 - Each stage imports only from itself and from the stages below it (`RANK`): the shared
   vocabulary at the bottom, then model and images, place_map and geometry, loops, messages,
   fleet and posegraph, params, the weights resolver, and offline / ros / learn / demo on top.
-  Inside offline/ the same holds for its jobs (bags < report < replay, posegraph < fleet).
+  Inside offline/ the same holds for its jobs (bags < report < report.html < replay,
+  posegraph < fleet).
 - No import circles between modules, and no module that only re-exports another's names.
 - At most 6 top-level modules, 16 modules a folder, 350 lines a module.
 
@@ -34,6 +35,7 @@ RANK = {
     "weights": 7,
     "offline.bags": 8.0,
     "offline.report": 8.1,
+    "offline.report.html": 8.15,
     "offline.replay": 8.2,
     "offline.posegraph": 8.2,
     "offline.fleet": 8.3,

@@ -82,6 +82,13 @@ FLAG_CASES = {
     "batch-size zero": (["--batch-size", "0"], "argument --batch-size: must be an integer >= 1"),
     "max-frames zero": (["--max-frames", "0"], "argument --max-frames: must be an integer >= 1"),
     "unknown flag": (["--radius", "3"], "unrecognized arguments: --radius 3"),
+    "target precision zero": (
+        ["--target-precision", "0"],
+        "argument --target-precision: must be a precision in (0, 1], got '0'",
+    ),
+    "target precision above 1": (["--target-precision", "1.5"], "in (0, 1], got '1.5'"),
+    "target precision nan": (["--target-precision", "nan"], "in (0, 1], got 'nan'"),
+    "target precision text": (["--target-precision", "high"], "in (0, 1], got 'high'"),
     "backend typo": (["--backend", "openvno"], "argument --backend: invalid choice: 'openvno'"),
     "precision typo": (["--precision", "int4"], "argument --precision: invalid choice: 'int4'"),
     "robot id with a space": (
@@ -204,6 +211,37 @@ def test_disk_full_writing_the_report(setup, tmp_path, capsys, monkeypatch) -> N
     assert saved["error"].startswith("writing the report") and saved["frames"] == FRAMES
     with PlaceMap.load(tmp_path / "out" / "map") as m:  # the map was saved before
         assert len(m) == saved["keyframes"] == KEYFRAMES
+
+
+def test_report_folder_is_a_file_or_of_other_files(setup, tmp_path, capsys) -> None:
+    for make, what in ((lambda p: p.write_text("x"), "is a file: move it"),
+                       (lambda p: p.mkdir() or (p / "mine.txt").write_text("x"),
+                        "holds other files: move them")):  # fmt: skip
+        out = tmp_path / what[:5]
+        out.mkdir()
+        make(out / "report")
+        assert run(setup, tmp_path, out=out) == 1
+        assert capsys.readouterr().err == (
+            f"error: the report folder {out / 'report'} {what}, or pass --no-report\n"
+        )
+        assert not (out / "map").exists()  # refused before the bag was read
+    assert run(setup, tmp_path, "--no-report", out=out) == 0  # the way out it names
+    assert (out / "report" / "mine.txt").read_text() == "x" and (out / "map").is_dir()
+
+
+def test_disk_full_in_the_report_pages_stops_only_them(setup, tmp_path, capsys, monkeypatch):
+    from pair_vpr_ros.offline.report.html import writer
+
+    monkeypatch.setattr(writer.FolderThumbnails, "put", _disk_full)
+    assert run(setup, tmp_path) == 0
+    err = capsys.readouterr().err
+    assert (
+        f"warning: the report stopped at keyframe row 0: cannot write the report into "
+        f"{tmp_path / 'out' / 'report'}: [Errno 28] No space left on device\n"
+    ) in err
+    saved = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert saved["error"] is None and saved["report"] is None and saved["frames"] == FRAMES
+    assert (tmp_path / "out" / "loops.json").is_file() and (tmp_path / "out" / "map").is_dir()
 
 
 def test_disk_full_writing_the_summary(setup, tmp_path, capsys, monkeypatch) -> None:

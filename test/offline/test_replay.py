@@ -121,7 +121,10 @@ def test_replay_without_poses_and_map(tmp_path, tiny_model):
         config=CONFIG,
     )
     assert (s.frames, s.loops, s.pose_topic, s.evaluation, s.map_dir) == (11, 1, None, None, None)
-    assert sorted(p.name for p in out.iterdir()) == ["loops.csv", "loops.json", "summary.json"]
+    # no plots, no suggested parameters (no ground truth); the report's pages all the same
+    assert sorted(p.name for p in out.iterdir()) == [
+        "loops.csv", "loops.json", "report", "summary.json",
+    ]  # fmt: skip
 
 
 def test_bad_images_are_counted(tmp_path, tiny_model):
@@ -203,7 +206,9 @@ def test_cli_success(tmp_path, weights, capsys):
         "ground truth: /odom, the keyframe pose topic (odometry drifts: pass --gt-topic for "
         "true poses)",
     ]
-    assert printed[-3].startswith("precision ") and printed[-3].endswith("ground truth /odom)")
+    assert printed[2].startswith("precision ") and printed[2].endswith("ground truth /odom)")
+    assert printed[3].startswith("suggested score_threshold ")  # with ground truth (#45)
+    assert printed[4] == f"report: {out / 'report' / 'index.html'} (open it in a browser)"
     summary = json.loads((out / "summary.json").read_text())
     assert summary["notes"][:2] == printed[:2]
     assert summary["frames"] == 17 and summary["map_dir"] == str((out / "map").resolve())

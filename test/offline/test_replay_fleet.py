@@ -160,8 +160,9 @@ def test_cli_flags_and_a_prior_map_of_another_model(bag, first, tmp_path, tiny_m
     prior, live = summary["prior_evaluation"], summary["loops_by_match"].get("r2/thu", 0)
     assert prior["accepted"] == summary["loops"] - live > 0 and prior["unlabelled_accepted"] == 0
     assert prior["covered"] == prior["prior_keyframes"] > 0  # the map of this bag: all covered
-    assert lines[-4].startswith("live loops: precision "), lines
-    assert lines[-3].startswith(
+    assert lines[-6].startswith("live loops: precision "), lines  # then prior-map loops, the
+    assert lines[-3].startswith("report: ")  # suggestion, report, outputs, the summary line
+    assert lines[-5].startswith(
         f"prior-map loops: {prior['accepted']} ({prior['true_accepted']} true, "
         f"{prior['false_accepted']} false, 0 unlabelled: {prior['covered']} of "
         f"{prior['covered']} prior keyframes have ground truth), precision "

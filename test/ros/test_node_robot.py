@@ -60,7 +60,8 @@ def test_every_output_follows_a_remapped_loop_closure(harness, places):
     wait_for(lambda: len(h.got["loop_closure"]) == 1 and len(h.got["loop_closure/json"]) == 1)
     assert list(h.got["loop_closure"][0].data) == [103.0, 100.0]
     assert len(h.got["loop_closure/detail"]) == 1
-    subs = ["detail", "json", "factor", "markers"] + (["typed"] if h.node.outputs.typed else [])
+    subs = ["detail", "json", "factor", "markers", "image"]
+    subs += ["typed"] if h.node.outputs.typed else []
     expected = {base, *(f"{base}/{s}" for s in subs)}
 
     def published() -> dict[str, list[str]]:

@@ -24,6 +24,7 @@ from ros_cli import Graph, commands, parameter_value, wait_for
 
 from pair_vpr_ros.messages import loop as lm
 from pair_vpr_ros.messages.factor import FACTOR_TOPIC
+from pair_vpr_ros.messages.loop_image import IMAGE_TOPIC
 from pair_vpr_ros.params.table import PARAMS, RANDOM_TINY, SPECS
 from pair_vpr_ros.ros.node import VprNode
 from pair_vpr_ros.ros.outputs import MARKER_TOPIC
@@ -31,7 +32,8 @@ from pair_vpr_ros.ros.outputs import MARKER_TOPIC
 HEADING = "# The ROS 2 node `vpr_node`"
 PAGE = ROOT / "docs" / "node.md"
 NODE = "/vpr_node"
-OUTPUT_TOPICS = (lm.PAIR_TOPIC, lm.DETAIL_TOPIC, lm.JSON_TOPIC, FACTOR_TOPIC, MARKER_TOPIC)
+OUTPUT_TOPICS = (lm.PAIR_TOPIC, lm.DETAIL_TOPIC, lm.JSON_TOPIC, FACTOR_TOPIC, MARKER_TOPIC,
+                 IMAGE_TOPIC)  # fmt: skip
 
 
 def ros_section() -> str:
@@ -192,7 +194,7 @@ def test_outputs_table_and_inputs_match_the_graph(env):
     node, graph = start(words, env)
     try:
         rows = table_rows(section)
-        assert len(rows) == 7
+        assert len(rows) == 8
         expected = {"/" + topic.lstrip("/"): type_name for topic, type_name in rows}
         if node.outputs.typed is None:  # pair_vpr_ros_interfaces not built (PAIRVPR_INTERFACES)
             assert expected.pop("/loop_closure/typed") == "pair_vpr_ros_interfaces/LoopClosure"

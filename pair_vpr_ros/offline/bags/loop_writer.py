@@ -14,8 +14,10 @@ from rosbags.typesys import Stores, TypesysError, get_types_from_msg, get_typest
 from pair_vpr_ros.errors import BagError, OutputError
 from pair_vpr_ros.loops.records import LoopRecord
 from pair_vpr_ros.messages import loop as loop_messages
+from pair_vpr_ros.messages import loop_image
 from pair_vpr_ros.messages.factor import FACTOR_TOPIC, FACTOR_TYPE, factor_msg
 from pair_vpr_ros.offline.bags.opening import jazzy_typestore
+from pair_vpr_ros.types import split_stamp
 
 
 class LoopBagWriter:
@@ -23,8 +25,9 @@ class LoopBagWriter:
 
     Loop messages are the node's (``loop_messages``) on ``/loop_closure``,
     ``/loop_closure/detail``, ``/loop_closure/json``, ``/loop_closure/typed`` (when the message
-    definition is found: ``typed_definition``; else ``typed_note`` says why it is left out) and
-    (loops with a relative pose) ``/loop_closure/factor``, each written at the receive time of its
+    definition is found: ``typed_definition``; else ``typed_note`` says why it is left out),
+    (loops with a relative pose) ``/loop_closure/factor`` and ``/loop_closure/image``
+    (``write_loop_image``, one per accepted loop), each written at the receive time of its
     query image so the output plays in step with the source bag. Use as a context manager;
     ``path`` must not exist.
     """
@@ -53,6 +56,7 @@ class LoopBagWriter:
             (loop_messages.DETAIL_TOPIC, float_array),
             (loop_messages.JSON_TOPIC, string),
             (FACTOR_TOPIC, FACTOR_TYPE),
+            (loop_image.IMAGE_TOPIC, loop_image.IMAGE_TYPE),
         ):
             self._connections[topic] = self._writer.add_connection(
                 "/" + topic, msgtype, typestore=ts
@@ -89,6 +93,19 @@ class LoopBagWriter:
     def write_image(self, cdr: bytes, log_time_ns: int) -> None:
         """Copy one image message (CDR bytes) at its original receive time."""
         self._write(self._connections["image"], log_time_ns, cdr)
+
+    def write_loop_image(self, record: Any, bgr: np.ndarray, log_time_ns: int) -> None:
+        """Write one loop image (``messages.loop_image.draw_loop``) on ``/loop_closure/image``,
+        stamped and framed as the loop's query image."""
+        ts = self._ts
+        sec, nanosec = split_stamp(record.query_stamp)
+        header = ts.types["std_msgs/msg/Header"](
+            stamp=ts.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec),
+            frame_id=record.query_frame_id,
+        )
+        msg = ts.types[loop_image.IMAGE_TYPE](header=header, **loop_image.image_fields(bgr))
+        cdr = ts.serialize_cdr(msg, loop_image.IMAGE_TYPE)
+        self._write(self._connections[loop_image.IMAGE_TOPIC], log_time_ns, cdr)
 
     def write_loop(self, record: Any, log_time_ns: int) -> None:
         """Write the messages of one loop closure at ``log_time_ns``."""

@@ -28,6 +28,7 @@ from pair_vpr_ros.images.pixels import MAX_PIXELS
 from pair_vpr_ros.loops.detector import DetectorConfig
 from pair_vpr_ros.offline.bags.opening import check_bag_path
 from pair_vpr_ros.offline.replay.options import ReplayOptions
+from pair_vpr_ros.offline.replay.printing import print_results
 from pair_vpr_ros.offline.replay.rig import camera_options
 from pair_vpr_ros.offline.replay.run import replay_bag
 from pair_vpr_ros.params.check import flag_help, flag_type
@@ -53,6 +54,7 @@ INDEX = (
 DEPTH_TOLERANCE = float_flag("a number of seconds in [0, 1]", lambda v: 0 <= v <= 1)
 
 POSITIVE_METRES = float_flag("a finite number of metres > 0", lambda v: v > 0)
+TARGET = float_flag("a precision in (0, 1]", lambda v: 0 < v <= 1)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -242,6 +244,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="a saved place map loaded read-only and searched with the live map (repeat for "
         "several; added to --params-file's prior_map_dirs); never written",
     )  # fmt: skip
+    p.add_argument(
+        "--no-report",
+        action="store_true",
+        help="do not write OUT/report/ (pages that show every keyframe's candidates, decision "
+        "and loop image; open OUT/report/index.html in a browser)",
+    )
+    p.add_argument(
+        "--target-precision",
+        type=TARGET,
+        default=0.99,
+        metavar="P",
+        help="with ground truth, OUT/suggested_params.yaml holds the score_threshold (and "
+        "global_floor) whose loops reach this precision on the bag (default: %(default)s)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -256,10 +272,6 @@ def identity_flag(name: str):
         return text
 
     return parse
-
-
-def _fmt(value: float | None) -> str:
-    return "n/a" if value is None else f"{value:.3f}"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -279,6 +291,7 @@ def _run(args: argparse.Namespace) -> int:
     max_pixels, runtime = MAX_PIXELS, {n: SPECS[n].default for n in RUNTIME}
     fleet = {name: SPECS[name].default for name in ("robot_id", "session_id", "prior_map_dirs")}
     index = {n: SPECS[n].default for n in INDEX}
+    values = None
     if args.params_file is not None:
         values = read_params_file(args.params_file)
         config = detector_config(values).updated(**overrides)
@@ -311,7 +324,8 @@ def _run(args: argparse.Namespace) -> int:
         robot_id=args.robot_id or fleet["robot_id"],
         session_id=args.session_id or fleet["session_id"],
         prior_maps=(*fleet["prior_map_dirs"], *args.prior_map), announce=print,
-        index=index_config(index), **runtime,
+        index=index_config(index), report=not args.no_report,
+        target_precision=args.target_precision, params_values=values, **runtime,
     )  # fmt: skip
     geometry = GeometryConfig(features=args.features)
     if args.params_file is not None:  # depth noise, max depth: the parameter file's
@@ -319,26 +333,7 @@ def _run(args: argparse.Namespace) -> int:
     summary = replay_bag(
         args.bag, args.out, options, weights=weights, config=config, geometry=geometry
     )
-    for warning in summary.warnings:
-        print(f"warning: {warning}", file=sys.stderr)
-    ev, prior = summary.evaluation, summary.prior_evaluation
-    if ev is not None:
-        print(
-            f"{'live loops: ' if summary.prior_maps else ''}"
-            f"precision {_fmt(ev['precision'])}, recall {_fmt(ev['recall'])} "
-            f"({ev['positives']} keyframes with a true match within {ev['gt_radius_m']} m; "
-            f"ground truth {ev['gt_topic']})"
-        )
-    if prior is not None:
-        print(
-            f"prior-map loops: {prior['accepted']} ({prior['true_accepted']} true, "
-            f"{prior['false_accepted']} false, {prior['unlabelled_accepted']} unlabelled: "
-            f"{prior['covered']} of {prior['prior_keyframes']} prior keyframes have ground "
-            f"truth), precision {_fmt(prior['precision'])}, recall {_fmt(prior['recall'])} "
-            f"({prior['positives']} keyframes with a prior keyframe within "
-            f"{prior['gt_radius']} m)"
-        )
-    print(f"outputs in {summary.out_dir}")
+    print_results(summary)
     print(summary.line())
     if summary.error:
         print(f"error: {summary.error} (what was processed before is written)", file=sys.stderr)

@@ -10,16 +10,19 @@ from dataclasses import dataclass, field, replace
 
 from tqdm import tqdm
 
-from pair_vpr_ros.errors import PairVPRError
+from pair_vpr_ros.errors import OutputError, PairVPRError
 from pair_vpr_ros.loops.frames import Frame
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.loops.records import Candidate, LoopRecord
 from pair_vpr_ros.loops.rig import Rig
 from pair_vpr_ros.loops.rig_frames import RigAssembler
+from pair_vpr_ros.messages.loop_image import LoopPictures
 from pair_vpr_ros.offline.bags.loop_writer import LoopBagWriter
 from pair_vpr_ros.offline.bags.reader import BagFrame
 from pair_vpr_ros.offline.bags.sources import FrameCounts, bag_frames
 from pair_vpr_ros.offline.replay.options import ReplaySummary
+from pair_vpr_ros.offline.report.decision_log import DecisionLog
+from pair_vpr_ros.offline.report.html import ReportWriter
 
 
 @dataclass
@@ -36,6 +39,9 @@ class ReplayRun:
     # queries all the same for the evaluation (report.loop_truth.KeyframeInfo)
     represented: list[tuple[float, int]] = field(default_factory=list)
     rig: object | None = None  # a rig's RigCounts (rig_groups)
+    log: DecisionLog = field(default_factory=DecisionLog)  # every decision, compactly
+    report: ReportWriter | None = None  # OUT/report/, written as the run goes
+    pictures: LoopPictures | None = None  # --write-bag's loop images
 
     def frames(self, read: Iterator[BagFrame], source: str) -> Iterator[Frame]:
         """Usable frames for the pipeline, each kept in ``pending`` until its outcome comes;
@@ -101,8 +107,9 @@ def drive(
     bar: tqdm,
     groups: bool = False,
 ) -> None:
-    """Pipeline outcomes -> records, counts, output bag; Ctrl-C stops like a read error.
-    `groups`: `frames` are rig keyframes (`ReplayRun.rig_groups`)."""
+    """Pipeline outcomes -> records, counts, the decision log, the report's rows, output bag;
+    Ctrl-C stops like a read error. `groups`: `frames` are rig keyframes
+    (`ReplayRun.rig_groups`)."""
     summary = run.summary
     process = pipe.process_groups if groups else pipe.process_many
     try:
@@ -115,6 +122,11 @@ def drive(
                 run.represented.append((outcome.stamp, len(pipe.place_map)))
             if writer is not None and bf.cdr is not None:
                 writer.write_image(bf.cdr, bf.log_time_ns)
+            row = run.log.add(outcome)
+            if run.report is not None and row is not None:
+                _report(run, row, outcome, bf.rgb)
+            if run.pictures is not None:
+                run.pictures.keep(outcome, bf.rgb)
             mapped = outcome.keyframe_id is not None or outcome.represented_by is not None
             if outcome.loop is not None and mapped:  # a query of the map (not localization)
                 run.global_top1.append(global_top1_record(outcome.loop, outcome.candidates[0]))
@@ -126,6 +138,8 @@ def drive(
                     summary.loops_by_match[key] = summary.loops_by_match.get(key, 0) + 1
                     if writer is not None:
                         writer.write_loop(loop, bf.log_time_ns)
+                        picture = run.pictures.draw(outcome, loop, bf.rgb)
+                        writer.write_loop_image(loop, picture, bf.log_time_ns)
             bar.update(run.counts.frames - bar.n)
             bar.set_postfix(keyframes=summary.keyframes, loops=summary.loops, refresh=False)
     except KeyboardInterrupt:
@@ -133,3 +147,13 @@ def drive(
         summary.interrupted = True
     except PairVPRError as err:  # the output bag or the map could not be written (disk full)
         summary.error = f"stopped after {run.counts.frames} image messages: {err}"
+
+
+def _report(run: ReplayRun, row: int, outcome, rgb) -> None:
+    """Add a keyframe to the report; one that cannot be written (disk full) stops the report
+    with a warning, never the replay: loops and map matter more."""
+    try:
+        run.report.add(row, outcome, rgb)
+    except OutputError as err:
+        run.summary.warnings.append(f"the report stopped at keyframe row {row}: {err}")
+        run.report = None

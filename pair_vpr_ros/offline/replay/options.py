@@ -5,7 +5,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -63,6 +63,10 @@ class ReplayOptions:
     # command line prints them as the run's first lines); they are in summary.notes either way.
     announce: Callable[[str], None] | None = None
     index: str | IndexConfig = "flat"  # the map's index (kind "milvus": docs/milvus.md)
+    report: bool = True  # OUT/report/: the pages that show every decision (offline.report.html)
+    target_precision: float = 0.99  # of OUT/suggested_params.yaml (with ground truth)
+    # the node parameters the run was set up from (a --params-file's), for suggested_params.yaml
+    params_values: Mapping[str, Any] | None = None
 
     def check(self) -> None:
         """ConfigError naming the first value out of range."""
@@ -70,6 +74,8 @@ class ReplayOptions:
             raise ConfigError(
                 f"gt_radius must be a finite number of metres > 0, got {self.gt_radius}"
             )
+        if not (math.isfinite(self.target_precision) and 0 < self.target_precision <= 1):
+            raise ConfigError(f"target_precision must be in (0, 1], got {self.target_precision}")
 
     def map_path(self, out: Path) -> Path:
         return Path(self.map_dir) if self.map_dir else out / "map"
@@ -116,6 +122,8 @@ class ReplaySummary:
     notes: list[str] = field(default_factory=list)  # how each topic was picked
     error: str | None = None
     interrupted: bool = False  # stopped by Ctrl-C (``error`` says after how many messages)
+    report: dict[str, Any] | None = None  # OUT/report/: folder, size, seconds spent writing it
+    suggestion: dict[str, Any] | None = None  # OUT/suggested_params.yaml: threshold, figures
     # the evaluation itself, whole PR curves included (library callers; not in summary.json,
     # which keeps ``evaluation``'s figures)
     loop_evaluation: LoopEvaluation | None = field(default=None, repr=False, compare=False)

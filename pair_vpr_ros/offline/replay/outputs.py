@@ -91,7 +91,8 @@ def prepare_out(out: Path, write_bag: bool) -> Path:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise OutputError(f"cannot create the output folder {out}: {err.strerror}") from err
-    for stale in ("pr_curve.png", "trajectory.png"):  # a previous run's plots would mislead
+    # a previous run's plots and suggested parameters would mislead
+    for stale in ("pr_curve.png", "trajectory.png", "suggested_params.yaml"):
         (out / stale).unlink(missing_ok=True)
     bag_out = out / "bag"
     if write_bag and bag_out.exists():

@@ -28,6 +28,7 @@ from pair_vpr_ros.identity import resolve_identity
 from pair_vpr_ros.loops.detector import DetectorConfig
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.loops.prior_maps import open_prior_maps
+from pair_vpr_ros.messages.loop_image import LoopPictures
 from pair_vpr_ros.model import PairVPRModel
 from pair_vpr_ros.offline.bags import reader as bag_io
 from pair_vpr_ros.offline.bags.calibration import calibration_loader
@@ -40,13 +41,18 @@ from pair_vpr_ros.offline.replay import notes as replay_notes
 from pair_vpr_ros.offline.replay.drive import ReplayRun, drive
 from pair_vpr_ros.offline.replay.options import ReplayOptions, ReplaySummary
 from pair_vpr_ros.offline.replay.outputs import check_map_dir, prepare_out
+from pair_vpr_ros.offline.replay.report_outputs import finish_report, suggest
 from pair_vpr_ros.offline.replay.rig import RigSource, open_rig
 from pair_vpr_ros.offline.report.directions import direction_recall
 from pair_vpr_ros.offline.report.folder import check_writable, write_report
+from pair_vpr_ros.offline.report.html import ReportWriter
+from pair_vpr_ros.offline.report.html.writer import check_report_folder
 from pair_vpr_ros.offline.report.loop_truth import KeyframeInfo
 from pair_vpr_ros.offline.report.prior_truth import evaluate_prior_loops, prior_positions
 from pair_vpr_ros.types import PoseTrack
 from pair_vpr_ros.weights import Weights, check_runtime, load_model
+
+BAG_IMAGES_BYTES = 256 << 20  # --write-bag without a report: match images kept in memory
 
 
 def _keyframes(
@@ -62,6 +68,13 @@ def _keyframes(
     out = [KeyframeInfo(m.id, m.stamp, pose_at(m.stamp)) for m in pipe.place_map.all_meta()]
     out += [KeyframeInfo(n, t, pose_at(t), stored=False) for t, n in run.represented]
     return out
+
+
+def _index_settings(index: Any) -> dict[str, str]:
+    """The map's index and dense codec, as the report lists them."""
+    if isinstance(index, str):
+        return {"index": index}
+    return {"index": index.kind, "dense_codec": index.dense_codec}
 
 
 def _path(stamps: list[float], truth: PoseTrack | None, tolerance: float) -> np.ndarray:
@@ -107,6 +120,8 @@ def replay_bag(
     check_writable(out, "output folder")
     if o.save_map:
         check_writable(o.map_path(out), "map folder")
+    if o.report:
+        check_report_folder(out / "report")
     folder = check_map_dir(o.map_path(out), o.overwrite) if o.save_map else None
     try:  # the map folder's lock is held until the save (another writer is refused now)
         return _replay(bag, out, o, folder, model, weights, config, geometry)
@@ -141,6 +156,9 @@ def _replay(bag, out: Path, o: ReplayOptions, folder, model, weights, config, ge
         truth = poses if chosen.gt == chosen.pose else _read_pose_topic(reader, summary, chosen.gt)
         bag_out = prepare_out(out, o.write_bag)
         run = ReplayRun(summary)
+        weights_path = str(getattr(weights, "value", weights or ""))
+        if Path(weights_path).is_file():  # the suggested parameters work from any folder
+            weights_path = str(Path(weights_path).resolve())
         if rig is None:
             geo, summary.depth_topic, summary.camera_info_topic, notes = open_geometry(
                 reader, o.depth_topic, o.camera_info_topic, o.depth_tolerance,
@@ -166,6 +184,14 @@ def _replay(bag, out: Path, o: ReplayOptions, folder, model, weights, config, ge
             prior_maps=priors.maps, rig=rig,
         )  # fmt: skip
         summary.config = asdict(config)
+        who = (identity.robot, identity.session)
+        if o.report:
+            run.report = ReportWriter(
+                out / "report", config, who, pipe.geometry.config.relative_pose
+            )
+        if o.write_bag:  # match images: the report's files, else kept in memory
+            images = run.report.match_image if run.report is not None else None
+            run.pictures = LoopPictures(who, BAG_IMAGES_BYTES, images)
         summary.model = pipe.model.fingerprint
         summary.robot, summary.session = identity.robot, identity.session
         summary.prior_maps = priors.summary()
@@ -201,7 +227,7 @@ def _replay(bag, out: Path, o: ReplayOptions, folder, model, weights, config, ge
         summary.seconds = time.perf_counter() - start
     if folder is not None:
         folder.release()  # the save takes the folder's lock itself
-    _finish(run, pipe, out, o, (truth, poses, Path(bag).name))
+    _finish(run, pipe, out, o, (truth, poses, Path(bag).name), weights_path)
     return summary
 
 
@@ -211,9 +237,11 @@ def _finish(
     out: Path,
     o: ReplayOptions,
     tracks: tuple[PoseTrack | None, PoseTrack | None, str],
+    weights: str = "",
 ) -> None:
-    """Save the map, write the report and summary.json (also after a failure part-way).
-    `tracks`: the bag's ground truth, its pose topic and its name (prior maps' keyframes)."""
+    """Save the map, write the report, the suggested parameters and summary.json (also after a
+    failure part-way). `tracks`: the bag's ground truth, its pose topic and its name (prior
+    maps' keyframes); `weights`: the checkpoint's path, for the suggested parameters."""
     summary, counts = run.summary, run.counts
     truth = tracks[0]
     summary.frames, summary.skipped = counts.frames, counts.skipped
@@ -238,7 +266,7 @@ def _finish(
         evaluation = write_report(
             out, run.records, keyframes, _path(run.stamps, truth, o.pose_tolerance), o.gt_radius,
             pipe.config.exclude_recent_s, global_top1, source=summary.gt_topic or "",
-            global_weight=pipe.config.global_weight,
+            global_weight=pipe.config.global_weight, threshold=pipe.config.score_threshold,
         )  # fmt: skip
         if evaluation is not None:
             summary.loop_evaluation = evaluation
@@ -254,6 +282,11 @@ def _finish(
                 summary.prior_evaluation = evaluate_prior_loops(
                     run.records, keyframes, covered, len(metas), o.gt_radius
                 ).to_dict()
+        summary.suggestion = suggest(out, o, pipe, run.log, summary, keyframes, weights)
+        if run.report is not None:
+            extra = _index_settings(o.index) | {"features": pipe.geometry.config.features}
+            plots = [out / "pr_curve.png", out / "trajectory.png"]
+            summary.report = finish_report(run.report, run.log, summary, keyframes, extra, plots)
     except PairVPRError as err:
         summary.error = summary.error or str(err)
     except OSError as err:  # the report's files (disk full, folder removed meanwhile)

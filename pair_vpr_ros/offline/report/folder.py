@@ -18,7 +18,12 @@ import numpy as np
 
 from pair_vpr_ros.errors import OutputError, os_reason
 from pair_vpr_ros.messages.loop import LOOP_RECORD_FIELDS, csv_row, record_dict
-from pair_vpr_ros.offline.report.loop_truth import KeyframeInfo, LoopEvaluation, evaluate_loops
+from pair_vpr_ros.offline.report.loop_truth import (
+    KeyframeInfo,
+    KeyframeLookup,
+    LoopEvaluation,
+    evaluate_loops,
+)
 from pair_vpr_ros.offline.report.plots import plot_pr_curves, plot_trajectory
 
 
@@ -95,11 +100,12 @@ def write_report(
     global_records: Sequence[Any] | None = None,
     source: str = "",
     global_weight: float = 0.0,
+    threshold: float | None = None,
 ) -> LoopEvaluation | None:
     """Write ``loops.csv`` and ``loops.json``; with keyframe poses also evaluate and write
     ``pr_curve.png`` and ``trajectory.png`` (``positions [F, 3]``: every posed frame, in order;
     ``source``: where the poses come from, named in the plots' titles; ``global_weight``: the
-    detector's, for the re-ranked curve's score).
+    detector's, for the re-ranked curve's score; ``threshold``: its score threshold, marked).
     Returns the evaluation, or None without poses."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -110,10 +116,28 @@ def write_report(
     evaluation = evaluate_loops(
         records, keyframes, gt_radius, exclusion_s, global_records, global_weight
     )
-    plot_pr_curves(evaluation, out / "pr_curve.png", source)
+    plot_pr_curves(evaluation, out / "pr_curve.png", source, threshold)
     if positions is None:
         positions = np.array([k.pose[:3] for k in keyframes if k.pose is not None])
     plot_trajectory(
-        positions, keyframes, records, evaluation.labels, out / "trajectory.png", source
-    )
+        positions, keyframes, records, evaluation.labels, out / "trajectory.png", source,
+        missed_revisits(evaluation, keyframes, records),
+    )  # fmt: skip
     return evaluation
+
+
+def missed_revisits(
+    evaluation: LoopEvaluation, keyframes: Sequence[KeyframeInfo], records: Sequence[Any]
+) -> np.ndarray:
+    """Positions [M, 3] of the keyframes with a true match whose accepted loops hold no true
+    one (``evaluation.labels`` belongs to ``records``)."""
+    lookup = KeyframeLookup(keyframes)
+    found = set()
+    for record, label in zip(records, evaluation.labels, strict=True):
+        query = lookup.query(record)
+        if record.accepted and label and query is not None:
+            found.add((query.stored, query.id, query.stamp))
+    revisits = evaluation.revisits if evaluation.revisits is not None else []
+    missed = [k.pose[:3] for k, hit in zip(keyframes, revisits, strict=True)
+              if hit and (k.stored, k.id, k.stamp) not in found]  # fmt: skip
+    return np.asarray(missed, dtype=np.float64).reshape(-1, 3)

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -233,6 +233,8 @@ class LoopEvaluation:
     unlabelled_accepted: int
     reranked: PRCurve
     global_only: PRCurve | None
+    # [len(keyframes)] bool, in the order evaluated: which keyframes have a true match
+    revisits: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @property
     def precision(self) -> float | None:
@@ -293,7 +295,8 @@ def evaluate_loops(
             raise ConfigError(f"{name} must be a finite number >= 0, got {value}")
     gt = {"gt_radius": gt_radius, "exclusion_s": exclusion_s}
     lookup = KeyframeLookup(keyframes)
-    positives = int(true_match_mask(keyframes, **gt).sum())
+    revisits = true_match_mask(keyframes, **gt)
+    positives = int(revisits.sum())
 
     def reranked_score(r: Any) -> float:
         return rerank_score(r.pair_score, r.global_similarity, global_weight)
@@ -316,4 +319,5 @@ def evaluate_loops(
         unlabelled_accepted=sum(label is None for label in accepted),
         reranked=reranked,
         global_only=global_only,
+        revisits=revisits,
     )

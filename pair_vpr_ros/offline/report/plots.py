@@ -11,6 +11,8 @@ import numpy as np
 from pair_vpr_ros.messages.loop import same_session
 from pair_vpr_ros.offline.report.loop_truth import KeyframeInfo, KeyframeLookup, LoopEvaluation
 
+TARGETS = (0.99, 0.95, 0.90)  # precisions whose thresholds the PR plot marks
+
 
 def _pyplot() -> Any:
     import matplotlib
@@ -21,9 +23,12 @@ def _pyplot() -> Any:
     return plt
 
 
-def plot_pr_curves(evaluation: LoopEvaluation, path: str | Path, source: str = "") -> None:
-    """PNG of the re-ranked (and global-only) PR curves with the run's operating point;
-    ``source`` names the ground truth in the title."""
+def plot_pr_curves(
+    evaluation: LoopEvaluation, path: str | Path, source: str = "", threshold: float | None = None
+) -> None:
+    """PNG of the re-ranked (and global-only) PR curves with the run's operating point, the
+    curve's points at ``threshold`` (the run's) and the thresholds that reach precision 0.99 /
+    0.95 / 0.90; ``source`` names the ground truth in the title."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(5.5, 4.5))
     curves = [("re-ranked", evaluation.reranked, "tab:blue")]
@@ -34,13 +39,24 @@ def plot_pr_curves(evaluation: LoopEvaluation, path: str | Path, source: str = "
         ax.step(
             curve.recall, curve.precision, where="post", color=color, label=f"{label}, AP {ap:.3f}"
         )
+    curve = evaluation.reranked
+    for target, marker in zip(TARGETS, "^sD", strict=True):
+        point = curve.operating_point(target)
+        if point is not None:
+            ax.plot(point[2], point[1], marker, color="tab:blue", mfc="white", ms=7,
+                    label=f"precision >= {target:g}: threshold {point[0]:.4g}")  # fmt: skip
+    at = np.flatnonzero(curve.thresholds >= threshold) if threshold is not None else []
+    if len(at):
+        i = at[-1]
+        ax.plot(curve.recall[i], curve.precision[i], "x", color="k", ms=9, mew=2,
+                label=f"the run's threshold {threshold:g} on the curve")  # fmt: skip
     if evaluation.precision is not None and evaluation.recall is not None:
         ax.plot(evaluation.recall, evaluation.precision, "k*", ms=11, label="accepted loops")
     ax.set(xlabel="recall", ylabel="precision", xlim=(0, 1.02), ylim=(0, 1.05))
     title = f"loop closures, {evaluation.positives} queries with a true match"
     ax.set_title(title + (f"\nground truth: {source}" if source else ""), fontsize=10)
     ax.grid(alpha=0.3)
-    ax.legend(loc="lower left", fontsize=8)
+    ax.legend(loc="lower left", fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -53,10 +69,12 @@ def plot_trajectory(
     labels: Sequence[bool | None],
     path: str | Path,
     source: str = "",
+    missed: np.ndarray | None = None,
 ) -> None:
     """PNG of the x/y path ``positions [F, 2+]``, keyframes, and accepted loops (green true,
-    red false, grey unlabelled) drawn between their two keyframes (a dot when they coincide);
-    ``source`` names the ground truth the positions come from in the title."""
+    red false, grey unlabelled) drawn between their two keyframes (a dot when they coincide),
+    ``missed`` revisits [M, 2+] (keyframes with a true match and no true loop) as orange
+    crosses; ``source`` names the ground truth the positions come from in the title."""
     plt = _pyplot()
     from matplotlib.collections import LineCollection
 
@@ -80,6 +98,9 @@ def plot_trajectory(
             ends = np.asarray(lines, dtype=np.float64).reshape(-1, 2)
             ax.add_collection(LineCollection(lines, colors=colors[label], linewidths=1.5))
             ax.plot(ends[:, 0], ends[:, 1], "o", color=colors[label], ms=4, label=names[label])
+    if missed is not None and len(missed):
+        ax.plot(missed[:, 0], missed[:, 1], "x", color="tab:orange", ms=6, mew=1.5,
+                label=f"missed revisit ({len(missed)})")  # fmt: skip
     ax.set(xlabel="x [m]", ylabel="y [m]", aspect="equal")
     if source:
         ax.set_title(f"path and loops, ground truth: {source}", fontsize=10)
