@@ -2,8 +2,9 @@
 
 The pose is T_match_query = (R, t). Its error is parameterised in ROS order
 d = (d_x, d_y, d_z, d_rx, d_ry, d_rz): R_true = Exp(d_rot) R, t_true = t + d_t, both along the
-match camera's axes. At the solution PoseLib's refinement reached, J = d residuals / d d (central
-differences of the residuals through the cameras' own models) gives the information matrix
+match camera's axes. At the solution PoseLib's refinement reached, J = d residuals / d d
+(reprojection errors: through PoseLib's projection Jacobian of the camera's own model and
+`point_jacobian`; Sampson distances: central differences) gives the information matrix
 H = J^T W J, W the weights of the refinement's robust loss there (`solvers.loss_weights`), and
 the a-posteriori variance of the inliers sigma^2 = sum r^2 / (n - p) the pixel noise the
 residuals show, larger or smaller than anyone assumed; the covariance of that robust estimate
@@ -27,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from pair_vpr_ros.geometry.rotations import exp_so3
+from pair_vpr_ros.geometry.rotations import exp_so3, skew
 
 Residuals = Callable[[np.ndarray, np.ndarray], np.ndarray]  # (R [3,3], t [3]) -> r [n]
 STEP = 1e-6  # m and rad: central-difference step
@@ -49,6 +50,14 @@ def jacobian(residuals: Residuals, r: np.ndarray, t: np.ndarray) -> np.ndarray:
         minus = residuals(*perturbed(r, t, -d))
         cols.append((plus - minus) / (2 * STEP))
     return np.stack(cols, axis=1)
+
+
+def point_jacobian(moved: np.ndarray) -> np.ndarray:
+    """d (R X + t) / d (d_t, d_rot) = [I, -[R X]x] -> [N, 3, 6], at the points R X [N, 3]."""
+    out = np.zeros((len(moved), 3, 6))
+    out[:, :, :3] = np.eye(3)
+    out[:, :, 3:] = -np.stack([skew(p) for p in moved]) if len(moved) else 0.0
+    return out
 
 
 def posterior_covariance(

@@ -36,13 +36,3 @@ def depth_from_msg(msg: Any) -> np.ndarray:
     values = view[:, :, 0].astype(np.float32) * np.float32(scale)
     values[~np.isfinite(values) | (values <= 0)] = np.nan  # 16UC1 0 and 32FC1 NaN/inf: none
     return values
-
-
-def check_depth(depth: np.ndarray, image_shape: tuple[int, ...]) -> None:
-    """GeometryInputError unless `depth` [H, W] has the colour image's height and width."""
-    if depth.ndim != 2 or depth.shape != tuple(image_shape[:2]):
-        raise GeometryInputError(
-            f"depth image is {'x'.join(map(str, depth.shape[::-1]))} but the colour image is "
-            f"{image_shape[1]}x{image_shape[0]}: publish depth aligned to the colour camera "
-            "(same size and frame)"
-        )

@@ -52,16 +52,6 @@ class Features:
     def __len__(self) -> int:
         return len(self.keypoints)
 
-    @property
-    def nbytes(self) -> int:
-        depth = 0 if self.depth is None else self.depth.nbytes
-        return self.keypoints.nbytes + self.descriptors.nbytes + depth
-
-    @property
-    def with_depth(self) -> int:
-        """Keypoints with a valid depth."""
-        return 0 if self.depth is None else int(np.isfinite(self.depth).sum())
-
     def matchable(self) -> np.ndarray:
         """Descriptors as the matcher wants them (float32 for SIFT), cached."""
         if self.kind == "orb":
@@ -123,16 +113,6 @@ def extract_features(
         if depth_sigma is not None and depth_sigma.shape == depth.shape:
             out.depth_sigma = sigma_at(depth_sigma, out.keypoints, out.depth)
     return out
-
-
-def depth_at(depth: np.ndarray, px: np.ndarray) -> np.ndarray:
-    """Depth [H, W] metres at pixels [M, 2] (nearest pixel) -> [M] float32; NaN where the pixel
-    holds no valid depth (0, NaN, inf or negative)."""
-    h, w = depth.shape
-    u = np.clip(np.round(px[:, 0]).astype(np.int64), 0, w - 1)
-    v = np.clip(np.round(px[:, 1]).astype(np.int64), 0, h - 1)
-    z = depth[v, u].astype(np.float32)
-    return np.where(np.isfinite(z) & (z > 0), z, np.float32(np.nan))
 
 
 def match_features(

@@ -27,6 +27,7 @@ from pair_vpr_ros.geometry import covariance as cv
 from pair_vpr_ros.geometry import solvers
 from pair_vpr_ros.geometry.checks import with_k1
 from pair_vpr_ros.geometry.depth_noise import point_covariances
+from pair_vpr_ros.geometry.rotations import skew
 
 # A pose must agree with the second depth image on 30 % of its inliers that have depth in both
 # (wrong matches that fit a wrong pose by chance do not), and on at least 8. On real Kinect
@@ -141,13 +142,15 @@ def _covariance(pts, px, camera, pose, s_z, c) -> tuple[np.ndarray, float] | Non
     inliers' 3-D points [N, 3], their pixels [N, 2] in `camera` and own depth std [N] (or
     None: the model's), and the a-posteriori pixel sigma (module docstring)."""
     r, t = pose
-    cam = pts @ r.T + t
+    moved = pts @ r.T
+    cam = moved + t
     xy = cam[:, :2] / cam[:, 2:]
     proj, jd = camera.solver_camera().project_with_jac(np.ascontiguousarray(xy))
-    jn = np.zeros((len(cam), 2, 3))  # d normalised / d camera point
+    jn = np.zeros((len(xy), 2, 3))  # d normalised / d camera point
     jn[:, 0, 0] = jn[:, 1, 1] = 1.0 / cam[:, 2]
     jn[:, :, 2] = -xy / cam[:, 2:]
-    jx = np.asarray(jd) @ jn @ r  # d pixel / d point
+    j_cam = np.asarray(jd) @ jn  # d pixel / d camera point [N, 2, 3]
+    jx, jac = j_cam @ r, j_cam @ cv.point_jacobian(moved)  # d pixel / d point, / d pose
     f = (camera.fx + camera.fy) / 2
     rays = pts / pts[:, 2:3]
     cov_x = point_covariances(rays, pts[:, 2], 0.0, f, c.depth_sigma_a, c.depth_sigma_b, s_z)
@@ -162,12 +165,6 @@ def _covariance(pts, px, camera, pose, s_z, c) -> tuple[np.ndarray, float] | Non
         return float(np.einsum("ni,nij,nj->", res, whiten, res))
 
     sigma, g, factor = _posterior_noise(chi2, dof, c.floor_px, c.ransac_px)
-
-    def raw(rr, tt):
-        p = pts @ rr.T + tt
-        return (camera.project(p) - px).ravel()
-
-    jac = cv.jacobian(raw, r, t).reshape(len(res), 2, 6)
     w = solvers.loss_weights(np.linalg.norm(res, axis=1), c.ransac_px)
     s_i = (g * noise + sigma**2 * np.eye(2)) * factor  # each residual's covariance
     cov = cv.sandwich(
@@ -206,8 +203,7 @@ def _inverse_covariance(r: np.ndarray, t: np.ndarray, cov: np.ndarray) -> np.nda
     (R, t): d_rot' = -R^T d_rot, d_t' = -R^T d_t - [R^T t]x R^T d_rot (to first order)."""
     a = np.zeros((6, 6))
     a[:3, :3] = a[3:, 3:] = -r.T
-    x, y, z = r.T @ t
-    a[:3, 3:] = -np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]]) @ r.T
+    a[:3, 3:] = -skew(r.T @ t) @ r.T
     return a @ cov @ a.T
 
 
@@ -242,12 +238,7 @@ def depth_agreement(q, m, pairs, pose, sigma_px: float, c) -> tuple[int, int] | 
            for f, col in ((q, 0), (m, 1))]  # fmt: skip
     s = (r @ point_covariances(rays_q, zq[ok], px, q.camera.fx, *ab, own[0]) @ r.T
          + point_covariances(rays_m, zm[ok], px, m.camera.fx, *ab, own[1]))  # fmt: skip
-    pose_cov = cv.with_systematic(cov, t, c, (q.camera, m.camera))
-    jac = np.zeros((len(seen), 3, 6))  # d gap / d (d_t, d_rot): I, -[R X_q]x
-    jac[:, :, :3] = np.eye(3)
-    x, y, z = seen.T
-    jac[:, 0, 4], jac[:, 0, 5], jac[:, 1, 3] = z, -y, -z
-    jac[:, 1, 5], jac[:, 2, 3], jac[:, 2, 4] = x, y, -x
-    s = s + jac @ pose_cov @ jac.transpose(0, 2, 1)
+    jac = cv.point_jacobian(seen)  # d gap / d (d_t, d_rot)
+    s = s + jac @ cv.with_systematic(cov, t, c, (q.camera, m.camera)) @ jac.transpose(0, 2, 1)
     d2 = np.einsum("ni,ni->n", gap, np.linalg.solve(s, gap[:, :, None])[:, :, 0])
     return int((d2 < 3 * c.depth_agreement_sigmas**2).sum()), int(ok.sum())

@@ -30,6 +30,11 @@ def matrix_quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
     return q if q[3] >= 0 else tuple(-v for v in q)  # type: ignore[return-value]
 
 
+def skew(v: np.ndarray) -> np.ndarray:
+    """[3] -> [3, 3] cross-product matrix: skew(v) @ x = v x x."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
 def exp_so3(w: np.ndarray) -> np.ndarray:
     """Rotation vector [3] (rad) -> [3, 3] rotation matrix."""
     return cv2.Rodrigues(np.asarray(w, np.float64).reshape(3, 1))[0]

@@ -30,8 +30,7 @@ import math
 
 import numpy as np
 
-from pair_vpr_ros.geometry.epipolar import skew
-from pair_vpr_ros.geometry.rotations import quaternion_matrix
+from pair_vpr_ros.geometry.rotations import quaternion_matrix, skew
 from pair_vpr_ros.identity import Identity
 from pair_vpr_ros.loops.frames import FrameOutcome, match_candidate
 from pair_vpr_ros.loops.records import LoopRecord

@@ -6,7 +6,6 @@ import cv2
 import numpy as np
 
 from pair_vpr_ros.geometry import extract_features, match_features, verify_pair
-from pair_vpr_ros.geometry.features import depth_at
 
 
 def textured(seed: int, shape=(240, 320)) -> np.ndarray:
@@ -71,11 +70,6 @@ def test_matches_are_mutual_nearest_neighbours():
     assert np.median(np.abs(moved - (12, -7)), axis=0).max() < 0.5
 
 
-def test_depth_at_keypoints_marks_missing_depth_nan():
-    depth = np.array([[0.0, 2.0, np.nan], [np.inf, -1.0, 5.0]], np.float32)
-    px = np.array([[0, 0], [1, 0], [2, 0], [0, 1], [1, 1], [2.4, 1.4], [9, 9]], np.float32)
-    got = depth_at(depth, px)
-    np.testing.assert_array_equal(np.isnan(got), [True, False, True, True, True, False, False])
-    assert (got[1], got[5], got[6]) == (2.0, 5.0, 5.0)  # nearest pixel; outside: clamped
+def test_keypoints_take_their_depth():
     feats = extract_features(textured(7), depth=np.full((240, 320), 3.0, np.float32))
-    assert feats.depth.shape == (len(feats),) and feats.with_depth == len(feats)
+    assert feats.depth.shape == (len(feats),) and (feats.depth == 3.0).all()

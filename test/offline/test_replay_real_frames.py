@@ -13,9 +13,15 @@ from bag_fixtures import TS2, _header, write_rosbag2
 from real_frames import TUM, TUM_D, TUM_K, chi2, tum_frames
 from test_replay_geometry import CONFIG, depth_msg
 
-from pair_vpr_ros.geometry.rotations import matrix_quaternion, quaternion_matrix
+from pair_vpr_ros.geometry.checks import CHI2_3DOF_95
+from pair_vpr_ros.geometry.rotations import (
+    matrix_quaternion,
+    quaternion_matrix,
+    rotation_angle_deg,
+)
 from pair_vpr_ros.offline.replay.options import ReplayOptions
 from pair_vpr_ros.offline.replay.run import replay_bag
+from pair_vpr_ros.posegraph.config import INLIER_CHI2
 
 INFO, POSE = "sensor_msgs/msg/CameraInfo", "geometry_msgs/msg/PoseStamped"
 
@@ -69,18 +75,27 @@ def test_tum_bag_replay_poses_every_loop_within_its_covariance(tmp_path, tiny_mo
     s = replay_bag(bag, tmp_path / "out", options, model=tiny_model, config=config)
     loops = [r for r in json.loads((tmp_path / "out" / "loops.json").read_text()) if r["accepted"]]
     assert s.camera_info_topic == "/cam/camera_info" and len(loops) >= 5
-    chi2s = []
+    fits = {}  # (query id, match id) -> (true T_match_query, R, t, covariance)
     for r in loops:
         assert r["pose_status"] == "metric", r["pose_reason"]
         pq = by_stamp[min(by_stamp, key=lambda t: abs(t - r["query_stamp"]))][2]
         pm = by_stamp[min(by_stamp, key=lambda t: abs(t - r["match_stamp"]))][2]
-        truth = np.linalg.inv(pm) @ pq
-        rot = quaternion_matrix([r["qx"], r["qy"], r["qz"], r["qw"]])
-        cov = np.array(r["covariance"]).reshape(6, 6)
-        chi2s.append(chi2(truth, rot, np.array([r["tx"], r["ty"], r["tz"]]), cov)[0])
-    # Calibrated in the median (6 dof: 5.3), no loop a tight wrong factor. The top-1 pairs are
-    # 3-2, 4-1, 5-3, 6-4, 7-2: the checks widen the first four (PnP and the essential matrix
-    # disagree, the rows disagree); 7-2 (30 inliers, compact features) is 0.56 deg off at a
-    # stated 0.1 deg, chi-square 61, an error no check of its data shows: what
-    # pose_systematic_px is for on this rolling-shutter camera (docs/real-cameras.md).
-    assert np.median(chi2s) < 12.0 and max(chi2s) < 100.0, chi2s
+        fits[(r["query_id"], r["match_id"])] = (
+            np.linalg.inv(pm) @ pq, quaternion_matrix([r["qx"], r["qy"], r["qz"], r["qw"]]),
+            np.array([r["tx"], r["ty"], r["tz"]]), np.array(r["covariance"]).reshape(6, 6),
+        )  # fmt: skip
+    chi2s = {pair: chi2(*fit)[0] for pair, fit in fits.items()}
+    # The top-1 pairs are 3-2, 4-1, 5-3, 6-4 and 7-2; the checks widen the first four (PnP and
+    # the essential matrix disagree, the rows disagree). Each is within the 99 % point of a
+    # 6-dof chi-square but 7-2: 0.56 deg off at a stated 0.13 deg (chi-square 61), an error
+    # its 30 inliers cannot show (halves of 15 refit 0.3-0.4 deg apart within their own
+    # covariance; with the stored match keyframe's 500 strongest keypoints PnP and the
+    # essential matrix agree, with all 1000 they disagree by 1.0 deg and the check fires).
+    # Frames 2 and 7 turn at 39 and 27 deg/s on this rolling-shutter camera: what
+    # pose_systematic_px is for (docs/real-cameras.md); 2 px (0.22 deg) covers it.
+    assert sorted(chi2s) == [(3, 2), (4, 1), (5, 3), (6, 4), (7, 2)], sorted(chi2s)
+    assert all(v < INLIER_CHI2 for pair, v in chi2s.items() if pair != (7, 2)), chi2s
+    truth, rot, t, cov = fits[(7, 2)]
+    assert chi2s[(7, 2)] < 100.0 and rotation_angle_deg(truth[:3, :3] @ rot.T) < 1.0
+    cov[3:, 3:] += np.eye(3) * (2.0 / TUM_K[0]) ** 2  # pose_systematic_px 2
+    assert chi2(truth, rot, t, cov)[1] < CHI2_3DOF_95, chi2s
