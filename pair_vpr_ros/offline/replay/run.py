@@ -29,6 +29,7 @@ from pair_vpr_ros.loops.detector import DetectorConfig
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.loops.prior_maps import open_prior_maps
 from pair_vpr_ros.model import PairVPRModel
+from pair_vpr_ros.model.threads import applied_threads
 from pair_vpr_ros.offline.bags import reader as bag_io
 from pair_vpr_ros.offline.bags.calibration import calibration_loader
 from pair_vpr_ros.offline.bags.geometry import attach, open_geometry
@@ -135,6 +136,7 @@ def replay_bag(
             model = load_model(
                 weights, device=o.device, precision=o.precision, backend=o.backend,
                 openvino_cache_dir=o.openvino_cache_dir, openvino_calibration=calibration,
+                num_threads=o.num_threads,
             )  # fmt: skip
             summary.warnings += calibration_notes
         save_to = o.map_path(out) if o.save_map else None
@@ -145,6 +147,7 @@ def replay_bag(
         )  # fmt: skip
         summary.config = asdict(config)
         summary.model = pipe.model.fingerprint
+        summary.threads = applied_threads() or 0
         summary.robot, summary.session = identity.robot, identity.session
         summary.prior_maps = priors.summary()
         summary.notes += priors.notes
