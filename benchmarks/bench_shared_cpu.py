@@ -5,9 +5,9 @@ busy processes, for each CPU thread count (`num_threads`, `model/threads.py`).
     python benchmarks/bench_shared_cpu.py --parts latency --models vitb-int8 --threads 1,2
 
 Busy processes ("hogs"): N busy loops this benchmark starts before a run and stops after it,
-at its own priority; each also ends by itself after --hog-limit seconds, so none outlives a
-killed benchmark. Every run is a child process of its own (thread pools are sized once per
-process), started after the hogs.
+at its own priority, each in a session of its own (as another program would be); each also
+ends by itself after --hog-limit seconds, so none outlives a killed benchmark. Every run is a
+child process of its own (thread pools are sized once per process), started after the hogs.
 
 - replay: make demo's `pairvpr-bag-replay` of the demo bag (config/demo.yaml, depth, the
   shipped model) with `--threads`: wall time and CPU seconds (user + system) of the process,
@@ -79,7 +79,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def start_hogs(n: int, limit: float) -> list[subprocess.Popen]:
-    return [subprocess.Popen([sys.executable, "-c", HOG, str(limit)]) for _ in range(n)]
+    """`n` busy loops, each in a session of its own: on Linux with autogroup scheduling (the
+    desktop and container default) the CPU is shared between sessions first, so hogs in this
+    benchmark's own session would take their time from the measured run alone, not from the
+    machine, unlike a robot's other programs (services, other terminals)."""
+    cmd = [sys.executable, "-c", HOG, str(limit)]
+    return [subprocess.Popen(cmd, start_new_session=True) for _ in range(n)]
 
 
 def stop_hogs(hogs: list[subprocess.Popen]) -> None:
