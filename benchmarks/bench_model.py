@@ -39,6 +39,7 @@ import torch
 from pair_vpr_ros.loops.records import rerank_score
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, load_pairvpr, quantize_int8
 from pair_vpr_ros.model.config import PATCH
+from pair_vpr_ros.model.threads import apply_threads, resolve_threads
 from pair_vpr_ros.offline.bags.calibration import calibration_loader
 from pair_vpr_ros.offline.replay.options import ReplayOptions
 
@@ -233,7 +234,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--agreement-weights",
         help="model for the agreement check (default: the shipped demo model)",
     )
-    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
+    p.add_argument(
+        "--threads", type=int, default=0,
+        help="CPU threads of every pool (model/threads.py; 0: auto for the timed model's size)",
+    )  # fmt: skip
     p.add_argument(
         "--batches", default="1,8", help="encode batch sizes, comma-separated (1 comes first)"
     )
@@ -279,6 +283,7 @@ def timed(args: argparse.Namespace, calibration) -> dict:
     else:
         cfg = ModelConfig.preset(args.arch, image_size=args.image_size)
         model = build_pairvpr(cfg, device=args.device, seed=0)
+    apply_threads(resolve_threads(args.threads, model.config))
     size = model.config.image_size
     cpu = platform.processor() or platform.machine()
     print(
@@ -320,7 +325,7 @@ def timed(args: argparse.Namespace, calibration) -> dict:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.threads:
-        torch.set_num_threads(args.threads)
+        apply_threads(args.threads)
     calibration = calibration_loader(args.calibration, args.calibration_topic, warn=print)
     figures = {"agreement": {}} if args.agreement_only else timed(args, calibration)
     weights = args.agreement_weights or default_demo_weights()

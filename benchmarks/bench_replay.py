@@ -23,6 +23,7 @@ import torch
 from pair_vpr_ros.errors import PairVPRError
 from pair_vpr_ros.loops.detector import DetectorConfig
 from pair_vpr_ros.model import ModelConfig, build_pairvpr, load_pairvpr
+from pair_vpr_ros.model.threads import apply_threads, resolve_threads
 from pair_vpr_ros.offline.replay.options import ReplayOptions
 from pair_vpr_ros.offline.replay.run import replay_bag
 
@@ -43,7 +44,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--keyframe-max-similarity", type=float, default=1.0,
         help="detector keyframe_max_similarity (%(default)s: every frame is a keyframe)",
     )  # fmt: skip
-    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch default)")
+    p.add_argument(
+        "--threads", type=int, default=0,
+        help="CPU threads of every pool (model/threads.py; 0: auto, as the replay's --threads)",
+    )  # fmt: skip
     p.add_argument("--repeat", type=int, default=1, help="runs (the first includes warm-up)")
     return p.parse_args(argv)
 
@@ -67,12 +71,11 @@ def demo_bag(args: argparse.Namespace, folder: Path) -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
     with tempfile.TemporaryDirectory(prefix="bench-replay-") as tmp:
         try:
             bag = Path(args.bag) if args.bag else demo_bag(args, Path(tmp))
             model = make_model(args)
+            apply_threads(resolve_threads(args.threads, model.config))
             config = DetectorConfig(
                 top_k=args.top_k, keyframe_max_similarity=args.keyframe_max_similarity
             )

@@ -36,6 +36,7 @@ from pair_vpr_ros.model import (
     quantize_int8,
 )
 from pair_vpr_ros.model.devices import check_device
+from pair_vpr_ros.model.threads import AUTO, apply_threads, check_threads, resolve_threads
 from pair_vpr_ros.params.file import read_params_file
 
 ENV_VAR = "PAIRVPR_WEIGHTS"
@@ -145,6 +146,7 @@ def load_model(
     backend: str = "torch",
     openvino_cache_dir: str | os.PathLike | None = "auto",
     openvino_calibration: Callable[[int], Tensor] | None = None,
+    num_threads: int = AUTO,
 ) -> PairVPRModel:
     """The network to run -> ``PairVPR`` in eval mode on ``device`` (int8: a quantized CPU copy),
     or with ``backend`` openvino the same weights compiled by OpenVINO for the CPU
@@ -157,6 +159,9 @@ def load_model(
     ``weights`` (else the other places: ``resolve_weights`` and its options; or what it
     returned) is a checkpoint path or ``random-<preset>`` (e.g. ``random-tiny``: a tiny random
     network, seed 0).
+    ``num_threads`` (0: auto, by the model's size) sets the CPU threads of the whole process
+    (``model.threads.apply_threads``): an explicit count before anything is loaded, auto as
+    soon as the checkpoint says the size, before the network runs or OpenVINO compiles.
     ``image_size`` None or 0 keeps the checkpoint's. ``precision`` int8 quantizes here; bf16 /
     fp16 only need their device here (the caller runs the model under autocast). Raises
     ``CheckpointError`` (no, missing or unreadable weights, saying where they came from) or
@@ -168,6 +173,8 @@ def load_model(
             weights, params_file, explicit_name=explicit_name, params_rule=params_rule
         )
     dev = check_runtime(device, precision, backend)
+    if check_threads(num_threads) != AUTO:
+        apply_threads(num_threads)
     if found.value.startswith(RANDOM_PREFIX):
         overrides = {"image_size": image_size} if image_size else {}
         config = ModelConfig.preset(found.value.removeprefix(RANDOM_PREFIX), **overrides)
@@ -177,6 +184,9 @@ def load_model(
             model = load_pairvpr(found.value, device=dev, image_size=image_size or None)
         except CheckpointError as err:
             raise CheckpointError(f"{err} (weights from {found.origin})") from err
+    threads = resolve_threads(num_threads, model.config)
+    if threads != num_threads:
+        apply_threads(threads)
     if openvino_calibration is not None and (backend, precision) != ("openvino", "int8"):
         LOG.warning(
             "openvino_calibration is ignored: only backend openvino with precision int8 is "
@@ -192,5 +202,7 @@ def load_model(
         if openvino_calibration is not None and precision == "int8":
             calibration = openvino_calibration(model.config.image_size)
         cache_dir = resolve_cache_dir(openvino_cache_dir)
-        return OpenVINOModel(model, precision, calibration=calibration, cache_dir=cache_dir)
+        return OpenVINOModel(
+            model, precision, calibration=calibration, cache_dir=cache_dir, threads=threads
+        )
     return quantize_int8(model) if precision == "int8" else model

@@ -69,11 +69,13 @@ class OpenVINOModel:
         calibration: Tensor | None = None,
         chunk: int = 2,
         cache_dir: str | os.PathLike | None = None,
+        threads: int | None = None,
     ) -> None:
         """`model`: the torch network to compile; `calibration` [B,3,S,S] preprocessed images for
         int8 (default: `CALIBRATION_IMAGES` synthetic scenes); `cache_dir`: a folder that keeps
         the converted (int8: quantized) graphs for the next start (`openvino_cache.py`; None:
-        no cache). `from_cache` says whether they came from there."""
+        no cache). `from_cache` says whether they came from there. `threads`: inference threads
+        (None: torch's count, which `threads.apply_threads` sets), in one stream."""
         if precision not in PRECISIONS:
             raise ConfigError(
                 f"backend openvino runs precision {', '.join(PRECISIONS)}, not {precision!r}"
@@ -94,7 +96,10 @@ class OpenVINOModel:
         # int8 runs its float layers in f32: as fast as in bf16 here (0.18x vs 0.19x encode),
         # and the logits do not get bf16's 8-bit mantissa.
         hint = {"INFERENCE_PRECISION_HINT": "f32"} if precision != "bf16" else {}
-        config = {**hint, "INFERENCE_NUM_THREADS": torch.get_num_threads()}
+        # One stream: the pipeline runs one request at a time, so more streams only split the
+        # threads between requests that never come.
+        threads = threads or torch.get_num_threads()
+        config = {**hint, "INFERENCE_NUM_THREADS": threads, "NUM_STREAMS": 1}
         core = shared_core(ov)
         self._requests = {
             name: core.compile_model(graph, "CPU", config).create_infer_request()

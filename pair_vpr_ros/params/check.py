@@ -60,18 +60,22 @@ def check_value(name: str, value: Any, specs: Mapping[str, ParamSpec] | None = N
     return None
 
 
-def flag_type(name: str) -> Callable[[str], Value]:
+def flag_type(name: str, auto: Value | None = None) -> Callable[[str], Value]:
     """An argparse type for a command-line flag that mirrors number parameter `name` (the
     replay's --rerank-budget-ms): parsed as the parameter's type and checked by `check_value`,
-    so the flag and a parameter file refuse the same values with the same words."""
+    so the flag and a parameter file refuse the same values with the same words. With `auto`,
+    the word ``auto`` stands for that value (--threads auto = num_threads 0)."""
     kind = type(SPECS[name].default)
 
     def parse(text: str) -> Value:
+        if auto is not None and text == "auto":
+            return auto
         try:
             value = kind(text)
         except ValueError:
+            also = " or 'auto'" if auto is not None else ""
             raise argparse.ArgumentTypeError(
-                f"{name} must be {TYPE_NAMES[kind]}, got {text!r}"
+                f"{name} must be {TYPE_NAMES[kind]}{also}, got {text!r}"
             ) from None
         reason = check_value(name, value)
         if reason is not None:

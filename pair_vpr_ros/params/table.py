@@ -63,6 +63,10 @@ PARAMS: tuple[ParamSpec, ...] = (
        "only one)", **RO),
     _p("image_size", 0, "network input side in pixels, a multiple of 14; 0: the checkpoint's",
        0, 1022, **RO),
+    _p("num_threads", 0, "CPU threads of the network and the libraries beside it (torch, "
+       "OpenMP / BLAS, OpenCV, OpenVINO); 0 = auto: 1 for a light network such as the demo "
+       "model, every usable core for ViT-B and larger (docs/performance.md, sharing the CPU)",
+       0, 1024, **RO),
     _p("index", "flat", "map index: flat (exact), ivf (exact below 25,000 keyframes, then k-means "
        "lists: large maps), hnsw (graph) or milvus (a Milvus collection: milvus_uri; optional "
        "package: pip install 'pair_vpr_ros[milvus]')",

@@ -25,6 +25,7 @@ from pair_vpr_ros.loops.frames import Frame, FrameOutcome, PipelineCounts
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.loops.prior_maps import refuse_prior_target
 from pair_vpr_ros.loops.records import LoopRecord
+from pair_vpr_ros.model.threads import limit_this_thread
 from pair_vpr_ros.offline.bags.sources import check_source
 from pair_vpr_ros.offline.replay.build_map import BuildResult, build_map
 from pair_vpr_ros.types import Pose
@@ -268,6 +269,7 @@ class MapControl:
         return self._build is None or not self._build.is_alive()
 
     def _run_build(self, source: str, target: Path, config: DetectorConfig, options) -> None:
+        limit_this_thread(background=True)  # the live frames keep their cores
         try:
             with self._context():
                 built, result = build_map(

@@ -72,6 +72,7 @@ from pair_vpr_ros.loops.prior_maps import open_prior_maps
 from pair_vpr_ros.loops.records import LoopRecord
 from pair_vpr_ros.messages.loop_image import LoopPictures
 from pair_vpr_ros.model.devices import check_device
+from pair_vpr_ros.model.threads import applied_threads
 from pair_vpr_ros.offline.bags.calibration import calibration_loader
 from pair_vpr_ros.ros.fleet import FleetLink
 from pair_vpr_ros.ros.geometry_inputs import GeometryInputs
@@ -106,7 +107,7 @@ class VprNode(ParameterHandling, RigIntake, FrameIntake, NodeServices, Node):
             v["weights"], device=device, precision=v["precision"], image_size=v["image_size"],
             explicit_name="parameter weights (-p weights:=PATH)", params_rule=False,
             backend=v["backend"], openvino_cache_dir=v["openvino_cache_dir"],
-            openvino_calibration=calibration,
+            openvino_calibration=calibration, num_threads=v["num_threads"],
         )  # fmt: skip
         # OpenVINO runs its own precision; torch autocast would only wrap the glue around it.
         autocast = v["precision"] if v["backend"] == "torch" else "fp32"
@@ -161,8 +162,10 @@ class VprNode(ParameterHandling, RigIntake, FrameIntake, NodeServices, Node):
         self._worker = threading.Thread(target=self._work, name="vpr_worker", daemon=True)
         if start_worker:
             self._worker.start()
+        threads = applied_threads()
         self.summary = (
-            f"model {model.fingerprint} on {v['device']} ({v['backend']}, {v['precision']}), "
+            f"model {model.fingerprint} on {v['device']} ({v['backend']}, {v['precision']}, "
+            f"{threads} CPU thread{'s' * (threads != 1)}), "
             f"{self.maps.size()} keyframes, mode {v['mode']}, robot {self.identity.robot}, "
             f"session {self.identity.session}, {len(priors.maps)} prior maps"
         )

@@ -1,4 +1,4 @@
-"""ROS-free pieces of `vpr_node`: precision, the frame queue, statistics.
+"""ROS-free pieces of `vpr_node`: precision and threads, the frame queue, statistics.
 
 Kept apart from `node.py` so they are tested without rclpy; the node only wires them to topics.
 """
@@ -15,13 +15,16 @@ from typing import Any
 import numpy as np
 import torch
 
+from pair_vpr_ros.model.threads import limit_this_thread
 from pair_vpr_ros.ros.maps import MapControl
 
 
 def precision_context(
     device: str | torch.device, precision: str
 ) -> contextlib.AbstractContextManager:
-    """Autocast for bf16 / fp16 (thread-local: enter it in the thread that runs the model)."""
+    """Autocast for bf16 / fp16 (thread-local: enter it in the thread that runs the model),
+    and that thread's OpenMP pools sized as the process's (`threads.limit_this_thread`)."""
+    limit_this_thread()
     if precision not in ("bf16", "fp16"):
         return contextlib.nullcontext()
     dtype = torch.bfloat16 if precision == "bf16" else torch.float16

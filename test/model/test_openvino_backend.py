@@ -84,6 +84,13 @@ def test_the_pipeline_stores_what_torch_stores(torch_model, inputs, ov_fp32):
     np.testing.assert_allclose(got_desc, want_desc, rtol=0, atol=1e-6)
 
 
+def test_compiled_with_the_process_threads_in_one_stream(ov_fp32):
+    compiled = ov_fp32._requests["encoder"].get_compiled_model()
+    # random-tiny is a light network: auto runs it on one thread (model/threads.py)
+    assert compiled.get_property("INFERENCE_NUM_THREADS") == 1
+    assert compiled.get_property("NUM_STREAMS") == 1
+
+
 def test_wrong_image_size_is_explained(ov_fp32):
     with pytest.raises(
         ConfigError, match=r"compiled for images \[B,3,56,56\], got \[1, 3, 70, 70"

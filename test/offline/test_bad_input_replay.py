@@ -81,6 +81,9 @@ FLAG_CASES = {
     "budget too large": (["--rerank-budget-ms", "1e9"], "is out of range [0.0, 600000.0]"),
     "batch-size zero": (["--batch-size", "0"], "argument --batch-size: must be an integer >= 1"),
     "max-frames zero": (["--max-frames", "0"], "argument --max-frames: must be an integer >= 1"),
+    "threads negative": (["--threads=-1"], "argument --threads: num_threads=-1 is out of range"),
+    "threads too many": (["--threads", "2000"], "num_threads=2000 is out of range [0, 1024]"),
+    "threads text": (["--threads", "all"], "must be an integer or 'auto', got 'all'"),
     "unknown flag": (["--radius", "3"], "unrecognized arguments: --radius 3"),
     "target precision zero": (
         ["--target-precision", "0"],

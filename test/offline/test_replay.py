@@ -329,6 +329,7 @@ def test_weights_from_the_environment_and_nothing_else(tmp_path, weights, capsys
     assert capsys.readouterr().out.splitlines()[-2] == "outputs in replay_out"
     summary = json.loads((tmp_path / "replay_out" / "summary.json").read_text())
     assert summary["frames"] == 17 and summary["model"].startswith("sha256:")
+    assert summary["threads"] == 1  # --threads auto: a tiny network runs on one thread
     assert (tmp_path / "replay_out" / "map").is_dir()
 
 

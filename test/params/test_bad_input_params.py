@@ -65,6 +65,14 @@ CASES = {
         "openvino_cache_dir must be a string, got False",
     ),
     "image size": (section("image_size: 300").encode(), "image_size=300 must be 0 or a multiple"),
+    "threads negative": (
+        section("num_threads: -2").encode(),
+        "num_threads=-2 is out of range [0, 1024]",
+    ),
+    "threads as a word": (  # auto is 0 in a parameter file (an integer parameter)
+        section('num_threads: "auto"').encode(),
+        "num_threads must be an integer, got 'auto'",
+    ),
     "negative budget": (
         section("rerank_budget_ms: -1.0").encode(),
         "rerank_budget_ms=-1.0 is out of range [0.0, 600000.0]",

@@ -265,6 +265,7 @@ def test_config_file_loads_with_every_default(tmp_path):
             expected = "random-tiny" if spec.name == "weights" else spec.default
             # an empty string array stays unset in ROS (it cannot be typed): read_value's ()
             assert read_value(node, spec) == expected, spec.name
+        assert "(torch, fp32, 1 CPU thread)" in node.summary  # num_threads 0: auto, light model
         node.shutdown()
         node.destroy_node()
     finally:

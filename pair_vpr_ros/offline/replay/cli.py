@@ -45,6 +45,7 @@ RUNTIME = (
     "openvino_cache_dir",
     "openvino_calibration",
     "openvino_calibration_topic",
+    "num_threads",
 )
 # ... the map: its index and how it stores dense tokens
 INDEX = (
@@ -148,6 +149,10 @@ def build_parser() -> argparse.ArgumentParser:
             choices=SPECS[name].choices,
             help=flag_help(name) + f" (default: --params-file's, else {default})",
         )
+    p.add_argument(
+        "--threads", dest="num_threads", metavar="N", type=flag_type("num_threads", auto=0),
+        help=flag_help("num_threads") + "; auto = 0 (default: --params-file's, else auto)",
+    )  # fmt: skip
     p.add_argument(
         "--openvino-cache-dir",
         metavar="DIR",

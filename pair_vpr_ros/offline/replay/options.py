@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.images.pixels import MAX_PIXELS
+from pair_vpr_ros.model.threads import check_threads
 from pair_vpr_ros.place_map import IndexConfig
 
 if TYPE_CHECKING:
@@ -51,6 +52,7 @@ class ReplayOptions:
     openvino_cache_dir: str = "auto"  # '' = no cache
     openvino_calibration: str = ""  # int8 calibration bag / image folder; '' = synthetic scenes
     openvino_calibration_topic: str = ""  # '' = the calibration bag's only image topic
+    num_threads: int = 0  # CPU threads of the process (model/threads.py); 0 = auto
     write_bag: bool = False
     map_dir: str | Path | None = None
     save_map: bool = True
@@ -70,6 +72,7 @@ class ReplayOptions:
 
     def check(self) -> None:
         """ConfigError naming the first value out of range."""
+        check_threads(self.num_threads)
         if not (math.isfinite(self.gt_radius) and self.gt_radius > 0):
             raise ConfigError(
                 f"gt_radius must be a finite number of metres > 0, got {self.gt_radius}"
@@ -111,6 +114,7 @@ class ReplaySummary:
     prior_evaluation: dict[str, Any] | None = None  # loops into prior maps (report.prior_truth)
     config: dict[str, Any] = field(default_factory=dict)  # the DetectorConfig used
     model: str = ""  # the model's fingerprint (weights, input size, descriptor size)
+    threads: int = 0  # the CPU threads the process ran on (model/threads.py); 0: not set
     robot: str = ""  # the query side of every loop: this replay's robot and session
     session: str = ""
     prior_maps: list[dict[str, Any]] = field(default_factory=list)  # dir, keyframes, sessions

@@ -30,6 +30,7 @@ from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.loops.prior_maps import open_prior_maps
 from pair_vpr_ros.messages.loop_image import LoopPictures
 from pair_vpr_ros.model import PairVPRModel
+from pair_vpr_ros.model.threads import applied_threads
 from pair_vpr_ros.offline.bags import reader as bag_io
 from pair_vpr_ros.offline.bags.calibration import calibration_loader
 from pair_vpr_ros.offline.bags.geometry import attach, open_geometry
@@ -175,6 +176,7 @@ def _replay(bag, out: Path, o: ReplayOptions, folder, model, weights, config, ge
             model = load_model(
                 weights, device=o.device, precision=o.precision, backend=o.backend,
                 openvino_cache_dir=o.openvino_cache_dir, openvino_calibration=calibration,
+                num_threads=o.num_threads,
             )  # fmt: skip
             summary.warnings += calibration_notes
         save_to = o.map_path(out) if o.save_map else None
@@ -193,6 +195,7 @@ def _replay(bag, out: Path, o: ReplayOptions, folder, model, weights, config, ge
             images = run.report.match_image if run.report is not None else None
             run.pictures = LoopPictures(who, BAG_IMAGES_BYTES, images)
         summary.model = pipe.model.fingerprint
+        summary.threads = applied_threads() or 0
         summary.robot, summary.session = identity.robot, identity.session
         summary.prior_maps = priors.summary()
         summary.notes += priors.notes
