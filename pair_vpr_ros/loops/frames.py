@@ -80,7 +80,9 @@ class PipelineCounts:
     intrinsics_wrong_size: int = 0  # keyframes whose intrinsics were for another size
     features_damaged: int = 0  # stored features that could not be unpacked
     candidates_scored: int = 0  # pair scores computed (candidates re-ranked, all keyframes)
+    decoder_passes: int = 0  # pair decoder runs: one direction of one pair each (full: 2 a pair)
     rerank_budget_cut: int = 0  # keyframes whose re-ranking stopped at rerank_budget_ms
+    rerank_skipped: int = 0  # keyframes not re-ranked: best below global_floor / learned floor
     clock_jumps: int = 0  # stamps that went back by more than CLOCK_JUMP_S: new sessions
     stereo_depth: int = 0  # keyframes whose depth came from the stereo pair
     stereo_invalid: int = 0  # keyframes whose stereo pair could not give depth (unrectified..)

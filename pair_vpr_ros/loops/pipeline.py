@@ -49,7 +49,7 @@ from pair_vpr_ros.loops.map_search import MapSearch
 from pair_vpr_ros.loops.pipeline_maps import PipelineMaps
 from pair_vpr_ros.loops.recency import ClockWatch
 from pair_vpr_ros.loops.records import Candidate, LoopRecord, rerank_score
-from pair_vpr_ros.loops.scoring import dense_pair_scores, encode_for_map
+from pair_vpr_ros.loops.scoring import QueryDirections, dense_pair_scores, encode_for_map
 from pair_vpr_ros.loops.sequence import track_of
 from pair_vpr_ros.model import PairVPRModel, preprocess_batch
 from pair_vpr_ros.model.decoder import default_chunk
@@ -114,6 +114,7 @@ class LoopClosurePipeline(PipelineMaps):
     def _reset_tracking(self) -> None:
         self.maps.reset(self._place_map)
         self._clock.reset()
+        self.detector.reset_map()
         self._new_session()
 
     def _new_session(self) -> None:
@@ -286,22 +287,34 @@ class LoopClosurePipeline(PipelineMaps):
             timings["rerank"] = timings.get("rerank", 0.0) + (time.perf_counter() - t1) * 1e3
             return scores
 
+        directions = QueryDirections(self.model, dense)
+
+        def one_way(cands: list[Candidate], first: str) -> np.ndarray:  # the re-rank cascade
+            t1 = time.perf_counter()
+            logits = directions.logits(self.maps.dense(cands), first)
+            timings["rerank"] = timings.get("rerank", 0.0) + (time.perf_counter() - t1) * 1e3
+            return logits
+
         def verify(match: Candidate) -> tuple[int, float]:
             return self.geometry.verify(features, self._stored_features(match))
 
         # A back end compiled for a fixed chunk (OpenVINO) pads shorter calls: whole chunks.
         fixed = getattr(self.model, "chunk_size", None)
         step = fixed or self.rerank_chunk or default_chunk(torch.device(self.model.device))
+        cascade = self.config.rerank_cascade and QueryDirections.supported(self.model)
         records = []
         for candidates in groups:  # one group (all maps together) unless loop_per_map
             record = self.detector.decide(
-                frame.stamp, frame.frame_id, candidates, rerank, verify, step=step,
-                first=fixed or 1, query_identity=(who.robot, who.session),
-                track=track_of(candidates[0], per_map),
+                frame.stamp, frame.frame_id, candidates, rerank, verify,
+                step=(fixed or 1) if cascade else step, first=fixed or 1,
+                query_identity=(who.robot, who.session), track=track_of(candidates[0], per_map),
+                one_way=one_way if cascade else None,
             )  # fmt: skip
             if record is not None:
                 self.counts.candidates_scored += record.scored
-                self.counts.rerank_budget_cut += int(0 < record.scored < record.candidates)
+                self.counts.decoder_passes += self.detector.last_passes
+                self.counts.rerank_budget_cut += int(self.detector.last_cut)
+                self.counts.rerank_skipped += int(self.detector.last_skipped)
                 records.append(record)
         weight = self.config.global_weight
 

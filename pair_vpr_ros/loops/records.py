@@ -5,6 +5,7 @@ it was not: the CSV row and the topic layout), and the one order re-ranking sort
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
@@ -72,10 +73,23 @@ class Candidate:
     robot: str = ""  # who recorded it (identity.py)
     session: str = ""
     prior: int = -1  # -1: the live map; i >= 0: the pipeline's i-th prior map (read-only)
+    # The two directions' logits when the re-rank cascade scored them one at a time (NaN: not
+    # scored that way, or scored both at once by full scoring); pair_score is their sum, NaN
+    # until both are scored (`directions`)
+    logit_qc: float = float("nan")  # logit(query first, candidate second)
+    logit_cq: float = float("nan")  # logit(candidate first, query second)
 
     def rerank_score(self, global_weight: float = 0.0) -> float:
         """What re-ranking sorts by and the threshold compares (`DetectorConfig.global_weight`)."""
         return rerank_score(self.pair_score, self.global_similarity, global_weight)
+
+    @property
+    def directions(self) -> int:
+        """2: scored both ways (`pair_score`); 1: one way only (the cascade left it there); 0:
+        not scored."""
+        if math.isfinite(self.pair_score):
+            return 2
+        return int(math.isfinite(self.logit_qc)) + int(math.isfinite(self.logit_cq))
 
     @property
     def group(self) -> tuple[int, str, str]:
