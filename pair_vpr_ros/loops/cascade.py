@@ -10,7 +10,8 @@ similarity (w = `global_weight`):
 - not scored: the highest pair score seen so far (`CascadeStats.top`) + `spread`.
 It scores the global best both ways (so every record carries a full score), then, while some
 candidate's bound still reaches what it must beat, gives the one with the highest bound its next
-direction. A candidate must beat `score_threshold` and the best full score so far to become the
+direction (with `rerank_budget_ms`, the first direction of every such candidate before any
+second one: each gets a look before the budget runs out). A candidate must beat `score_threshold` and the best full score so far to become the
 loop; with `sequence_margin`, a candidate continuing the previous keyframe's loop must beat the
 margin's lower floor and the best full score among such candidates (sequence.py); nothing else
 decides (temporal consistency and verification look at the decided candidate only). When no
@@ -59,7 +60,7 @@ class CascadeStats:
             self.pairs += 1
             self.spread = max(self.spread, abs(cand.logit_qc - cand.logit_cq))
             self.top = max(self.top, cand.pair_score)
-        else:
+        elif cand.directions == 1 and math.isfinite(first_logit(cand)):
             self.top = max(self.top, 2 * first_logit(cand))
 
 
@@ -83,28 +84,33 @@ class Cascade:
 
     def upper(self, cand: Candidate, weight: float) -> float:
         """The highest re-rank score `cand` can have (module docstring)."""
-        if math.isfinite(cand.pair_score):
+        if cand.directions == 2:
             return cand.rerank_score(weight)
-        one = first_logit(cand)
-        pair = 2 * one if math.isfinite(one) else self.stats.top
-        return rerank_score(pair + self.stats.spread, cand.global_similarity, weight)
+        if cand.directions == 1:
+            pair = 2 * first_logit(cand) + self.stats.spread
+        else:
+            pair = self.stats.top
+        return rerank_score(pair, cand.global_similarity, weight)
 
-    def contenders(self, cands: Sequence[Candidate], goal: Goal) -> list[Candidate]:
-        """The candidates not yet scored both ways that can still change the decision, highest
-        bound first (ties: global order)."""
+    def contenders(
+        self, cands: Sequence[Candidate], goal: Goal, slack: float = 0.0
+    ) -> list[Candidate]:
+        """The candidates not yet scored both ways that can still change the decision (with
+        `slack`: that would, were their bound `slack` higher), highest bound first (ties:
+        global order)."""
         w = goal.weight
-        full = [c.rerank_score(w) for c in cands if math.isfinite(c.pair_score)]
+        full = [c.rerank_score(w) for c in cands if c.directions == 2]
         best = max(full, default=-math.inf)
         found = best >= goal.threshold  # a loop above the threshold: no sequence needed
         follow = [
-            c.rerank_score(w) for c in cands if math.isfinite(c.pair_score) and goal.continues(c)
+            c.rerank_score(w) for c in cands if c.directions == 2 and goal.continues(c)
         ]
         best_follow = max(follow, default=-math.inf)
         out = []
         for cand in cands:
-            if math.isfinite(cand.pair_score):
+            if cand.directions == 2:
                 continue
-            bound = self.upper(cand, w)
+            bound = self.upper(cand, w) + slack
             if bound >= max(goal.threshold, best):
                 out.append((bound, cand))
             elif (
@@ -132,10 +138,17 @@ class Cascade:
         run = CascadeRun(self, cands, one_way, budget_ms, clock)
         young = not self.stats.ready
         run.both(cands[: max(1, len(cands) if young else first)], step if young else None)
+        audited = False
         while not run.cut and not young:
             need = self.contenders(cands, goal)
+            if not need and not audited:  # the near miss the cap ruled out gets a look
+                audited = True
+                near = self.contenders(cands, goal, slack=self.stats.spread)
+                need = [c for c in near if c.directions == 0][:1]
             if not need:
                 break
+            if budget_ms > 0:  # a look at every contender before any second direction
+                need.sort(key=lambda c: c.directions)
             level = need[0].directions
             run.step([c for c in need if c.directions == level][:step], level)
         if run.cut:
@@ -169,6 +182,7 @@ class CascadeRun:
                 self.cut = True
                 return False
         logits = np.asarray(self.one_way(cands, FIRST if level == 0 else SECOND), dtype=float)
+        logits[~np.isfinite(logits)] = -math.inf  # a broken pass (NaN) never wins, never loops
         for cand, logit in zip(cands, logits, strict=True):
             if level == 0:
                 set_first_logit(cand, float(logit))

@@ -135,6 +135,7 @@ class LoopDetector:
         self.last_passes = 0  # decoder passes of the last `decide` (one direction of a pair: 1)
         self.last_cut = False  # the last `decide` stopped at rerank_budget_ms
         self.last_skipped = False  # the last `decide` skipped re-ranking (a global floor)
+        self.last_covered = False  # ... scored every candidate at least one way
 
     def reset(self) -> None:
         self._tracks.reset()
@@ -179,6 +180,7 @@ class LoopDetector:
         its own, `loop_per_map`; None: the one stream of decisions). `one_way`: one direction
         of a list of candidates ([k] logits), for `rerank_cascade` (None: full scoring)."""
         self.last_passes, self.last_cut, self.last_skipped = 0, False, False
+        self.last_covered = False
         record, match = self._decide(query_stamp, query_frame_id, candidates, rerank, verify,
                                      step, first, query_identity, track, one_way)  # fmt: skip
         accepted = record is not None and record.accepted
@@ -214,6 +216,7 @@ class LoopDetector:
             scored = self.score(candidates, rerank, step, first)
             self.last_passes = 2 * len(scored)
             self.last_cut = len(scored) < len(candidates)
+        self.last_covered = all(cand.directions > 0 for cand in candidates)
         best, rank = scored[0], 1
         below = best.rerank_score(c.global_weight) < c.score_threshold
         if below and (follower := self._tracks.follower(track, scored)) is not None:

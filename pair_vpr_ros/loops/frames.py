@@ -83,6 +83,7 @@ class PipelineCounts:
     decoder_passes: int = 0  # pair decoder runs: one direction of one pair each (full: 2 a pair)
     rerank_budget_cut: int = 0  # keyframes whose re-ranking stopped at rerank_budget_ms
     rerank_skipped: int = 0  # keyframes not re-ranked: best below global_floor / learned floor
+    rerank_covered: int = 0  # keyframes whose every candidate got at least one direction
     clock_jumps: int = 0  # stamps that went back by more than CLOCK_JUMP_S: new sessions
     stereo_depth: int = 0  # keyframes whose depth came from the stereo pair
     stereo_invalid: int = 0  # keyframes whose stereo pair could not give depth (unrectified..)

@@ -315,6 +315,7 @@ class LoopClosurePipeline(PipelineMaps):
                 self.counts.decoder_passes += self.detector.last_passes
                 self.counts.rerank_budget_cut += int(self.detector.last_cut)
                 self.counts.rerank_skipped += int(self.detector.last_skipped)
+                self.counts.rerank_covered += int(self.detector.last_covered)
                 records.append(record)
         weight = self.config.global_weight
 

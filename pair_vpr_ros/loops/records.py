@@ -87,9 +87,9 @@ class Candidate:
     def directions(self) -> int:
         """2: scored both ways (`pair_score`); 1: one way only (the cascade left it there); 0:
         not scored."""
-        if math.isfinite(self.pair_score):
+        if not math.isnan(self.pair_score):
             return 2
-        return int(math.isfinite(self.logit_qc)) + int(math.isfinite(self.logit_cq))
+        return int(not math.isnan(self.logit_qc)) + int(not math.isnan(self.logit_cq))
 
     @property
     def group(self) -> tuple[int, str, str]:

@@ -182,6 +182,7 @@ def diagnostic_values(
         "decoder_passes": live.counts.decoder_passes,  # one direction of one pair each
         "rerank_budget_cut": live.counts.rerank_budget_cut,
         "rerank_skipped": live.counts.rerank_skipped,  # below global_floor / the learned floor
+        "rerank_covered": live.counts.rerank_covered,  # every candidate scored one way at least
         "map_searches_skipped": live.counts.map_searches_skipped,  # index milvus unreachable
         "map_keyframes_pending": live.counts.map_keyframes_pending,
         "camera_info_invalid": c.camera_info_invalid,

@@ -187,3 +187,13 @@ def test_the_learned_floor_skips_nothing_while_the_map_is_young(monkeypatch):
         assert det.decide(6.0, "cam", cands([0.6]), scorer.both, one_way=scorer).scored == 1
     det.reset_map()  # a new, loaded or cleared map is young again
     assert det.floor.value() is None and det.floor.loops == 0
+
+
+def test_a_broken_pass_never_wins_and_never_hangs():
+    """A model that returns NaN (damaged weights): the pass counts as scored, at -inf."""
+    scorer = Logits([float("nan")] * 3, [float("nan")] * 3)
+    det = detector(ready(1.0, 5.0), score_threshold=-100.0)
+    candidates = cands([0.9, 0.8, 0.7])
+    record = det.decide(1.0, "cam", candidates, scorer.both, one_way=scorer)
+    assert record.accepted is False and record.pair_score == -math.inf
+    assert all(c.directions > 0 for c in candidates) and det.cascade.stats.pairs == MIN_PAIRS
