@@ -42,6 +42,7 @@ import yaml
 
 from pair_vpr_ros.demo import make_bag
 from pair_vpr_ros.loops import cascade
+from pair_vpr_ros.loops.records import rerank_score
 from pair_vpr_ros.offline.replay import cli as replay_cli
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -81,8 +82,15 @@ def replay(bag: Path, out: Path, top_k: int, variant: tuple[bool, bool, str]) ->
         raise SystemExit(f"error: the replay of {bag} failed (status {status}), see {out}")
     records = json.loads((out / "replay" / "loops.json").read_text())
     summary = json.loads((out / "replay" / "summary.json").read_text())
-    ev = summary["evaluation"]
+    ev, c = summary["evaluation"], summary["config"]
     return {
+        "above": {  # records at or above the threshold: what the PR curve there is made of
+            r["query_stamp"]: (r["match_id"], r["pair_score"])
+            for r in records
+            if r["pair_score"] is not None
+            and rerank_score(r["pair_score"], r["global_similarity"], c["global_weight"])
+            >= c["score_threshold"]
+        },
         "seconds": time.perf_counter() - t0,
         "accepted": {r["query_stamp"]: r["match_id"] if r["accepted"] else None for r in records},
         "skipped": {r["query_stamp"] for r in records if r["reason"].startswith("below learned")},
@@ -100,7 +108,15 @@ def compare(full: dict, run: dict) -> dict:
     same = sum(full["accepted"].get(q) == run["accepted"].get(q) for q in queries)
     lost = [q for q in run["skipped"] if full["accepted"].get(q) is not None]
     passes, base = run["counts"]["decoder_passes"], full["counts"]["decoder_passes"]
+    above = set(full["above"]) | set(run["above"])
+    same_above = sum(
+        q in full["above"] and q in run["above"] and full["above"][q][0] == run["above"][q][0]
+        and abs(full["above"][q][1] - run["above"][q][1]) < 1e-3
+        for q in above
+    )  # fmt: skip
     return {
+        "above_threshold": len(above),
+        "above_threshold_same": same_above,
         "keyframes": len(queries),
         "passes": passes,
         "passes_ratio": passes / base if base else None,
@@ -117,8 +133,9 @@ def decisions(args: argparse.Namespace) -> dict:
     rows = {}
     for seed in args.seeds:
         bag = world_bag(args.work_dir, seed)
-        runs = {name: replay(bag, args.work_dir / f"s{seed}-{i}", args.top_k, variant)
-                for i, (name, variant) in enumerate(VARIANTS.items())}  # fmt: skip
+        names = ["full", *(n for n in args.variants if n != "full")]
+        runs = {name: replay(bag, args.work_dir / f"s{seed}-{i}", args.top_k, VARIANTS[name])
+                for i, name in enumerate(names)}  # fmt: skip
         rows[seed] = {name: compare(runs["full"], run) for name, run in runs.items()}
         print_world(seed, rows[seed])
     return rows
@@ -127,19 +144,23 @@ def decisions(args: argparse.Namespace) -> dict:
 def print_world(seed: int, rows: dict) -> None:
     print(f"\nseed {seed}{' (demo)' if seed == 7 else ' (validation)'}:")
     print("| run | passes (x full) | per keyframe | same (query, match) | loops | precision | "
-          "recall | re-ranked AP | floor skipped (full's loops among them) |")  # fmt: skip
-    print("|---" * 9 + "|")
+          "recall | re-ranked AP | records >= threshold the same | floor skipped (full's "
+          "loops among them) |")  # fmt: skip
+    print("|---" * 10 + "|")
     for name, r in rows.items():
         print(f"| {name} | {r['passes']:,} ({r['passes_ratio']:.3f}) | "
               f"{r['passes_per_keyframe']:.2f} | {r['same_decision']:.4f} | {r['loops']} | "
               f"{r['precision']:.3f} | {r['recall']:.3f} | {r['ap']:.4f} | "
+              f"{r['above_threshold_same']} of {r['above_threshold']} | "
               f"{r['floor_skipped']} ({r['floor_skipped_full_loops']}) |", flush=True)  # fmt: skip
         if r["differ"] and name != "full":
             print(f"  differing keyframes (stamps): {', '.join(f'{q:.2f}' for q in r['differ'])}")
 
 
 def vitb_costs(args: argparse.Namespace) -> dict:
-    """ms per decoder pass of each re-rank graph, ViT-B/322 random weights, OpenVINO int8."""
+    """ms per decoder pass of each re-rank graph, ViT-B/322 random weights, OpenVINO int8: every
+    chunk size's model built (or read from the cache) first, then timed in turn, round by
+    round, so that the machine's load falls on all of them alike."""
     from pair_vpr_ros.model import ModelConfig, build_pairvpr, save_pairvpr
     from pair_vpr_ros.model.openvino_backend import OpenVINOModel
     from pair_vpr_ros.weights import load_model
@@ -147,25 +168,36 @@ def vitb_costs(args: argparse.Namespace) -> dict:
     checkpoint = args.work_dir / "vitb-random.pth"
     if not checkpoint.exists():
         save_pairvpr(build_pairvpr(ModelConfig(), seed=0), checkpoint)
-    out = {}
+    out, fns = {}, {}
     for chunk in args.chunks:
         t0 = time.perf_counter()
         model = OpenVINOModel(load_model(str(checkpoint)), "int8", chunk=chunk,
                               cache_dir=args.work_dir / "ovcache")  # fmt: skip
         out[chunk] = {"start_s": time.perf_counter() - t0, "from_cache": model.from_cache}
-        out[chunk].update(time_graphs(model, chunk, args.repeat))
-        per = out[chunk]["ms_per_pass"]
+        fns[chunk], out[chunk]["one_way_sum_vs_both_max_abs"] = graph_calls(model, chunk)
+    times = {(chunk, name): [] for chunk in fns for name in fns[chunk]}
+    for _ in range(args.repeat):
+        for chunk, calls in fns.items():
+            for name, (fn, _) in calls.items():
+                t = time.perf_counter()
+                fn()
+                times[chunk, name].append((time.perf_counter() - t) * 1e3)
+    for chunk, calls in fns.items():
+        per = {name: float(np.median(times[chunk, name])) / n for name, (_, n) in calls.items()}
+        out[chunk]["ms_per_pass"] = per
         print(
             f"chunk {chunk}: ms per pass {json.dumps({k: round(v, 1) for k, v in per.items()})}"
-            f" (start {out[chunk]['start_s']:.0f} s, cache {model.from_cache}); one-way sum "
-            f"vs both: max |d| {out[chunk]['one_way_sum_vs_both_max_abs']:.2e}",
+            f" (start {out[chunk]['start_s']:.0f} s, cache {out[chunk]['from_cache']}); one-way "
+            f"sum vs both: max |d| {out[chunk]['one_way_sum_vs_both_max_abs']:.2e}",
             flush=True,
         )
     return out
 
 
-def time_graphs(model, chunk: int, repeat: int) -> dict:
-    """Median ms per decoder pass of each re-rank graph (the query side: per query), in turn."""
+def graph_calls(model, chunk: int) -> tuple[dict, float]:
+    """{graph: (call, decoder passes it runs)} on random tokens (the query side: per query,
+    counted once), after one warm-up call each; and the largest difference between the sum of
+    the one-direction graphs and the two-direction graph on them."""
     import torch
 
     g = torch.Generator().manual_seed(0)
@@ -178,39 +210,50 @@ def time_graphs(model, chunk: int, repeat: int) -> dict:
         "query first": (lambda: scorer.logits(c, "query"), chunk),
         "candidate first": (lambda: scorer.logits(c, "candidate"), chunk),
     }
-    times = {name: [] for name in fns}
     for fn, _ in fns.values():
         fn()
-    for _ in range(repeat):
-        for name, (fn, _) in fns.items():
-            t = time.perf_counter()
-            fn()
-            times[name].append((time.perf_counter() - t) * 1e3)
     both = scorer.logits(c, "query") + scorer.logits(c, "candidate")
-    return {
-        "ms_per_pass": {name: float(np.median(times[name])) / n for name, (_, n) in fns.items()},
-        "one_way_sum_vs_both_max_abs": float((both - scorer.scores(c)).abs().max()),
-    }
+    return fns, float((both - scorer.scores(c)).abs().max())
 
 
 def within_budget(costs: dict, budget_ms: float, top_k: int) -> dict:
-    """Candidates with at least one direction scored within `budget_ms` (the first step always
-    runs, then whole chunks while they fit), full scoring against the cascade (the first chunk
-    both ways, then the first direction of the others), from the measured costs."""
+    """Candidates scored within `budget_ms` at these costs, by the detector's budget rule (the
+    first step always runs; then a step while the time spent plus its predicted cost, this
+    keyframe's mean per pass so far, fits): full scoring (`chunk` candidates both ways a step)
+    against the cascade with every candidate a contender (random weights: all near-ties), the
+    first chunk both ways, then one direction a chunk at a time."""
     out = {}
     for chunk, c in costs.items():
-        both = 2 * chunk * c["ms_per_pass"]["both"]
-        one = chunk * c["ms_per_pass"]["candidate first"]
-        q = c["ms_per_pass"]["query side"]
-        full = chunk * (1 + max(0, int((budget_ms - q - both) // both)))
-        cas = chunk + chunk * max(0, int((budget_ms - q - 2 * one) // one))
-        out[chunk] = {"full": min(full, top_k), "cascade": min(cas, top_k)}
+        ms = c["ms_per_pass"]
+        full = budget_steps([2 * chunk * ms["both"]] * -(-top_k // chunk), ms["query side"],
+                            [2 * chunk] * top_k, budget_ms, 1)  # fmt: skip
+        one = chunk * ms["candidate first"]
+        steps = [one, one] + [one] * -(-(top_k - chunk) // chunk)
+        cascade = budget_steps(steps, ms["query side"], [chunk] * len(steps), budget_ms, 2)
+        out[chunk] = {
+            "full_scored": min(top_k, chunk * full),
+            "cascade_one_way_at_least": min(top_k, chunk * (cascade - 1)),
+        }
         print(
-            f"chunk {chunk}, {budget_ms:g} ms: candidates with a score, full "
-            f"{out[chunk]['full']}, cascade (one direction at least) {out[chunk]['cascade']} "
-            f"of {top_k}"
+            f"chunk {chunk}, {budget_ms:g} ms: full scoring scores {out[chunk]['full_scored']} "
+            f"of {top_k}; the cascade gives {out[chunk]['cascade_one_way_at_least']} at least "
+            f"one direction",
+            flush=True,
         )
     return out
+
+
+def budget_steps(
+    step_ms: list[float], start_ms: float, passes: list[int], budget: float, always: int
+) -> int:
+    """How many of the steps (each `step_ms`, `passes` passes; the first `always` run
+    unchecked) run within `budget`."""
+    spent, done = start_ms, 0
+    for i, cost in enumerate(step_ms):
+        if i >= always and spent + spent / sum(passes[:i]) * passes[i] > budget:
+            break
+        spent, done = spent + cost, i + 1
+    return done
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -218,6 +261,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work-dir", type=Path, required=True, help="bags, runs and the cache")
     p.add_argument("--seeds", type=int, nargs="*", default=[7, 8, 9], help="worlds (7 8 9)")
     p.add_argument("--top-k", type=int, default=10, help="candidates per keyframe (10)")
+    p.add_argument(
+        "--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS),
+        help="runs against full scoring (default: all)",
+    )  # fmt: skip
     p.add_argument("--vitb", action="store_true", help="also part 2: ViT-B OpenVINO int8 cost")
     p.add_argument("--chunks", type=int, nargs="+", default=[2], help="re-rank chunk sizes")
     p.add_argument("--budget-ms", type=float, default=800.0, help="part 2's budget (800)")

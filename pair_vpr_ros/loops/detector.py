@@ -202,6 +202,8 @@ class LoopDetector:
         best_global = candidates[0]
         floor, reason = c.global_floor, "below global floor"
         learned = self.floor.value() if c.rerank_cascade and c.learned_floor else None
+        if self._tracks.follow_goal(track)[0] is not None:
+            learned = None  # a keyframe that may continue the last loop is always re-ranked
         if learned is not None and learned > floor:
             floor, reason = learned, f"below learned global floor ({learned:.3f})"
         if best_global.global_similarity < floor:

@@ -5,7 +5,9 @@ Accepted loops tell what a revisit looks like to the global descriptor: the simi
 keyframe's best global candidate. The floor is the `QUANTILE` of the last `WINDOW` of them less
 `MARGIN` (cosine); a keyframe below it cannot be a loop in all likelihood, and its 2K decoder
 passes are saved. Young: while fewer than `MIN_LOOPS` loops were accepted since the map was
-made, loaded or cleared, there is no floor and nothing is skipped. The benchmark
+made, loaded or cleared, there is no floor and nothing is skipped. Nor is a keyframe that may
+continue the previous keyframe's loop (`sequence_margin`): the views between two confident
+matches are the low-similarity revisits the margin is for. The benchmark
 (benchmarks/bench_rerank_budget.py) counts the keyframes skipped and the loops that cost.
 """
 

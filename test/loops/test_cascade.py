@@ -197,3 +197,13 @@ def test_a_broken_pass_never_wins_and_never_hangs():
     record = det.decide(1.0, "cam", candidates, scorer.both, one_way=scorer)
     assert record.accepted is False and record.pair_score == -math.inf
     assert all(c.directions > 0 for c in candidates) and det.cascade.stats.pairs == MIN_PAIRS
+
+
+def test_the_learned_floor_never_skips_a_keyframe_that_may_continue_the_loop(monkeypatch):
+    monkeypatch.setattr(floor_module, "MIN_LOOPS", 1)
+    det = detector(ready(1.0, 5.0), score_threshold=0.0, sequence_margin=5.0)
+    scorer = Logits([2.0, 2.0], [2.0, 2.0])
+    det.decide(0.0, "cam", cands([0.9, 0.1]), scorer.both, one_way=scorer)  # loop to id 100
+    assert det.floor.value() == pytest.approx(0.85)
+    record = det.decide(1.0, "cam", cands([0.5, 0.4]), scorer.both, one_way=scorer)
+    assert record.scored > 0 and not det.last_skipped  # below the floor, yet re-ranked
