@@ -1,27 +1,32 @@
 """The re-rank cascade (`DetectorConfig.rerank_cascade`): decoder passes spent where a decision
-is made, the decision the same as scoring every candidate both ways.
+is made, the decision the same as scoring every candidate both ways where the bounds hold.
 
 Full scoring runs 2K decoder passes a keyframe (one pass = one direction of one pair). The
 cascade keeps, for every candidate, an upper bound on its re-rank score, pair score + w x global
 similarity (w = `global_weight`):
-- scored both ways: the score itself, logit(q,c) + logit(c,q) as full scoring computes it;
+- scored both ways: the score itself, logit(q,c) + logit(c,q) from the same block code as full
+  scoring's (equal to float rounding; OpenVINO int8: to its quantization, docs/performance.md);
 - scored one way (`FIRST`): twice that logit + the largest disagreement between the two
   directions seen so far (`CascadeStats.spread`);
-- not scored: the highest pair score seen so far (`CascadeStats.top`) + `spread`.
+- not scored: the highest pair score seen so far (`CascadeStats.top`).
 It scores the global best both ways (so every record carries a full score), then, while some
-candidate's bound still reaches what it must beat, gives the one with the highest bound its next
-direction (with `rerank_budget_ms`, the first direction of every such candidate before any
-second one: each gets a look before the budget runs out). A candidate must beat `score_threshold` and the best full score so far to become the
-loop; with `sequence_margin`, a candidate continuing the previous keyframe's loop must beat the
-margin's lower floor and the best full score among such candidates (sequence.py); nothing else
-decides (temporal consistency and verification look at the decided candidate only). When no
-bound reaches, the best full score is full scoring's decision, as long as the bounds hold:
-they are learned, not proven, so the benchmark counts where decisions differ
-(benchmarks/bench_rerank_budget.py).
+candidate's bound still reaches what it must beat, gives the one with the highest bound its
+next direction (with `rerank_budget_ms`: the first direction of every such candidate before
+any second one, so that each gets a look before the budget runs out). A candidate must beat
+`score_threshold` and the best full score so far to become the loop; with `sequence_margin`, a
+candidate continuing the previous keyframe's loop must beat the margin's lower floor and the
+best full score among such candidates (sequence.py); nothing else decides (temporal
+consistency and verification look at the decided candidate only). When no bound reaches, the
+near miss the `top` bound ruled out (the highest bound within `spread` of what it must beat)
+gets one direction: `top` is learned from what was scored, and at the first revisits of a
+drive it still holds only the scores of new ground (on the demo world this audit removed the
+two decisions that differed). Then the best full score is full scoring's decision, as long as
+the bounds hold: they are learned, not proven, so benchmarks/bench_rerank_budget.py counts the
+decisions that differ.
 
-Young: until `MIN_PAIRS` pairs were scored both ways the bounds are unknown, and every
+Young: until `MIN_PAIRS` pairs were scored both ways the bounds are unknown and every
 candidate is scored both ways (in global order), one direction at a time, as the statistics
-need. With `rerank_budget_ms` the cascade stops where full scoring would, then scores the second
+need. With a budget the cascade stops where full scoring would, then scores the second
 direction of the best one-way candidate if its estimate beats every full score (one step over).
 """
 
@@ -36,7 +41,11 @@ import numpy as np
 
 from pair_vpr_ros.loops.records import Candidate, rerank_score
 
-FIRST, SECOND = "candidate", "query"  # which image the decoder reads first in each step
+# Which image the decoder reads first in the first step and the second: the query first, as
+# both order the same (passes 0.497 / 0.541 / 0.479 of full scoring on seeds 7 / 8 / 9, candidate
+# first 0.473 / 0.541 / 0.497) and its pass costs 3-7 % less with ViT-B on OpenVINO int8 (it
+# reuses the query's block-0 self-attention; docs/performance.md)
+FIRST, SECOND = "query", "candidate"
 MIN_PAIRS = 64  # pairs scored both ways before the bounds are trusted
 
 OneWay = Callable[[list[Candidate], str], np.ndarray]  # (candidates, first image) -> logits [k]
@@ -102,9 +111,7 @@ class Cascade:
         full = [c.rerank_score(w) for c in cands if c.directions == 2]
         best = max(full, default=-math.inf)
         found = best >= goal.threshold  # a loop above the threshold: no sequence needed
-        follow = [
-            c.rerank_score(w) for c in cands if c.directions == 2 and goal.continues(c)
-        ]
+        follow = [c.rerank_score(w) for c in cands if c.directions == 2 and goal.continues(c)]
         best_follow = max(follow, default=-math.inf)
         out = []
         for cand in cands:

@@ -304,9 +304,9 @@ class LoopClosurePipeline(PipelineMaps):
         cascade = self.config.rerank_cascade and QueryDirections.supported(self.model)
         records = []
         for candidates in groups:  # one group (all maps together) unless loop_per_map
-            record = self.detector.decide(
+            record = self.detector.decide(  # the cascade: a candidate and a direction a step
                 frame.stamp, frame.frame_id, candidates, rerank, verify,
-                step=(fixed or 1) if cascade else step, first=fixed or 1,
+                step=1 if cascade else step, first=1 if cascade else fixed or 1,
                 query_identity=(who.robot, who.session), track=track_of(candidates[0], per_map),
                 one_way=one_way if cascade else None,
             )  # fmt: skip

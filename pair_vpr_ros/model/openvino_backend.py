@@ -28,7 +28,13 @@ from torch import Tensor
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.model.calibration import CALIBRATION_IMAGES, synthetic_calibration
 from pair_vpr_ros.model.config import ModelConfig
-from pair_vpr_ros.model.export import ONE_WAY, Graphs, example_inputs, export_graphs
+from pair_vpr_ros.model.export import (
+    ONE_WAY,
+    ONE_WAY_CHUNK,
+    Graphs,
+    example_inputs,
+    export_graphs,
+)
 from pair_vpr_ros.model.network import PairVPR, fingerprint
 from pair_vpr_ros.model.openvino_cache import CacheEntry, entry_parts, shared_core
 
@@ -173,15 +179,17 @@ class OpenVINOModel:
         return OpenVINOQueryScorer(self, self._run("query", query.float()))
 
     def run_chunks(self, name: str, query_side: list[Tensor], cands: Tensor) -> Tensor:
-        """The chunk graph `name` over cands [K,N,D], `chunk_size` at a time -> [K]."""
+        """The chunk graph `name` over cands [K,N,D], as many at a time as it was compiled for
+        (`chunk_size`; the one-direction graphs `ONE_WAY_CHUNK`) -> [K]."""
+        size = ONE_WAY_CHUNK if name in ONE_WAY else self.chunk_size
         out = []
-        for i in range(0, cands.shape[0], self.chunk_size):
-            part = cands[i : i + self.chunk_size].float()
-            short = self.chunk_size - part.shape[0]
+        for i in range(0, cands.shape[0], size):
+            part = cands[i : i + size].float()
+            short = size - part.shape[0]
             if short:  # pad with copies of the last candidate; their scores are dropped
                 part = torch.cat([part, part[-1:].expand(short, -1, -1)])
             scores = self._run(name, *query_side, part)[0]
-            out.append(scores[: self.chunk_size - short])
+            out.append(scores[: size - short])
         return torch.cat(out) if out else torch.zeros(0)
 
     def _run(self, name: str, *inputs: Tensor) -> list[Tensor]:
@@ -248,7 +256,7 @@ def quantize(converted: dict, model: PairVPR, images: Tensor, chunk: int) -> dic
     samples["chunk"] = pairs
     for name, (_, inputs) in ONE_WAY.items():  # the same pairs, the inputs each graph takes
         if name in converted:
-            samples[name] = [(*(p[i] for i in inputs), p[3]) for p in pairs]
+            samples[name] = [(*(p[i] for i in inputs), p[3][:ONE_WAY_CHUNK]) for p in pairs]
     out = dict(converted)
     for name, data in samples.items():
         out[name] = nncf.quantize(

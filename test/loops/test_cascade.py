@@ -53,8 +53,8 @@ def test_a_young_cascade_scores_every_candidate_both_ways_in_global_order():
     scorer = Logits([1.0, 4.0, 2.0], [1.5, 3.0, 2.5])
     det = detector(score_threshold=5.0)
     record = det.decide(1.0, "cam", cands([0.9, 0.8, 0.7]), scorer.both, step=1, one_way=scorer)
-    assert scorer.calls == [("candidate", [1]), ("query", [1]), ("candidate", [2]),
-                            ("query", [2]), ("candidate", [3]), ("query", [3])]  # fmt: skip
+    assert scorer.calls == [("query", [1]), ("candidate", [1]), ("query", [2]),
+                            ("candidate", [2]), ("query", [3]), ("candidate", [3])]  # fmt: skip
     assert (record.match_id, record.pair_score, record.accepted) == (101, 7.0, True)
     assert (record.scored, det.last_passes) == (3, 6)
     assert det.cascade.stats.pairs == 3 and det.cascade.stats.spread == 1.0
@@ -63,7 +63,7 @@ def test_a_young_cascade_scores_every_candidate_both_ways_in_global_order():
 def test_the_second_direction_only_where_it_can_change_the_decision():
     # weight 10: re-rank score = pair + 10 x similarity. Bounds: spread 1, top 8.
     sims = [0.9, 0.85, 0.5, 0.2]
-    qc, cq = [3.0, 2.5, 4.0, 3.5], [3.5, 3.0, 0.5, 3.0]
+    qc, cq = [3.5, 3.0, 0.5, 3.0], [3.0, 2.5, 4.0, 3.5]  # the query first: qc first
     scorer = Logits(qc, cq)
     det = detector(ready(1.0, 8.0), score_threshold=10.0, global_weight=10.0)
     candidates = cands(sims)
@@ -71,23 +71,23 @@ def test_the_second_direction_only_where_it_can_change_the_decision():
     # global best both ways: 6.5 + 9 = 15.5. Candidate 2, unscored: 8 + 1 + 8.5 = 17.5 ->
     # one way (3.0): 6 + 1 + 8.5 = 15.5 >= 15.5 -> second way: 5.5 + 8.5 = 14. Candidate 3,
     # unscored 9 + 5 = 14 < 15.5; candidate 4: 9 + 2 = 11: never scored.
-    assert scorer.calls == [("candidate", [1]), ("query", [1]), ("candidate", [2]),
-                            ("query", [2])]  # fmt: skip
+    assert scorer.calls == [("query", [1]), ("candidate", [1]), ("query", [2]),
+                            ("candidate", [2])]  # fmt: skip
     assert (record.match_id, record.pair_score, record.accepted) == (100, 6.5, True)
     assert (record.scored, det.last_passes) == (2, 4)
     assert [c.directions for c in candidates] == [2, 2, 0, 0]
-    assert math.isnan(candidates[2].pair_score) and math.isnan(candidates[2].logit_cq)
-    assert (candidates[1].logit_qc, candidates[1].logit_cq) == (2.5, 3.0)
+    assert math.isnan(candidates[2].pair_score) and math.isnan(candidates[2].logit_qc)
+    assert (candidates[1].logit_qc, candidates[1].logit_cq) == (3.0, 2.5)
 
 
 def test_a_candidate_left_one_way_says_so():
-    scorer = Logits([3.0, -9.0], [3.0, -8.0])
+    scorer = Logits([3.0, -8.0], [3.0, -9.0])
     det = detector(ready(1.0, 6.0), score_threshold=0.0)
     candidates = cands([0.9, 0.89])
     det.decide(1.0, "cam", candidates, scorer.both, one_way=scorer)
     # candidate 2: unscored bound 7 >= 6 -> one way: -16 + 1 < 6: stops there
     assert [c.directions for c in candidates] == [2, 1]
-    assert candidates[1].logit_cq == -8.0 and math.isnan(candidates[1].logit_qc)
+    assert candidates[1].logit_qc == -8.0 and math.isnan(candidates[1].logit_cq)
     assert math.isnan(candidates[1].pair_score) and det.last_passes == 3
 
 
@@ -121,13 +121,13 @@ def test_the_budget_stops_the_cascade_and_settles_the_best_one_way_candidate():
     # 30 ms a pass, 100 ms: the global best (2 passes, 60 ms), one more first direction
     # (90 ms); the next (120 ms) would overrun. Then the one-way candidate whose estimate
     # (2 x 5 = 10) beats the best full score (2) gets its second direction.
-    scorer = Logits([1.0, 0.0, 5.0, 0.0], [1.0, 5.0, 0.0, 5.0], ms=30.0)
+    scorer = Logits([1.0, 5.0, 0.0, 5.0], [1.0, 0.0, 5.0, 0.0], ms=30.0)
     det = detector(ready(3.0, 12.0), score_threshold=0.0, rerank_budget_ms=100.0)
     det.clock = lambda: scorer.now
     candidates = cands([0.5] * 4)
     record = det.decide(1.0, "cam", candidates, scorer.both, step=1, one_way=scorer)
-    assert scorer.calls == [("candidate", [1]), ("query", [1]), ("candidate", [2]),
-                            ("query", [2])]  # fmt: skip
+    assert scorer.calls == [("query", [1]), ("candidate", [1]), ("query", [2]),
+                            ("candidate", [2])]  # fmt: skip
     assert det.last_cut and det.last_passes == 4
     assert (record.match_id, record.pair_score, record.scored) == (101, 5.0, 2)
 
