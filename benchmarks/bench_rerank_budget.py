@@ -278,18 +278,17 @@ def within_budget(costs: dict, budget_ms: float, top_k: int) -> dict:
     first step always runs; then a step while the time spent plus its predicted cost, this
     keyframe's mean per pass so far, fits): full scoring (`chunk` candidates both ways a step)
     against the cascade with every candidate a contender (random weights: all near-ties), the
-    first chunk both ways, then one direction a chunk at a time."""
+    global best both ways, then one direction of one candidate a step (query first)."""
     out = {}
     for chunk, c in costs.items():
         ms = c["ms_per_pass"]
         full = budget_steps([2 * chunk * ms["both"]] * -(-top_k // chunk), ms["query side"],
                             [2 * chunk] * top_k, budget_ms, 1)  # fmt: skip
-        one = chunk * ms["candidate first"]
-        steps = [one, one] + [one] * -(-(top_k - chunk) // chunk)
-        cascade = budget_steps(steps, ms["query side"], [chunk] * len(steps), budget_ms, 2)
+        steps = [ms["query first"]] * (top_k + 1)
+        cascade = budget_steps(steps, ms["query side"], [1] * len(steps), budget_ms, 2)
         out[chunk] = {
             "full_scored": min(top_k, chunk * full),
-            "cascade_one_way_at_least": min(top_k, chunk * (cascade - 1)),
+            "cascade_one_way_at_least": min(top_k, cascade - 1),
         }
         print(
             f"chunk {chunk}, {budget_ms:g} ms: full scoring scores {out[chunk]['full_scored']} "

@@ -256,7 +256,11 @@ def quantize(converted: dict, model: PairVPR, images: Tensor, chunk: int) -> dic
     samples["chunk"] = pairs
     for name, (_, inputs) in ONE_WAY.items():  # the same pairs, the inputs each graph takes
         if name in converted:
-            samples[name] = [(*(p[i] for i in inputs), p[3][:ONE_WAY_CHUNK]) for p in pairs]
+            samples[name] = [
+                (*(p[i] for i in inputs), p[3][j : j + ONE_WAY_CHUNK])
+                for p in pairs
+                for j in range(0, len(p[3]), ONE_WAY_CHUNK)
+            ]
     out = dict(converted)
     for name, data in samples.items():
         out[name] = nncf.quantize(
