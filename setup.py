@@ -35,6 +35,8 @@ setup(
         "tqdm>=4.60",
         "matplotlib>=3.7",
         "pyyaml>=5.4",
+        # the pose estimation core (geometry/solvers.py): minimal solvers, LO-RANSAC, refinement
+        "poselib==2.0.5",
     ],
     extras_require={
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],

@@ -11,8 +11,11 @@ node's (a real ViT-B adds the same encode time to both runs).
 
 A camera thread sends a frame every `--period-ms` for `--seconds`; each frame's latency is from
 its send to its outcome. The run with autosave saves every `--autosave-s` seconds (the
-`autosave_period` parameter). Prints p50 / p95 / max of both runs and p95 with / without
-(issue 34's target: <= 1.2 at >= 5k keyframes).
+`autosave_period` parameter); the run without saves once at its end (the node's
+save_on_shutdown). Prints p50 / p95 / max of both runs and p95 with / without (issue 34's
+target: <= 1.2 at >= 5k keyframes), and the disk the open map takes (issue 48): the store's
+write-ahead log (`-wal`) at its largest and at the end, and the folder's bytes per keyframe
+open (with the -wal) and closed (folded in).
 
     python benchmarks/bench_autosave_latency.py --keyframes 5000 --work-dir /var/tmp/bench
 """
@@ -30,8 +33,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import torch
-from bench_map_growth import DIM, SHAPE, Keyframes, work_folder
+from bench_map_growth import DIM, SHAPE, Keyframes, folder_bytes, work_folder
 
+from pair_vpr_ros.geometry.features import unpack_features
 from pair_vpr_ros.geometry.keyframes import GeometryConfig
 from pair_vpr_ros.loops.detector import DetectorConfig
 from pair_vpr_ros.loops.frames import Frame
@@ -72,11 +76,21 @@ def build(d: Path, n: int) -> None:
         m.save(d)
 
 
-def run(d: Path, seconds: float, period_s: float, autosave_s: float) -> dict:
-    """Frames through MapControl for `seconds` -> latency figures (ms) and saves done."""
+def shaped(features: bool) -> ShapedPipeline:
+    """The pipeline of a run; `features`: each keyframe stores 1000 SIFT keypoints with depth
+    (`Keyframes`' packed form, as a node with relative poses stores), not extracted."""
     config = DetectorConfig(exclude_recent_s=0.0)  # top_k 10, as the node
-    geometry = GeometryConfig(relative_pose=False)
-    maps = MapControl(lambda: ShapedPipeline(fake_model(), config, geometry=geometry),
+    pipe = ShapedPipeline(fake_model(), config, geometry=GeometryConfig(relative_pose=False))
+    if features:
+        stored = unpack_features(Keyframes(0).features[0])
+        pipe.geometry.wanted = lambda verification: True
+        pipe.geometry.extract = lambda *args, **kwargs: stored
+    return pipe
+
+
+def run(d: Path, seconds: float, period_s: float, autosave_s: float, features: bool) -> dict:
+    """Frames through MapControl for `seconds` -> latency figures (ms) and saves done."""
+    maps = MapControl(lambda: shaped(features),
                       lambda level, text: print(f"[{level}] {text}", file=sys.stderr))  # fmt: skip
     ok, text = maps.load(str(d))
     assert ok, text
@@ -92,7 +106,7 @@ def run(d: Path, seconds: float, period_s: float, autosave_s: float) -> dict:
     saver = threading.Thread(target=autosave, daemon=True)
     if autosave_s > 0:
         saver.start()
-    rgb, latency = np.zeros((32, 32, 3), np.uint8), []
+    rgb, latency, wal = np.zeros((32, 32, 3), np.uint8), [], [0]
     start = time.perf_counter()
     for i in range(int(seconds / period_s)):
         due = start + i * period_s
@@ -100,14 +114,31 @@ def run(d: Path, seconds: float, period_s: float, autosave_s: float) -> dict:
         sent = time.perf_counter()
         maps.process(Frame(stamp=2e9 + i * period_s, rgb=rgb))
         latency.append(time.perf_counter() - sent)
+        wal.append(wal_bytes(d))
     stop.set()
     if saver.is_alive():
         saver.join()
+    if autosave_s <= 0:
+        maps.save(str(d))  # save_on_shutdown
+    keyframes = maps.size()
+    wal.append(wal_bytes(d))
+    open_bytes = folder_bytes(d)
     maps.close()
     ms = np.array(latency) * 1e3
     return {"frames": len(ms), "p50_ms": float(np.percentile(ms, 50)),
             "p95_ms": float(np.percentile(ms, 95)), "max_ms": float(ms.max()),
-            "saves": len(saves), "save_s": [round(s, 2) for s in saves]}  # fmt: skip
+            "saves": len(saves), "save_s": [round(s, 2) for s in saves],
+            "keyframes": keyframes, "wal_max_mb": max(wal) / 1e6, "wal_end_mb": wal[-1] / 1e6,
+            "open_kb_per_keyframe": open_bytes / keyframes / 1e3,
+            "closed_kb_per_keyframe": folder_bytes(d) / keyframes / 1e3}  # fmt: skip
+
+
+def wal_bytes(d: Path) -> int:
+    """Bytes of the store's -wal (0 while there is none)."""
+    try:
+        return sum(p.stat().st_size for p in d.glob("map-*.sqlite-wal"))
+    except FileNotFoundError:  # folded in and removed meanwhile
+        return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -118,6 +149,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--autosave-s", type=float, default=10.0, help="autosave_period")
     parser.add_argument("--work-dir", type=Path, default=None,
                         help="where the map is built (default: a temporary folder)")  # fmt: skip
+    parser.add_argument("--features", action="store_true",
+                        help="new keyframes store SIFT features too (~36 KB each, as with "
+                        "relative poses); default: none, as issue 34's runs")  # fmt: skip
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(dir=work_folder(parser, args.work_dir)) as tmp:
         d = Path(tmp) / "map"
@@ -126,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"built {args.keyframes} keyframes in {time.perf_counter() - t0:.0f} s")
         rows = {}
         for name, autosave_s in (("no autosave", 0.0), ("autosave", args.autosave_s)):
-            rows[name] = run(d, args.seconds, args.period_ms / 1e3, autosave_s)
+            rows[name] = run(d, args.seconds, args.period_ms / 1e3, autosave_s, args.features)
             print(name, json.dumps(rows[name]))
         ratio = rows["autosave"]["p95_ms"] / rows["no autosave"]["p95_ms"]
         print(f"p95 with / without autosave: {ratio:.2f} (target <= 1.2)")

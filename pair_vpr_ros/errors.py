@@ -1,10 +1,16 @@
 """Every error this package raises on purpose.
 
 Each message says what went wrong, where (file, topic, parameter) and what to do about it.
-Lower-level exceptions are chained with ``raise ... from err``.
+Lower-level exceptions are chained with ``raise ... from err``. A full disk is said as one
+(`disk_full`, `os_reason`) wherever it surfaces: an OSError, SQLite or a Milvus call.
 """
 
 from __future__ import annotations
+
+import errno
+
+_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
+_FULL_TEXTS = ("database or disk is full", "no space left on device", "disk quota exceeded")
 
 
 class PairVPRError(Exception):
@@ -77,3 +83,22 @@ class FleetMessageError(PairVPRError):
     def __init__(self, reason: str, detail: str = "") -> None:
         super().__init__(f"{reason}: {detail}" if detail else reason)
         self.reason = reason
+
+
+def disk_full(err: BaseException) -> bool:
+    """Whether `err` (an OSError, a sqlite3 error, a pymilvus error wrapping an OSError) says the
+    disk (or the user's quota) is full: SQLITE_FULL is "database or disk is full", which is
+    never a damaged database."""
+    if isinstance(err, OSError) and err.errno in _FULL_ERRNOS:
+        return True
+    if getattr(err, "sqlite_errorcode", None) == 13:  # SQLITE_FULL
+        return True
+    text = f"{err} {getattr(err, 'message', '')}".lower()
+    return any(t in text for t in _FULL_TEXTS)
+
+
+def os_reason(err: BaseException) -> str:
+    """A low-level error in words: "the disk is full (No space left on device)" for a full
+    disk, else its strerror (an OSError) or its text; never "(None)"."""
+    text = (err.strerror if isinstance(err, OSError) else None) or str(err)
+    return f"the disk is full ({text})" if disk_full(err) else text

@@ -4,14 +4,17 @@ would start: package, executable and the `--ros-args` it passes.
 
 Only what our launch files use is modelled: `LaunchDescription`, `DeclareLaunchArgument`,
 `LaunchConfiguration` (also `.perform(context)`), `OpaqueFunction`, `Shutdown` (as a node's
-`on_exit`) and `launch_ros.actions.Node` (parameters given as file paths or dicts of strings,
-numbers or lists, remappings as pairs). Anything else fails loudly, so a launch file that grows
+`on_exit`), `launch_ros.actions.Node` (parameters given as file paths or dicts of strings,
+numbers or lists, remappings as pairs) and `launch_ros.parameter_descriptions.ParameterValue`
+(a value of a given type: launch_ros passes a plain string value on as YAML, so "7" would be a
+number; `value_type=str` keeps it text). Anything else fails loudly, so a launch file that grows
 past this model fails its test instead of passing unchecked.
 """
 
 from __future__ import annotations
 
 import importlib.util
+import json
 import sys
 import types
 from dataclasses import dataclass, field
@@ -78,6 +81,16 @@ class LaunchDescription:
     entities: list
 
 
+@dataclass
+class ParameterValue:
+    value: Any
+    value_type: Any = None
+
+
+class Text(str):
+    """A parameter value launch_ros passes on as text (`ParameterValue(..., value_type=str)`)."""
+
+
 def modules() -> dict[str, types.ModuleType]:
     """The stand-in modules, to put into `sys.modules` (e.g. with monkeypatch.setitem)."""
     made = {}
@@ -91,6 +104,7 @@ def modules() -> dict[str, types.ModuleType]:
         "launch.substitutions": {"LaunchConfiguration": LaunchConfiguration},
         "launch_ros": {},
         "launch_ros.actions": {"Node": Node},
+        "launch_ros.parameter_descriptions": {"ParameterValue": ParameterValue},
     }.items():
         module = types.ModuleType(name)
         module.__dict__.update(members)
@@ -98,6 +112,7 @@ def modules() -> dict[str, types.ModuleType]:
     made["launch"].actions = made["launch.actions"]
     made["launch"].substitutions = made["launch.substitutions"]
     made["launch_ros"].actions = made["launch_ros.actions"]
+    made["launch_ros"].parameter_descriptions = made["launch_ros.parameter_descriptions"]
     return made
 
 
@@ -123,6 +138,10 @@ def declared(description: LaunchDescription) -> dict[str, DeclareLaunchArgument]
 
 
 def _text(value: Any, context: LaunchContext) -> Any:
+    if isinstance(value, ParameterValue):
+        assert value.value_type in (None, str), f"not modelled: {value!r}"
+        inner = _text(value.value, context)
+        return Text(inner) if value.value_type is str else inner
     if isinstance(value, str | list | float | int):  # a plain value (a list: a ROS array)
         return value
     assert isinstance(value, LaunchConfiguration), f"not modelled: {value!r}"
@@ -165,7 +184,9 @@ def _performed(node: Node, context: LaunchContext) -> Node:
 
 
 def _arg(value: Any) -> str:
-    """A parameter value as launch_ros writes it on the command line (YAML)."""
+    """A parameter value as launch_ros writes it on the command line (YAML: text quoted)."""
+    if isinstance(value, Text):
+        return json.dumps(str(value))
     if isinstance(value, list):
         return "[" + ", ".join(str(v) for v in value) + "]"
     return str(value)

@@ -19,10 +19,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import poselib
 
 from pair_vpr_ros.geometry import PoseConfig, camera_from_params, extract_features, relative_pose
 from pair_vpr_ros.geometry.depth_noise import robust_depth_at, sigma_at
-from pair_vpr_ros.geometry.features import Features
+from pair_vpr_ros.geometry.features import Features, match_features
 from pair_vpr_ros.geometry.rotations import (
     exp_so3,
     log_so3,
@@ -105,6 +106,42 @@ def tum_features(kind: str = "sift", depth: bool = True, distortion: bool = True
                  for rgb, d, _ in tum_frames())  # fmt: skip
 
 
+def distort_image(img: np.ndarray, k: np.ndarray, k1: float, nearest: bool = False) -> np.ndarray:
+    """The image a lens with radial distortion k1 (plumb_bob) would have taken (same K)."""
+    h, w = img.shape[:2]
+    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    pts = np.stack([u.ravel(), v.ravel()], 1).reshape(-1, 1, 2)
+    ideal = cv2.undistortPoints(pts, k, np.array([k1, 0, 0, 0], np.float64), P=k)
+    mx, my = (ideal.reshape(h, w, 2)[..., i].astype(np.float32) for i in range(2))
+    interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+    return cv2.remap(img, mx, my, interp, borderValue=0)
+
+
+@functools.cache
+def tum_warped_features(k1: float, kind: str = "sift") -> tuple[Features, ...]:
+    """RGB-D features of the 8 TUM frames undistorted with their own lens model, then bent by
+    a radial k1 that the camera model (no distortion) is not told: an undeclared lens."""
+    k = tum_camera().k
+    maps = cv2.initUndistortRectifyMap(k, np.array(TUM_D), None, k, (640, 480), cv2.CV_32FC1)
+    out = []
+    for rgb, depth, _ in tum_frames():
+        rgb, depth = (
+            cv2.remap(rgb, *maps, cv2.INTER_LINEAR),
+            cv2.remap(depth, *maps, cv2.INTER_NEAREST),
+        )
+        out.append(
+            extract_features(
+                distort_image(rgb, k, k1),
+                kind,
+                1000,
+                1 << 30,
+                distort_image(depth, k, k1, True),
+                tum_camera(False),
+            )
+        )
+    return tuple(out)
+
+
 def tum_truths(delay_s: float = TUM_STAMP_DELAY_S) -> dict[tuple[int, int], np.ndarray]:
     """(query i, match j < i) -> true T_match_query [4, 4] (ground truth: `tum_poses`)."""
     poses = tum_poses(delay_s)
@@ -135,6 +172,41 @@ def pose_rows(feats, truths: dict, config: PoseConfig | None = None) -> list[dic
                 row["chi2"], row["chi2_rot"] = chi2(truth, res.rotation, res.translation,
                                                     res.covariance)  # fmt: skip
         rows.append(row)
+    return rows
+
+
+@functools.cache
+def tum_rows(kind: str, depth: bool = True, distortion: bool = True) -> tuple[dict, ...]:
+    """`pose_rows` of the TUM pairs with the default `PoseConfig` (computed once a run)."""
+    return tuple(pose_rows(tum_features(kind, depth, distortion), tum_truths()))
+
+
+def poselib_rows(feats, truths: dict, config: PoseConfig | None = None) -> list[dict]:
+    """PoseLib alone on the same matches as `pose_rows` (mutual ratio-test matches): its
+    absolute pose from the match keyframe's depth when one is there, else its relative pose,
+    with PoseLib's own options but the inlier thresholds of `config`; posed with at least
+    `config.min_inliers` inliers -> [{pair, rot_deg}] of the pairs it poses."""
+    c = config or PoseConfig()
+    rows = []
+    for (i, j), truth in truths.items():
+        q, m = feats[i], feats[j]
+        pairs = match_features(q, m, c.ratio)
+        kq, km = (f.keypoints[pairs[:, k]].astype(np.float64) for f, k in ((q, 0), (m, 1)))
+        if m.depth is not None:
+            z = m.depth[pairs[:, 1]]
+            ok = np.isfinite(z)
+            pts = m.camera.rays(km[ok]) * z[ok, None]
+            pose, info = poselib.estimate_absolute_pose(
+                kq[ok], pts, q.camera.solver_camera(), {"max_reproj_error": c.ransac_px}
+            )
+            r = pose.R.T  # X_q = R X_m + t
+        else:
+            pose, info = poselib.estimate_relative_pose(
+                kq, km, q.camera.solver_camera(), m.camera.solver_camera(),
+                {"max_epipolar_error": c.essential_px})  # fmt: skip
+            r = pose.R
+        if info["num_inliers"] >= c.min_inliers:
+            rows.append({"pair": (i, j), "rot_deg": rotation_angle_deg(truth[:3, :3] @ r.T)})
     return rows
 
 

@@ -18,6 +18,7 @@ import numpy as np
 from pair_vpr_ros.errors import FleetMessageError
 from pair_vpr_ros.fleet.messages import ScoreRequest, ScoreResponse
 from pair_vpr_ros.geometry.features import Features
+from pair_vpr_ros.loops.growth import shift_pose
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.loops.records import Candidate, LoopRecord, rank_by_pair_score
 from pair_vpr_ros.loops.scoring import map_pair_scores
@@ -84,7 +85,8 @@ def score_request(
     pairs = zip(req.candidate_ids, req.similarities, strict=True)
     for rank, (kf_id, sim) in enumerate(pairs, start=1):
         meta = pm.meta(kf_id)
-        cands.append(Candidate(kf_id, meta.stamp, meta.frame_id, float(sim), rank))
+        cands.append(Candidate(kf_id, meta.stamp, meta.frame_id, float(sim), rank,
+                               robot=meta.robot, session=meta.session))  # fmt: skip
     scores = map_pair_scores(pipe.model, pm, req.dense, req.candidate_ids, pipe.rerank_chunk)
     c = pipe.config
     best = rank_by_pair_score(cands, scores, c.global_weight)[0]
@@ -96,13 +98,18 @@ def score_request(
     )  # fmt: skip
     below = best.rerank_score(c.global_weight) < c.score_threshold
     record.reason = "score below threshold" if below else ""
+    # a keyframe stored without features (map_growth) is verified and posed with its feature
+    # source's, and the pose composed into its frame, as the pipeline does for its own loops
+    features, lent = pipe.match_features(best)
     if not record.reason and c.geometric_verification:
-        record.inliers, record.inlier_ratio = pipe.geometry.verify(query, _features(pipe, best.id))
+        record.inliers, record.inlier_ratio = pipe.geometry.verify(query, features)
         if record.inliers < c.min_inliers:
             record.reason = f"geometric verification failed ({record.inliers} inliers)"
     record.accepted = not record.reason
     if record.accepted and pipe.geometry.config.relative_pose:
-        pipe.geometry.pose(record, query, _features(pipe, best.id), _neighbours(pipe, best.id))
+        pipe.geometry.pose(record, query, features, pipe.scale_neighbours(best, lent))
+        if lent is not None:
+            shift_pose(record, lent[1])
     meta = pm.meta(best.id)
     loop = InterRobotLoop(record, req.robot, req.session, meta.robot or robot,
                           meta.session or session)  # fmt: skip
@@ -131,15 +138,3 @@ def check_features(features: Features | None) -> Features | None:
 
 def _request_features(pipe: LoopClosurePipeline, data: bytes) -> Features | None:
     return check_features(pipe.geometry.unpack(data))
-
-
-def _features(pipe: LoopClosurePipeline, kf_id: int):
-    return pipe.geometry.unpack(pipe.place_map.features(kf_id))
-
-
-def _neighbours(pipe: LoopClosurePipeline, match_id: int) -> list:
-    """Map keyframes next to the match, for the scale of a monocular loop (as the pipeline)."""
-    pm, span = pipe.place_map, pipe.geometry.config.pose.scale_neighbours
-    near = [pm.meta(i) for i in range(match_id - span, match_id + span + 1)
-            if i != match_id and 0 <= i < len(pm)]  # fmt: skip
-    return pipe.geometry.neighbours(pm.meta(match_id), near, lambda i: _features(pipe, i))

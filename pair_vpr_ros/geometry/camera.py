@@ -1,8 +1,9 @@
-"""Camera intrinsics: from a ``sensor_msgs/CameraInfo`` or from parameters; undistortion.
+"""Camera intrinsics: from a ``sensor_msgs/CameraInfo`` or from parameters; PoseLib's model.
 
 Pixel coordinates follow ROS / OpenCV: the centre of the top-left pixel is (0, 0). Keypoints are
-stored distorted (as detected) and undistorted with OpenCV when a pose is computed, into the
-ideal pinhole image of the same K, so reprojection errors stay in pixels.
+stored distorted (as detected). The pose code hands them to PoseLib with the camera's own model
+(`solver_camera`: camera_info's D as it is), so its RANSAC and refinement measure errors in the
+image's own pixels; `rays` / `undistort` unproject through the same model.
 """
 
 from __future__ import annotations
@@ -10,10 +11,11 @@ from __future__ import annotations
 import math
 import struct
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any
 
-import cv2
 import numpy as np
+import poselib
 
 from pair_vpr_ros.errors import GeometryInputError
 
@@ -76,24 +78,29 @@ class CameraModel:
     def distorted(self) -> bool:
         return self.distortion_model != "none" and any(self.d)
 
-    def undistort(self, px: np.ndarray) -> np.ndarray:
-        """Distorted pixels [N, 2] -> pixels [N, 2] float64 of the ideal pinhole camera `k`."""
-        pts = np.asarray(px, np.float64).reshape(-1, 1, 2)
-        if not self.distorted or len(pts) == 0:
-            return pts.reshape(-1, 2).copy()
-        d = np.asarray(self.d, np.float64)
-        if self.distortion_model == "equidistant":
-            out = cv2.fisheye.undistortPoints(pts, self.k, d, P=self.k)
-        else:
-            out = cv2.undistortPoints(pts, self.k, d, P=self.k)
-        return out.reshape(-1, 2)
+    def solver_camera(self) -> poselib.Camera:
+        """This camera as PoseLib's model (`solver_model`): its distortion, not an ideal one."""
+        return _solver_camera(self)
 
     def rays(self, px: np.ndarray) -> np.ndarray:
         """Distorted pixels [N, 2] -> camera-frame directions [N, 3] with z = 1."""
-        ideal = self.undistort(px)
-        x = (ideal[:, 0] - self.cx) / self.fx
-        y = (ideal[:, 1] - self.cy) / self.fy
-        return np.stack([x, y, np.ones_like(x)], axis=1)
+        pts = np.asarray(px, np.float64).reshape(-1, 2)
+        if not self.distorted or len(pts) == 0:
+            xy = (pts - (self.cx, self.cy)) / (self.fx, self.fy)
+        else:
+            xy = self.solver_camera().unproject(pts)
+        return np.c_[xy, np.ones(len(xy))]
+
+    def undistort(self, px: np.ndarray) -> np.ndarray:
+        """Distorted pixels [N, 2] -> pixels [N, 2] float64 of the ideal pinhole camera `k`."""
+        return project(self.k, self.rays(px))
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Camera-frame points [N, 3] (z > 0) -> distorted pixels [N, 2] of this camera."""
+        xy = points[:, :2] / points[:, 2:3]
+        if not self.distorted:
+            return xy * (self.fx, self.fy) + (self.cx, self.cy)
+        return self.solver_camera().project(np.ascontiguousarray(xy, np.float64))
 
     def pack(self) -> bytes:
         """Fixed-size little-endian record (stored with each keyframe's features)."""
@@ -111,6 +118,33 @@ class CameraModel:
         model = list(DISTORTION_MODELS)[code]
         n = max(DISTORTION_MODELS[model])
         return cls(width, height, fx, fy, cx, cy, model, tuple(d[:n]) if n else ())
+
+
+def project(k: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Camera-frame points [N, 3] -> pixels [N, 2] of the pinhole camera `k` [3, 3]."""
+    z = points[:, 2:3]
+    return (points[:, :2] / z) * (k[0, 0], k[1, 1]) + (k[0, 2], k[1, 2])
+
+
+def solver_model(c: CameraModel) -> tuple[str, list[float]]:
+    """(PoseLib model name, its parameters) of a camera: ROS's plumb_bob is OpenCV's model
+    (OPENCV: k1 k2 p1 p2; FULL_OPENCV when k3 is set), rational_polynomial FULL_OPENCV (k1 k2
+    p1 p2 k3 k4 k5 k6), equidistant OPENCV_FISHEYE (k1 k2 k3 k4): camera_info's D as it is."""
+    k = [c.fx, c.fy, c.cx, c.cy]
+    if not c.distorted:
+        return "PINHOLE", k
+    d = list(c.d) + [0.0] * (8 - len(c.d))
+    if c.distortion_model == "equidistant":
+        return "OPENCV_FISHEYE", k + d[:4]
+    if c.distortion_model == "plumb_bob" and d[4] == 0.0:
+        return "OPENCV", k + d[:4]
+    return "FULL_OPENCV", k + d[:8]
+
+
+@lru_cache(maxsize=64)
+def _solver_camera(c: CameraModel) -> poselib.Camera:
+    name, params = solver_model(c)
+    return poselib.Camera(name, params, c.width, c.height)
 
 
 def camera_from_info(msg: Any) -> CameraModel:

@@ -1,13 +1,22 @@
-"""Covariance of a fitted pose from its inlier residuals (Gauss-Newton at the solution).
+"""Covariance of a fitted pose from its own inliers, plus what no residual can show.
 
 The pose is T_match_query = (R, t). Its error is parameterised in ROS order
 d = (d_x, d_y, d_z, d_rx, d_ry, d_rz): R_true = Exp(d_rot) R, t_true = t + d_t, both along the
-match camera's axes. With J = d residuals / d d at the solution (central differences), and
-sigma^2 = sum(r^2) / (n - p) from the inlier residuals (floored at `min_sigma`, so a perfect fit
-on noise-free images is not taken as certainty), cov = sigma^2 (J^T J)^-1. This is the
-reprojection-only covariance: it does not include errors of the depth image, and it treats the
-matches' errors as independent, which they are not quite (`PoseConfig.covariance_scale` makes up
-for it as measured on the demo world; the tails stay heavier than Gaussian: use a robust kernel).
+match camera's axes. At the solution PoseLib's refinement reached, J = d residuals / d d (central
+differences of the residuals through the cameras' own models) gives the information matrix
+H = J^T W J, W the weights of the refinement's robust loss there (`solvers.loss_weights`), and
+the a-posteriori variance of the inliers sigma^2 = sum r^2 / (n - p) the pixel noise the
+residuals show, larger or smaller than anyone assumed; the covariance of that robust estimate
+is sigma^2 H^-1 (J^T W^2 J) H^-1 (`sandwich`: with W = I, sigma^2 (J^T J)^-1).
+`PoseConfig.floor_px` is a lower bound on sigma only (a noise-free render is not certainty).
+The matches' errors are not quite independent: `PoseConfig.covariance_scale` makes up for that
+as measured on the demo world.
+
+Then `with_systematic` adds errors that bend every residual alike and so hide in the fit: a
+per-camera term `systematic_px` (a rolling shutter read out while the camera turns, an image
+stamp off by a few ms; docs/real-cameras.md says how to choose it) as that many pixels' angle
+at the focal length on each rotation axis, at least `floor_rotation_deg`, and the translation
+floor (a + b |t|). The model checks (`checks.py`) add what the data show.
 """
 
 from __future__ import annotations
@@ -42,21 +51,30 @@ def jacobian(residuals: Residuals, r: np.ndarray, t: np.ndarray) -> np.ndarray:
     return np.stack(cols, axis=1)
 
 
-def gauss_newton_covariance(
-    jac: np.ndarray, res: np.ndarray, min_sigma: float
+def posterior_covariance(
+    jac: np.ndarray, res: np.ndarray, weights: np.ndarray, floor: float
 ) -> tuple[np.ndarray, float] | None:
-    """J [n, p] and residuals [n] -> (cov [p, p], sigma); None when J^T J is singular (the
-    residuals do not constrain every parameter: degenerate geometry)."""
+    """J [n, p], inlier residuals [n] and the loss's weights at them [n] -> (covariance
+    [p, p], sigma): sigma^2 = sum r^2 / (n - p), at least floor^2, carried through the robust
+    estimator (`sandwich`); None when degenerate or n <= p."""
     n, p = jac.shape
     if n <= p:
         return None
-    sigma = max(float(np.sqrt(np.sum(res**2) / (n - p))), min_sigma)
-    info = jac.T @ jac
-    eig = np.linalg.eigvalsh(info)
+    sigma = max(math.sqrt(float(np.sum(res**2)) / (n - p)), floor)
+    cov = sandwich(jac.T @ (weights[:, None] * jac), jac.T @ ((weights**2)[:, None] * jac))
+    return None if cov is None else (cov * sigma**2, sigma)
+
+
+def sandwich(h: np.ndarray, meat: np.ndarray) -> np.ndarray | None:
+    """Covariance H^-1 M H^-1 [p, p] of the estimator that solved sum w_i r_i^2 = min, with H
+    = sum w J^T J its information and M = sum w^2 J^T S J (S: each residual's covariance);
+    None when H is singular (the residuals do not fix every parameter: degenerate geometry)."""
+    eig = np.linalg.eigvalsh(h)
     if eig[0] <= eig[-1] * 1e-12:
         return None
-    cov = sigma**2 * np.linalg.inv(info)
-    return (cov + cov.T) / 2, sigma
+    inv = np.linalg.inv(h)
+    cov = inv @ meat @ inv
+    return (cov + cov.T) / 2
 
 
 def embed_rotation(cov_rot: np.ndarray, translation_variance: float) -> np.ndarray:
@@ -75,23 +93,23 @@ def sigmas(cov: np.ndarray) -> tuple[float, float]:
     return trans, rot
 
 
-def with_floor(
+def with_systematic(
     cov: np.ndarray, t: np.ndarray, config: Any, cameras: tuple, scaled: bool = True
 ) -> np.ndarray:
-    """6x6 covariance of a pose between `cameras` plus the independent floor noise of `config`
-    (`PoseConfig`): `rotation_floor_deg` on each rotation axis and, for a pose with a scale,
-    (floor_translation_m + floor_translation_rel |t|) on each translation axis."""
+    """6x6 covariance of a pose between `cameras` plus the independent systematic terms of
+    `config` (`PoseConfig`): `systematic_rotation_deg` on each rotation axis and, for a pose
+    with a scale, (floor_translation_m + floor_translation_rel |t|) on each translation axis."""
     out = cov.copy()
-    out[3:, 3:] += np.eye(3) * np.radians(rotation_floor_deg(config, *cameras)) ** 2
+    out[3:, 3:] += np.eye(3) * np.radians(systematic_rotation_deg(config, *cameras)) ** 2
     if scaled:
         trans = config.floor_translation_m + config.floor_translation_rel * np.linalg.norm(t)
         out[:3, :3] += np.eye(3) * float(trans) ** 2
     return out
 
 
-def rotation_floor_deg(config: Any, *cameras: Any) -> float:
-    """Rotation floor (deg per axis) of a pose fitted on the pixels of `cameras` (`CameraModel`):
-    `config.floor_rotation_px` pixels' angle at their mean focal length (a camera with more,
+def systematic_rotation_deg(config: Any, *cameras: Any) -> float:
+    """Systematic rotation std (deg per axis) of a pose between `cameras` (`CameraModel`):
+    `config.systematic_px` pixels' angle at their mean focal length (a camera with more,
     smaller pixels sees a smaller turn), at least `config.floor_rotation_deg`."""
     f = sum((c.fx + c.fy) / 2 for c in cameras) / len(cameras)
-    return max(config.floor_rotation_deg, math.degrees(config.floor_rotation_px / f))
+    return max(config.floor_rotation_deg, math.degrees(config.systematic_px / f))

@@ -1,24 +1,28 @@
-"""Two-view geometry without depth: fundamental-matrix verification and the essential matrix.
+"""Two-view geometry without depth: fundamental-matrix verification, the essential-matrix pose
+(PoseLib) with its covariance, and the rolling-shutter check of a monocular pose.
 
 `verify_pair` is the detector's optional geometric verification (inliers of a fundamental-matrix
-RANSAC on the same matches the pose uses). `essential_pose` gives the rotation and the
-translation direction of T_match_query from ideal (undistorted) pixels; `centre_rim_chi2` checks
-a monocular pose for a camera model that bends the rim (distortion left out), and
-`row_split_variance` for a rolling shutter that bends it row by row.
+RANSAC on the same matches the pose uses). `essential_fit` gives the rotation and the
+translation direction of T_match_query with the covariance of (direction, rotation) from the
+inliers' Sampson residuals; `essential_refit` and `redraw_variance` serve the checks of
+`checks.py`.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from pair_vpr_ros.geometry import covariance as cv
+from pair_vpr_ros.geometry import solvers
+from pair_vpr_ros.geometry.camera import project
+from pair_vpr_ros.geometry.checks import half_angle, is_planar, with_k1
 from pair_vpr_ros.geometry.features import Features, match_features
-from pair_vpr_ros.geometry.rotations import log_so3
 
-CHI2_3DOF_95 = 7.815  # 95 % point of a chi-square with 3 degrees of freedom
+REDRAWS = 2  # other RANSAC draws that check a monocular pose
 
 
 def verify_pair(
@@ -46,29 +50,56 @@ def skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def essential_pose(
-    px_q: np.ndarray, px_m: np.ndarray, k: np.ndarray, threshold_px: float, min_inliers: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
-    """Ideal pixels [N, 2] of matched points in the query and match images (one camera matrix
-    `k`) -> (R, unit t, inlier indices) of T_match_query (X_m = R X_q + t), or why not."""
-    if len(px_q) < max(min_inliers, 5):
-        return f"too few feature matches ({len(px_q)} < {max(min_inliers, 5)})"
-    moved = float(np.median(np.linalg.norm(px_q - px_m, axis=1)))
+@dataclass
+class EssentialFit:
+    """R and unit t of X_match = R X_query + t, the inlier indices into the matches, the
+    covariance [5, 5] of (direction [2], rotation [3]), the inliers' distorted keypoints
+    (query, match) [N, 2] and their median parallax (deg)."""
+
+    rotation: np.ndarray
+    translation: np.ndarray
+    inliers: np.ndarray
+    covariance: np.ndarray
+    keypoints: tuple[np.ndarray, np.ndarray]
+    parallax_deg: float
+
+
+def essential_fit(q: Features, m: Features, pairs: np.ndarray, c) -> EssentialFit | tuple:
+    """PoseLib's relative pose of matches [K, 2] (query, match keypoint indices) with the
+    `PoseConfig` thresholds -> EssentialFit, or (reason, inliers)."""
+    if len(pairs) < max(c.min_inliers, 5):
+        return f"too few feature matches ({len(pairs)} < {max(c.min_inliers, 5)})", -1
+    kq, km = (f.keypoints[pairs[:, col]].astype(np.float64) for f, col in ((q, 0), (m, 1)))
+    cams = (q.camera, m.camera)
+    moved = float(np.median(np.linalg.norm(q.camera.undistort(kq) - m.camera.undistort(km),
+                                           axis=1)))  # fmt: skip
     if moved < 0.5:
         return (f"degenerate motion: matched points moved {moved:.2f} px (the same view): no "
-                "translation direction")  # fmt: skip
-    e, mask = cv2.findEssentialMat(px_q, px_m, k, cv2.USAC_ACCURATE, 0.999, threshold_px)
-    if e is None or e.shape != (3, 3) or mask is None:
-        return "no essential matrix fits the matches"
-    fitted = int(mask.sum())
-    if fitted < min_inliers:
-        return f"too few essential-matrix inliers ({fitted} < {min_inliers})"
-    _, r, t, mask = cv2.recoverPose(e, px_q, px_m, k, mask=mask.copy())
-    idx = np.flatnonzero(mask.ravel())
-    if len(idx) < min_inliers:  # they fit E but lie in front of neither pair of cameras
-        return (f"degenerate motion: {fitted} matches fit, {len(idx)} show parallax (a pure "
-                "rotation or no motion): no translation direction")  # fmt: skip
-    return r, t.ravel() / np.linalg.norm(t), idx
+                "translation direction", -1)  # fmt: skip
+    r, t, mask = solvers.relative_pose(kq, km, cams, c.essential_px)
+    idx = np.flatnonzero(mask)
+    if len(idx) < c.min_inliers:
+        return f"too few essential-matrix inliers ({len(idx)} < {c.min_inliers})", len(idx)
+    kq, km = kq[idx], km[idx]
+    fit = sampson_covariance(kq, km, cams, (r, t), c.floor_px, c.essential_px)
+    if fit is None:
+        return "degenerate geometry: the inliers do not fix the rotation", len(idx)
+    parallax = parallax_deg(q.camera.rays(kq), m.camera.rays(km), r)
+    return EssentialFit(r, t, idx, fit[0] * c.covariance_scale, (kq, km), parallax)
+
+
+def sampson_covariance(kq, km, cams, pose, floor_px: float, threshold_px: float | None):
+    """Distorted keypoints [N, 2] of the query and match cameras `cams`, (R, unit t) ->
+    (covariance [5, 5] of (direction, rotation), sigma px) from their Sampson residuals (in
+    ideal pixels of the query camera; loss weights when `threshold_px`); None if degenerate."""
+    k = cams[0].k
+    px_q, px_m = project(k, cams[0].rays(kq)), project(k, cams[1].rays(km))
+    residuals = sampson_residuals(px_q, px_m, k)
+    basis = np.zeros((6, 5))  # directions of t that change it, then the rotation
+    basis[:3, :2], basis[3:, 2:] = direction_basis(pose[1]), np.eye(3)
+    res = residuals(*pose)
+    w = np.ones(len(res)) if threshold_px is None else solvers.loss_weights(res, threshold_px)
+    return cv.posterior_covariance(cv.jacobian(residuals, *pose) @ basis, res, w, floor_px)
 
 
 def sampson_residuals(px_q: np.ndarray, px_m: np.ndarray, k: np.ndarray):
@@ -98,67 +129,72 @@ def parallax_deg(rays_q: np.ndarray, rays_m: np.ndarray, r: np.ndarray) -> float
     return math.degrees(float(np.median(np.arccos(cos))))
 
 
-def centre_rim_chi2(
-    px_q: np.ndarray, px_m: np.ndarray, k: np.ndarray, pose: tuple, cov_rot: np.ndarray
-) -> tuple[float, float]:
-    """(chi-square, 3 dof; angle, deg) of the difference between the rotations that the inliers
-    [N, 2] (ideal pixels) nearer the image centre and those farther out each reach when the
-    essential-matrix pose (R, unit t) is refined on them alone (Gauss-Newton on the Sampson
-    residuals: a local refinement, not a new RANSAC that may land on another solution);
-    cov_rot [3, 3] is the full fit's rotation covariance (each half: about twice that). A
-    radial distortion left out bends the rim's rays more than the centre's, and a near-
-    degenerate motion lets the halves drift apart: the pose is less certain than it says."""
-    radius = np.linalg.norm(px_q - k[:2, 2], axis=1) + np.linalg.norm(px_m - k[:2, 2], axis=1)
-    centre = radius <= np.median(radius)
-    if min(centre.sum(), (~centre).sum()) < 8:
-        return 0.0, 0.0
-    ends = [_refine(px_q[sel], px_m[sel], k, *pose)[0] for sel in (centre, ~centre)]
-    d = log_so3(ends[0] @ ends[1].T)
-    return float(d @ np.linalg.solve(4 * cov_rot, d)), math.degrees(float(np.linalg.norm(d)))
-
-
-def row_split_variance(
-    px_q: np.ndarray, px_m: np.ndarray, k: np.ndarray, pose: tuple, min_sigma_px: float
-) -> tuple[float, float]:
-    """(variance, rad^2 per axis; angle, deg) for a camera that bends its images row by row:
-    the pose (R, unit t) is refined on the inliers [N, 2] (ideal pixels) in the upper rows and
-    on those in the lower rows alone (as `centre_rim_chi2`); when the two rotations differ by
-    more than their own Gauss-Newton covariances explain (chi-square, 3 dof, above its 95 %
-    point), half their angle is added on each axis, else nothing. A rolling shutter reads the
-    rows out at different times, so a camera that turns meanwhile bends each image by its own
-    turn rate; the essential matrix absorbs that with a small residual and a wrong pose (TUM
-    fr1/rpy, up to 83 deg/s: errors of 1-7 deg at a stated 0.2-0.3 deg; docs/real-cameras.md)."""
-    rows = px_q[:, 1] + px_m[:, 1]
-    low = rows <= np.median(rows)
-    if min(low.sum(), (~low).sum()) < 8:
-        return 0.0, 0.0
-    (ra, ca), (rb, cb) = (_refine(px_q[s], px_m[s], k, *pose, min_sigma_px) for s in (low, ~low))
-    d = log_so3(ra @ rb.T)
-    angle = math.degrees(float(np.linalg.norm(d)))
-    if ca is None or cb is None or float(d @ np.linalg.solve(ca + cb, d)) <= CHI2_3DOF_95:
-        return 0.0, angle
-    return float(d @ d) / 4.0, angle
-
-
 def direction_basis(t: np.ndarray) -> np.ndarray:
     """[3, 2]: the two unit directions orthogonal to t (how its direction can change)."""
     return np.linalg.svd(t[None])[2][1:].T
 
 
-def _refine(px_q, px_m, k, r, t, min_sigma_px: float | None = None, iterations: int = 5) -> tuple:
-    """(R, its covariance [3, 3]) after Gauss-Newton on the Sampson residuals of these matches
-    from (R, unit t); the covariance is None without `min_sigma_px` (not wanted) or when
-    degenerate."""
-    res = sampson_residuals(px_q, px_m, k)
-    basis = np.zeros((6, 5))  # the two directions that turn t, then the rotation
-    basis[:3, :2], basis[3:, 2:] = direction_basis(t), np.eye(3)
-    for _ in range(iterations):
-        jac = cv.jacobian(res, r, t) @ basis
-        step = np.linalg.lstsq(jac, -res(r, t), rcond=None)[0]
-        r, t = cv.perturbed(r, t, basis @ step)
-        t = t / np.linalg.norm(t)
-        basis[:3, :2] = direction_basis(t)
-    if min_sigma_px is None:
-        return r, None
-    fit = cv.gauss_newton_covariance(cv.jacobian(res, r, t) @ basis, res(r, t), min_sigma_px)
-    return r, None if fit is None else fit[0][2:, 2:]
+def triangulate(b: np.ndarray, a: np.ndarray, t: np.ndarray, min_parallax_deg: float):
+    """Rays b [N, 3] (camera B's frame) and a [N, 3] (camera A's, rotated into B's frame),
+    camera A at t (unit) in B's frame: depth along b [N] (unit baseline) and validity [N]."""
+    bb, aa, ab = (b * b).sum(1), (a * a).sum(1), (a * b).sum(1)
+    tb, ta = b @ t, a @ t
+    det = bb * aa - ab**2  # least squares of lam_b b = lam_a a + t
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam_b = (tb * aa - ta * ab) / det
+        lam_a = (tb * ab - ta * bb) / det
+        cos = ab / np.sqrt(aa * bb)
+    parallax = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    ok = (lam_b > 0) & (lam_a > 0) & (parallax >= min_parallax_deg) & np.isfinite(lam_b)
+    return lam_b, ok
+
+
+def essential_refit(fit: EssentialFit, cams: tuple, floor_px: float):
+    """-> refit(selection [N] bool) -> (R, rotation covariance [3, 3] or None) of the pose
+    refined by PoseLib on those inliers alone, or None when they lie on a plane (an essential
+    matrix of a plane has a second solution; `checks.split_variances`)."""
+    kq, km = fit.keypoints
+    rays = cams[1].rays(km)
+    depth, ok = triangulate(rays, cams[0].rays(kq) @ fit.rotation.T, fit.translation, 0.0)
+
+    def refit(sel: np.ndarray):
+        if is_planar(rays[sel & ok] * depth[sel & ok, None]):
+            return None
+        pose = solvers.refine_relative(kq[sel], km[sel], cams, (fit.rotation, fit.translation))
+        full = (fit.rotation, fit.translation)  # linearised where the whole fit is
+        cov = sampson_covariance(kq[sel], km[sel], cams, full, floor_px, None)
+        return pose[0], None if cov is None else cov[0][2:, 2:]
+
+    return refit
+
+
+def essential_lens_refit(fit: EssentialFit, cams: tuple):
+    """-> (refit(k1) -> (R, unit t, Sampson residuals [N] in ideal pixels of the query camera)
+    of the pose refined by PoseLib through both cameras with a radial k1; the inliers'
+    distances from the query image's centre [N]) for `checks.radial_check`."""
+    kq, km = fit.keypoints
+    k = cams[0].k
+
+    def refit(k1: float):
+        bent = cams if k1 == 0.0 else tuple(with_k1(c, k1) for c in cams)
+        r, t = solvers.refine_relative(kq, km, bent, (fit.rotation, fit.translation))
+        px_q, px_m = project(k, bent[0].rays(kq)), project(k, bent[1].rays(km))
+        return r, t, sampson_residuals(px_q, px_m, k)(r, t)
+
+    return refit, np.linalg.norm(kq - k[:2, 2], axis=1)
+
+
+def redraw_variance(fit: EssentialFit, q, m, pairs: np.ndarray, c) -> tuple[float, float]:
+    """(variance, rad^2 per axis; angle, deg) of a pose that other RANSAC draws (`REDRAWS`
+    other seeds at twice the threshold) move beyond the fit's covariance: few inliers among
+    many wrong matches, or a near-planar or near-degenerate scene, leave several solutions of
+    the same support (TUM fr1 ORB: one pair's draws reach 1.5-9.9 deg); half the angle to the
+    farthest goes on each axis (`checks.half_angle`)."""
+    kq, km = (f.keypoints[pairs[:, col]].astype(np.float64) for f, col in ((q, 0), (m, 1)))
+    out = (0.0, 0.0)
+    for seed in range(1, REDRAWS + 1):
+        r, _, mask = solvers.relative_pose(kq, km, (q.camera, m.camera), 2 * c.essential_px,
+                                           seed)  # fmt: skip
+        if mask.sum() >= c.min_inliers:
+            out = max(out, half_angle(fit.rotation, r, 2 * fit.covariance[2:, 2:]))
+    return out

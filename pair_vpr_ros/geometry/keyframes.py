@@ -3,6 +3,7 @@ pose of each accepted loop, with every problem of the inputs counted rather than
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -23,6 +24,8 @@ from pair_vpr_ros.geometry.features import (
 from pair_vpr_ros.geometry.odometry_scale import Neighbour, pick_neighbours
 from pair_vpr_ros.geometry.relpose import PoseConfig, RelativePose, relative_pose
 from pair_vpr_ros.geometry.stereo import StereoInputError, stereo_depth
+
+LOG = logging.getLogger("pair_vpr_ros.geometry")
 
 
 @dataclass(frozen=True)
@@ -52,6 +55,8 @@ class KeyframeGeometry:
         self.config = config or GeometryConfig()
         self.counts = counts
         self.last_stereo_problem = ""
+        self.camera_warnings: list[str] = []  # once per camera (lens distortion left out)
+        self._warned: set[CameraModel] = set()
 
     def wanted(self, verification: bool) -> bool:
         return self.config.relative_pose or verification
@@ -147,4 +152,18 @@ class KeyframeGeometry:
             setattr(record, name, value)
         name = f"pose_{(result.status or 'none').replace('-', '_')}"
         setattr(self.counts, name, getattr(self.counts, name) + 1)
+        if result.lens_k1 and query.camera not in self._warned:
+            self._warn_lens(query.camera, result.lens_k1)
         return (time.perf_counter() - t0) * 1e3
+
+    def _warn_lens(self, camera: CameraModel, k1: float) -> None:
+        """Say once per camera that its images look distorted while its model has none."""
+        self._warned.add(camera)
+        note = (
+            f"camera {camera.width}x{camera.height} (fx {camera.fx:g}): a loop's inliers "
+            f"fit a radial distortion k1 = {k1:+.3f} far better than the camera model "
+            "without one: is the lens distortion missing from camera_info (D) or the "
+            "camera_distortion parameters? Its poses get wider covariances meanwhile"
+        )
+        self.camera_warnings.append(note)
+        LOG.warning(note)

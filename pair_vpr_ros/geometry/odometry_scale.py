@@ -37,10 +37,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pair_vpr_ros.geometry.epipolar import essential_pose
+from pair_vpr_ros.geometry import solvers
+from pair_vpr_ros.geometry.covariance import sigmas
+from pair_vpr_ros.geometry.epipolar import direction_basis, triangulate
 from pair_vpr_ros.geometry.features import Features, match_features
-from pair_vpr_ros.geometry.pnp import project
-from pair_vpr_ros.geometry.rotations import quaternion_matrix, rotation_angle_deg
+from pair_vpr_ros.geometry.rotations import exp_so3, quaternion_matrix, rotation_angle_deg
 from pair_vpr_ros.types import Pose
 
 
@@ -128,37 +129,21 @@ def _depth_over(match: Features, n: Neighbour, config) -> np.ndarray | str:
     pairs = match_features(feats, match, config.ratio)  # (neighbour, match)
     if len(pairs) < config.min_matches:
         return f"too few feature matches ({len(pairs)})"
-    ray_n = feats.camera.rays(feats.keypoints[pairs[:, 0]])
-    ray_m = match.camera.rays(match.keypoints[pairs[:, 1]])
-    k = match.camera.k
-    sol = essential_pose(project(k, ray_n), project(k, ray_m), k, config.essential_px,
-                         config.min_inliers)  # fmt: skip
-    if isinstance(sol, str):
-        return sol
-    r_mn, t_mn, idx = sol
+    kn, km = feats.keypoints[pairs[:, 0]], match.keypoints[pairs[:, 1]]
+    r_mn, t_mn, mask = solvers.relative_pose(kn, km, (feats.camera, match.camera),
+                                             config.essential_px)  # fmt: skip
+    idx = np.flatnonzero(mask)
+    if len(idx) < config.min_inliers:
+        return f"too few essential-matrix inliers ({len(idx)} < {config.min_inliers})"
+    ray_n, ray_m = feats.camera.rays(kn), match.camera.rays(km)
     visual_turn = rotation_angle_deg(r_mn)
     if abs(visual_turn - n.turn_deg) > config.scale_max_turn_mismatch_deg:
         return (f"the images turned {visual_turn:.1f} deg, the odometry {n.turn_deg:.1f} deg: "
                 "odometry and images disagree")  # fmt: skip
-    depth, ok = _triangulate(ray_m[idx], ray_n[idx] @ r_mn.T, t_mn, config.scale_min_parallax_deg)
+    depth, ok = triangulate(ray_m[idx], ray_n[idx] @ r_mn.T, t_mn, config.scale_min_parallax_deg)
     out = np.full(len(match), np.nan)
     out[pairs[idx[ok], 1]] = depth[ok] * n.baseline_m
     return out
-
-
-def _triangulate(b: np.ndarray, a: np.ndarray, t: np.ndarray, min_parallax_deg: float):
-    """Rays b [N, 3] (match frame) and a [N, 3] (neighbour's, rotated into the match frame),
-    neighbour camera at t (unit): depth along b [N] (unit baseline) and validity [N]."""
-    bb, aa, ab = (b * b).sum(1), (a * a).sum(1), (a * b).sum(1)
-    tb, ta = b @ t, a @ t
-    det = bb * aa - ab**2  # least squares of lam_b b = lam_a a + t
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam_b = (tb * aa - ta * ab) / det
-        lam_a = (tb * ab - ta * bb) / det
-        cos = ab / np.sqrt(aa * bb)
-    parallax = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-    ok = (lam_b > 0) & (lam_a > 0) & (parallax >= min_parallax_deg) & np.isfinite(lam_b)
-    return lam_b, ok
 
 
 def loop_length(
@@ -188,3 +173,52 @@ def loop_length(
         return np.einsum("ni,ni->n", xv[good], tv[good]) / ntv[good] ** 2
 
     return lengths
+
+
+def scaled_pose(q, m, inliers, fit, c, neighbours) -> tuple[np.ndarray, np.ndarray, str] | str:
+    """The essential-matrix pose `fit` (R, unit t, cov5) of the loop inliers [K, 2] (query,
+    match keypoint indices) -> (its translation with the length from the match's keypoints
+    triangulated over odometry baselines, its covariance [6, 6], what gave the length), or why
+    not.
+
+    Covariance: with L = V sqrt(Lambda) of cov5 = V Lambda V^T and J_k the change of the length
+    s between the sigma points +-L_k, the errors are d_t = (s B L_dir + t J^T) xi and
+    d_rot = L_rot xi (xi ~ N(0, I_5)), plus an independent length error along t: the median's
+    standard error and the odometry's relative error (``scale_sigma_floor``, the lever arm)."""
+    r, t, cov5 = fit
+    tri = triangulate_match(m, neighbours, c)
+    if isinstance(tri, str):
+        return tri
+    rays_q = q.camera.rays(q.keypoints[inliers[:, 0]])
+    lengths = loop_length(m, tri.depth, inliers, rays_q, c.scale_min_parallax_deg)
+    s_i = lengths(r, t)
+    if len(s_i) < c.scale_min_points:
+        return (f"too few loop inliers with a triangulated point ({len(s_i)} < "
+                f"{c.scale_min_points})")  # fmt: skip
+    s = float(np.median(s_i))
+    lam, vec = np.linalg.eigh(cov5)
+    sq = vec * np.sqrt(np.clip(lam, 0.0, None))  # [5, 5]: column k is L_k
+    basis = direction_basis(t)
+    jac = np.empty(5)
+    for k in range(5):
+        ends = []
+        for sign in (1.0, -1.0):
+            d = sign * sq[:, k]
+            t_k = t + basis @ d[:2]
+            s_k = lengths(exp_so3(d[2:]) @ r, t_k / np.linalg.norm(t_k))
+            ends.append(float(np.median(s_k)) if len(s_k) else math.nan)
+        jac[k] = (ends[0] - ends[1]) / 2
+    if not np.isfinite(jac).all():  # a pose one std away leaves no point in front: no length
+        return "no length for poses within the pose's std (its points fall behind a camera)"
+    a = np.zeros((6, 5))
+    a[:3] = s * basis @ sq[:2] + np.outer(t, jac)
+    a[3:] = sq[2:]
+    spread = 1.4826 * float(np.median(np.abs(s_i - s))) * math.sqrt(math.pi / 2 / len(s_i))
+    cov = a @ a.T
+    cov[:3, :3] += (spread**2 + (tri.relative_sigma * s) ** 2) * np.outer(t, t)
+    s_t, _ = sigmas(cov)
+    if s_t > c.max_translation_sigma_m:
+        return f"too uncertain (std {s_t:.2f} m)"
+    used = ", ".join(map(str, tri.neighbours))
+    why = f"scale from the odometry to keyframes {used} ({len(s_i)} points)"
+    return t * s, (cov + cov.T) / 2, why

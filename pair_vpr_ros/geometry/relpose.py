@@ -5,9 +5,13 @@ camera frame (optical: x right, y down, z forward): ``X_match = R X_query + t``,
 query camera's position seen from the match camera. The frames are those of the two images'
 ``header.frame_id`` at their stamps. Its covariance is described in ``covariance.py``.
 
-* metric: depth at the keypoints of either keyframe (the match's, else the query's) -> PnP;
+The estimation is PoseLib's (`solvers.py`); what is ours: which model, the checks, the frames
+and the covariance (`covariance.py`).
+
+* metric: depth at the keypoints of either keyframe (the match's, else the query's) -> absolute
+  pose (P3P, LO-RANSAC), checked against the other depth image (`metric_pose.py`);
 * metric from odometry: no usable depth, but a map keyframe next to the match keyframe with an
-  odometry pose -> essential matrix (USAC) -> R and the direction of t; its length from points
+  odometry pose -> essential matrix (5-point) -> R and the direction of t; its length from points
   triangulated over that short odometry baseline (``odometry_scale.py``), never from the
   odometry between the loop's two keyframes, which holds the drift the loop is to remove;
 * scale-free: none of that -> R and the direction of t (a unit vector) with a 1e6 m^2
@@ -24,37 +28,48 @@ import numpy as np
 
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.geometry import covariance as cv
+from pair_vpr_ros.geometry.checks import (
+    CHI2_3DOF_95,
+    is_planar,
+    radial_check,
+    split_keys,
+    split_variances,
+)
 from pair_vpr_ros.geometry.epipolar import (
-    centre_rim_chi2,
-    direction_basis,
-    essential_pose,
-    parallax_deg,
-    row_split_variance,
-    sampson_residuals,
+    EssentialFit,
+    essential_fit,
+    essential_lens_refit,
+    essential_refit,
+    redraw_variance,
 )
 from pair_vpr_ros.geometry.features import Features, match_features
-from pair_vpr_ros.geometry.metric_pose import is_planar, metric_fit, within
-from pair_vpr_ros.geometry.odometry_scale import Neighbour, loop_length, triangulate_match
-from pair_vpr_ros.geometry.pnp import project
-from pair_vpr_ros.geometry.rotations import exp_so3, log_so3, matrix_quaternion
+from pair_vpr_ros.geometry.metric_pose import (
+    MetricFit,
+    agreement_problem,
+    metric_fit,
+    metric_lens_refit,
+    metric_refit,
+    within,
+)
+from pair_vpr_ros.geometry.odometry_scale import Neighbour, scaled_pose
+from pair_vpr_ros.geometry.rotations import log_so3, matrix_quaternion
 
 METRIC, METRIC_ODOMETRY, SCALE_FREE = "metric", "metric-odometry", "scale-free"
 
 
 @dataclass(frozen=True)
 class PoseConfig:
-    """Relative-pose settings (pixels are ideal, undistorted pixels)."""
+    """Relative-pose settings (thresholds in pixels of the images, through their cameras)."""
 
     ratio: float = 0.8  # Lowe's ratio test
     min_matches: int = 12  # mutual ratio-test matches needed to try
     min_inliers: int = 15  # PnP / essential-matrix inliers needed for a pose
     ransac_px: float = 2.0  # PnP inlier threshold
-    essential_px: float = 1.0  # essential-matrix inlier threshold
-    min_sigma_px: float = 0.5  # floor of the residual std in the covariance
+    essential_px: float = 1.0  # essential-matrix inlier threshold (Sampson error)
     min_parallax_deg: float = 1.0  # scale-free: median parallax needed for a direction
     max_rotation_sigma_deg: float = 2.0  # reject poses less certain than this ...
     max_translation_sigma_m: float = 0.5  # ... (metric) ...
-    max_direction_sigma_deg: float = 10.0  # ... or whose direction is this uncertain
+    max_direction_sigma_deg: float = 10.0  # ... a direction this uncertain gets no length
     # Gauss-Newton covariances came out too confident on the demo world's seed-8 loops (median
     # normalised error x1.9 of chi-square's, metric and scale-free alike): they are scaled by this.
     covariance_scale: float = 2.0
@@ -75,16 +90,17 @@ class PoseConfig:
     depth_sigma_b: float = 0.0019
     max_depth_m: float = 0.0
     depth_agreement_sigmas: float = 3.0
-    depth_registration_px: float = 2.0  # depth-to-colour misregistration allowed in agreement
-    # Errors no residual shows (intrinsics a little off, distortion, timing, rolling shutter):
-    # rotation std per axis of floor_rotation_px pixels' angle at the focal length (at least
-    # floor_rotation_deg), translation a + b |t|. TUM's Kinect (f 517) needs 1.8 px (docs).
-    floor_rotation_px: float = 1.8
+    depth_registration_px: float = 3.0  # depth-to-colour misregistration allowed in agreement
+    # The pixel noise of the covariance is the inliers' own (a posteriori), at least floor_px.
+    # Errors no residual shows: systematic_px pixels' angle at the focal length on each
+    # rotation axis (a rolling shutter, a late stamp: docs/real-cameras.md), at least
+    # floor_rotation_deg; translation a + b |t|.
+    floor_px: float = 0.25
+    systematic_px: float = 0.0
     floor_rotation_deg: float = 0.0
     floor_translation_m: float = 0.005
     floor_translation_rel: float = 0.01
-    max_model_disagreement_chi2: float = 16.0  # PnP vs essential-matrix rotation (3 dof) chi2:
-    # above it the covariance is scaled by chi2 / it
+    lens_check: bool = True  # look for lens distortion nobody declared (checks.radial_check)
 
     def __post_init__(self) -> None:
         for name in ("ratio", "ransac_px", "essential_px", "max_rotation_sigma_deg",
@@ -92,15 +108,15 @@ class PoseConfig:
                      "covariance_scale", "scale_max_gap_s", "scale_min_baseline_m",
                      "scale_max_turn_deg", "scale_max_turn_mismatch_deg",
                      "scale_min_parallax_deg", "scale_sigma_floor", "scale_lever_m",
-                     "depth_sigma_b", "depth_agreement_sigmas",
-                     "max_model_disagreement_chi2"):  # fmt: skip
+                     "depth_sigma_b", "depth_agreement_sigmas"):  # fmt: skip
             if not getattr(self, name) > 0:
                 raise ConfigError(f"pose {name}={getattr(self, name)!r} must be > 0")
         for name in ("scale_neighbours", "scale_tries", "scale_min_points"):
             if not getattr(self, name) >= 1:
                 raise ConfigError(f"pose {name}={getattr(self, name)!r} must be >= 1")
         floors = [n for n in vars(self) if n.startswith("floor_")]
-        for name in ("depth_sigma_a", "max_depth_m", *floors, "depth_registration_px"):
+        for name in ("depth_sigma_a", "max_depth_m", *floors, "systematic_px",
+                     "depth_registration_px", "min_parallax_deg"):  # fmt: skip
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"pose {name}={getattr(self, name)!r} must be >= 0")
         if not 0 < self.ratio <= 1:
@@ -117,8 +133,10 @@ class PoseConfig:
 @dataclass
 class RelativePose:
     """Result for one loop: status "metric" / "metric-odometry" / "scale-free" with R [3, 3],
-    t [3], covariance [6, 6] and inliers, or status "" with the reason (a scale-free pose:
-    why it has no scale)."""
+    t [3], covariance [6, 6], the inlier count and the inlier matches [N, 2] (query, match
+    keypoint indices), or status "" with the reason (a scale-free pose: why it has no scale).
+    `lens_k1`: the radial distortion that fits far better than the cameras' own model (checks.py;
+    0: none found)."""
 
     status: str = ""
     reason: str = ""
@@ -126,6 +144,8 @@ class RelativePose:
     rotation: np.ndarray | None = None
     translation: np.ndarray | None = None
     covariance: np.ndarray | None = None
+    inlier_pairs: np.ndarray | None = None
+    lens_k1: float = 0.0
 
     def matrix(self) -> np.ndarray:
         """[4, 4] homogeneous T_match_query (needs a pose)."""
@@ -148,6 +168,10 @@ def _fail(reason: str, inliers: int = -1) -> RelativePose:
     return RelativePose(reason=reason, inliers=inliers)
 
 
+def _why(*parts: str) -> str:
+    return "; ".join(p for p in parts if p)
+
+
 def relative_pose(
     query: Features | None,
     match: Features | None,
@@ -156,13 +180,13 @@ def relative_pose(
 ) -> RelativePose:
     """T_match_query of a loop from the query and match keyframes' features; `neighbours`:
     map keyframes next to the match with an odometry baseline (``pick_neighbours``), for the
-    scale of a pose without depth. Every covariance carries the floor of `PoseConfig`, its
-    rotation part from the two cameras' focal lengths (`covariance.rotation_floor_deg`)."""
+    scale of a pose without depth. Every covariance carries the systematic terms of
+    `PoseConfig` (`covariance.with_systematic`)."""
     c = config or PoseConfig()
     out = _relative_pose(query, match, c, neighbours)
     if out.status:
         cameras, scaled = (query.camera, match.camera), out.status != SCALE_FREE
-        out.covariance = cv.with_floor(out.covariance, out.translation, c, cameras, scaled)
+        out.covariance = cv.with_systematic(out.covariance, out.translation, c, cameras, scaled)
     return out
 
 
@@ -191,159 +215,107 @@ def _relative_pose(query, match, c: PoseConfig, neighbours) -> RelativePose:
 
 
 def _depth_side(q: Features, m: Features, pairs: np.ndarray, need: int, max_depth: float):
-    """-> ("match" | "query" | None, depth [K] of the used side, reason when None)."""
-    valid = {}
+    """-> ("match" | "query" | None, depth [K] of the used side, reason when None): the match's
+    depth (from the map) when enough matches have it, else the query's."""
+    counts = []
     for name, f, col in (("match", m, 1), ("query", q, 0)):
         z = f.depth[pairs[:, col]] if f.depth is not None else np.full(len(pairs), np.nan)
-        valid[name] = (int((np.isfinite(z) & (z <= max_depth)).sum()), z)
-    best = max(valid, key=lambda k: valid[k][0])  # ties: the match (from the map) first
-    count, z = valid[best]
-    if count >= need:
-        return best, z, ""
+        count = int((np.isfinite(z) & (z <= max_depth)).sum())
+        if count >= need:
+            return name, z, ""
+        counts.append(count)
     if q.depth is None and m.depth is None:
         return None, None, "no depth image (monocular): the translation is a direction only"
-    return None, None, (f"no depth at the keypoints ({count} of {len(pairs)} matches have "
-                        f"depth{within(max_depth)}): the translation is a direction "
+    return None, None, (f"no depth at the keypoints ({max(counts)} of {len(pairs)} matches "
+                        f"have depth{within(max_depth)}): the translation is a direction "
                         "only")  # fmt: skip
 
 
 def _metric(q, m, pairs, side, z, c: PoseConfig) -> RelativePose:
     fit = metric_fit(q, m, pairs, side, z, c)
-    if isinstance(fit[0], str):
+    if not isinstance(fit, MetricFit):
         return _fail(*fit)
-    r, t, cov, inliers, points = fit
-    if is_planar(points):  # the essential matrix cannot check a pose of a plane
-        return RelativePose(METRIC, "", inliers, r, t, cov)
-    chi2, angle = _model_disagreement(q, m, pairs, r, cov, c)
-    if chi2 <= c.max_model_disagreement_chi2:
-        return RelativePose(METRIC, "", inliers, r, t, cov)
-    # The disagreement becomes plausible under the scaled covariance; the pose is kept (a back
-    # end's robust kernel and this weak factor cannot bend the graph), its reason says why.
-    cov = cov * (chi2 / c.max_model_disagreement_chi2)
-    why = (f"PnP and essential-matrix rotations disagree by {angle:.2f} deg (chi-square "
-           f"{chi2:.0f} > {c.max_model_disagreement_chi2:g}): intrinsics or distortion wrong? "
-           "check camera_info or the camera_* parameters")  # fmt: skip
-    return RelativePose(METRIC, f"covariance x{chi2 / c.max_model_disagreement_chi2:.1f}: {why}",
-                        inliers, r, t, cov)  # fmt: skip
+    r, t, cov, n = fit.rotation, fit.translation, fit.covariance, len(fit.inliers)
+    s_t, s_r = cv.sigmas(cov)
+    if s_t > c.max_translation_sigma_m or s_r > c.max_rotation_sigma_deg:
+        return _fail(f"pose too uncertain (std {s_t:.2f} m, {s_r:.2f} deg)", n)
+    out = RelativePose(METRIC, "", n, r, t, cov.copy(), pairs[fit.inliers])
+    lens = radial_check((q.camera, m.camera), *metric_lens_refit(fit)) if c.lens_check else None
+    if lens is not None:
+        out.covariance, out.reason, out.lens_k1 = lens.widen(cov, True), lens.reason(), lens.k1
+    centres = tuple((f.camera.cx, f.camera.cy) for f in (q, m))
+    px = q.keypoints[pairs[fit.inliers, 0]], m.keypoints[pairs[fit.inliers, 1]]
+    var, words = split_variances(split_keys(*px, centres), metric_refit(fit, c), cov[3:, 3:])
+    out.covariance[3:, 3:] += np.eye(3) * var
+    out.reason = _why(out.reason, words)
+    chi2, angle = (0.0, 0.0) if is_planar(fit.points) else _model_disagreement(q, m, pairs, out, c)
+    if chi2 > CHI2_3DOF_95:  # (the essential matrix of a plane cannot check a pose)
+        # A weaker factor, not a refusal: refusing cost demo-world loops, and a covariance that
+        # admits the error cannot bend the graph.
+        out.covariance[3:, 3:] += np.eye(3) * math.radians(angle / 2) ** 2
+        why = (f"PnP and essential-matrix rotations disagree by {angle:.2f} deg (chi-square "
+               f"{chi2:.0f}): intrinsics, distortion or timing wrong? check camera_info or the "
+               "camera_* parameters")  # fmt: skip
+        out.reason = _why(out.reason, why)
+    problem = agreement_problem(q, m, pairs, fit, out.covariance, c)
+    return _fail(problem, n) if problem else out
 
 
-def _model_disagreement(q, m, pairs, r, cov, c: PoseConfig) -> tuple[float, float]:
+def _model_disagreement(q, m, pairs, pose: RelativePose, c: PoseConfig) -> tuple[float, float]:
     """(chi-square, 3 dof, angle in deg) of the difference between the PnP rotation (depth +
     pixels) and the essential matrix's (pixels only) under both covariances ((0, 0): no E).
     A wrong camera model bends the two differently: the sign of a confident wrong pose."""
-    e = _essential_fit(q, m, pairs, c)
-    if isinstance(e, RelativePose):
+    e = essential_fit(q, m, pairs, c)
+    if not isinstance(e, EssentialFit):
         return 0.0, 0.0
-    d = log_so3(e[0] @ r.T)
-    floor = 2 * np.eye(3) * math.radians(cv.rotation_floor_deg(c, q.camera, m.camera)) ** 2
-    both = cov[3:, 3:] + e[3][2:, 2:] + floor
+    d = log_so3(e.rotation @ pose.rotation.T)
+    floor = 2 * np.eye(3) * math.radians(cv.systematic_rotation_deg(c, q.camera, m.camera)) ** 2
+    both = pose.covariance[3:, 3:] + e.covariance[2:, 2:] + floor
     return float(d @ np.linalg.solve(both, d)), math.degrees(float(np.linalg.norm(d)))
 
 
 def _monocular(q, m, pairs, c: PoseConfig, neighbours, why: str) -> RelativePose:
     """Essential-matrix pose; metric when the odometry next to the match gives the length."""
-    fit = _essential_fit(q, m, pairs, c)
-    if isinstance(fit, RelativePose):
-        return fit
-    r, t, idx, cov5 = fit
-    k = q.camera.k  # the check's ideal pixels, as _essential_fit's
-    px_q, px_m = (project(k, f.camera.rays(f.keypoints[pairs[idx, col]]))
-                  for f, col in ((q, 0), (m, 1)))  # fmt: skip
-    rows_var, rows_angle = row_split_variance(px_q, px_m, k, (r, t), c.min_sigma_px)
-    chi2, angle = centre_rim_chi2(px_q, px_m, k, (r, t), cov5[2:, 2:])
-    if chi2 > c.max_model_disagreement_chi2:  # as PnP vs essential matrix: a weaker pose
-        cov5 = cov5 * (chi2 / c.max_model_disagreement_chi2)
-        # a lens model that bends the rim biases both halves: half their angle on each axis
-        cov5[2:, 2:] += np.eye(3) * math.radians(angle / 2) ** 2
-        why += (f"; covariance x{chi2 / c.max_model_disagreement_chi2:.1f}: rotations of "
-                f"the image centre and rim disagree by {angle:.2f} deg (distortion left "
-                "out?)")  # fmt: skip
-    if rows_var > 0.0:  # a rolling shutter bends the rows: the pose is off by about as much
-        cov5[2:, 2:] += np.eye(3) * rows_var
-        why += f"; the upper and lower rows disagree by {rows_angle:.2f} deg (rolling shutter?)"
-    scaled: RelativePose | str = "switched off (odometry_scale false)"
-    if c.odometry_scale:
-        scaled = _odometry_scaled(q, m, pairs[idx], (r, t, cov5), c, neighbours)
-    if isinstance(scaled, RelativePose):
-        return scaled
-    cov = cv.embed_rotation(cov5[2:, 2:], cv.SCALE_FREE_VARIANCE)
-    return RelativePose(SCALE_FREE, f"{why}; no scale from odometry: {scaled}", len(idx), r, t,
-                        cov)  # fmt: skip
-
-
-def _odometry_scaled(q, m, inliers, fit, c: PoseConfig, neighbours) -> RelativePose | str:
-    """The essential-matrix pose `fit` (R, unit t, cov5) with its length from the match's
-    keypoints triangulated over odometry baselines (odometry_scale.py), or why not.
-
-    Covariance: with L = V sqrt(Lambda) of cov5 = V Lambda V^T and J_k the change of the length
-    s between the sigma points +-L_k, the errors are d_t = (s B L_dir + t J^T) xi and
-    d_rot = L_rot xi (xi ~ N(0, I_5)), plus an independent length error along t: the median's
-    standard error and the odometry's relative error (``scale_sigma_floor``, the lever arm)."""
-    r, t, cov5 = fit
-    tri = triangulate_match(m, neighbours, c)
-    if isinstance(tri, str):
-        return tri
-    rays_q = q.camera.rays(q.keypoints[inliers[:, 0]])
-    lengths = loop_length(m, tri.depth, inliers, rays_q, c.scale_min_parallax_deg)
-    s_i = lengths(r, t)
-    if len(s_i) < c.scale_min_points:
-        return (f"too few loop inliers with a triangulated point ({len(s_i)} < "
-                f"{c.scale_min_points})")  # fmt: skip
-    s = float(np.median(s_i))
-    lam, vec = np.linalg.eigh(cov5)
-    sq = vec * np.sqrt(np.clip(lam, 0.0, None))  # [5, 5]: column k is L_k
-    basis = direction_basis(t)
-    jac = np.empty(5)
-    for k in range(5):
-        ends = []
-        for sign in (1.0, -1.0):
-            d = sign * sq[:, k]
-            t_k = t + basis @ d[:2]
-            s_k = lengths(exp_so3(d[2:]) @ r, t_k / np.linalg.norm(t_k))
-            ends.append(float(np.median(s_k)) if len(s_k) else math.nan)
-        jac[k] = (ends[0] - ends[1]) / 2
-    if not np.isfinite(jac).all():  # a pose one std away leaves no point in front: no length
-        return "no length for poses within the pose's std (its points fall behind a camera)"
-    a = np.zeros((6, 5))
-    a[:3] = s * basis @ sq[:2] + np.outer(t, jac)
-    a[3:] = sq[2:]
-    spread = 1.4826 * float(np.median(np.abs(s_i - s))) * math.sqrt(math.pi / 2 / len(s_i))
-    cov = a @ a.T
-    cov[:3, :3] += (spread**2 + (tri.relative_sigma * s) ** 2) * np.outer(t, t)
-    s_t, _ = cv.sigmas(cov)
-    if s_t > c.max_translation_sigma_m:
-        return f"too uncertain (std {s_t:.2f} m)"
-    used = ", ".join(map(str, tri.neighbours))
-    why = f"scale from the odometry to keyframes {used} ({len(s_i)} points)"
-    return RelativePose(METRIC_ODOMETRY, why, len(inliers), r, t * s, (cov + cov.T) / 2)
-
-
-def _essential_fit(q, m, pairs, c: PoseConfig):
-    """-> (R, unit t, inlier indices, covariance [5, 5] of (direction [2], rotation [3])) or a
-    failed RelativePose."""
-    rays_q = q.camera.rays(q.keypoints[pairs[:, 0]])
-    rays_m = m.camera.rays(m.keypoints[pairs[:, 1]])
-    k = q.camera.k  # both images as ideal pixels of the query camera
-    px_q, px_m = project(k, rays_q), project(k, rays_m)
-    sol = essential_pose(px_q, px_m, k, c.essential_px, c.min_inliers)
-    if isinstance(sol, str):
-        return _fail(sol)
-    r, t, idx = sol
-    parallax = parallax_deg(rays_q[idx], rays_m[idx], r)
-    if parallax < c.min_parallax_deg:
-        return _fail(f"degenerate motion: {parallax:.2f} deg parallax is too little for a "
-                     "translation direction", len(idx))  # fmt: skip
-    residuals = sampson_residuals(px_q[idx], px_m[idx], k)
-    basis = np.zeros((6, 5))  # directions of t that change it, then the rotation
-    basis[:3, :2], basis[3:, 2:] = direction_basis(t), np.eye(3)
-    jac = cv.jacobian(residuals, r, t) @ basis
-    fit = cv.gauss_newton_covariance(jac, residuals(r, t), c.min_sigma_px)
-    if fit is None:
-        return _fail("degenerate geometry: the inliers do not fix the rotation", len(idx))
-    cov5 = fit[0] * c.covariance_scale
-    s_dir = float(np.degrees(np.sqrt(np.linalg.eigvalsh(cov5[:2, :2])[-1])))
+    fit = essential_fit(q, m, pairs, c)
+    if not isinstance(fit, EssentialFit):
+        return _fail(*fit)
+    r, t, cov5 = fit.rotation, fit.translation, fit.covariance
     s_rot = float(np.degrees(np.sqrt(np.linalg.eigvalsh(cov5[2:, 2:])[-1])))
-    if s_dir > c.max_direction_sigma_deg or s_rot > c.max_rotation_sigma_deg:
-        return _fail(f"pose too uncertain (direction std {s_dir:.1f} deg, rotation std "
-                     f"{s_rot:.2f} deg)", len(idx))  # fmt: skip
-    return r, t, idx, cov5
+    if s_rot > c.max_rotation_sigma_deg:
+        return _fail(f"pose too uncertain (rotation std {s_rot:.2f} deg)", len(fit.inliers))
+    cams = (q.camera, m.camera)
+    lens = radial_check(cams, *essential_lens_refit(fit, cams)) if c.lens_check else None
+    k1, checks = 0.0, []
+    if lens is not None:
+        cov5, k1 = lens.widen(cov5, False), lens.k1
+        checks.append(lens.reason())
+    keys = split_keys(*fit.keypoints, tuple((cam.cx, cam.cy) for cam in cams))
+    var, words = split_variances(keys, essential_refit(fit, cams, c.floor_px),
+                                 fit.covariance[2:, 2:])  # fmt: skip
+    var2, angle = redraw_variance(fit, q, m, pairs, c)
+    cov5[2:, 2:] += np.eye(3) * (var + var2)
+    checks.append(words)
+    if var2 > 0.0:
+        checks.append(f"another RANSAC draw lands {angle:.2f} deg away (ambiguous matches)")
+    inl = pairs[fit.inliers]
+    scaled = _direction_problem(fit, cov5, c)
+    if not scaled:
+        scaled = ("switched off (odometry_scale false)" if not c.odometry_scale else
+                  scaled_pose(q, m, inl, (r, t, cov5), c, neighbours))  # fmt: skip
+    if not isinstance(scaled, str):
+        return RelativePose(METRIC_ODOMETRY, _why(scaled[2], *checks), len(inl), r, scaled[0],
+                            scaled[1], inl, k1)  # fmt: skip
+    cov = cv.embed_rotation(cov5[2:, 2:], cv.SCALE_FREE_VARIANCE)
+    return RelativePose(SCALE_FREE, _why(why, *checks, f"no scale from odometry: {scaled}"),
+                        len(inl), r, t, cov, inl, k1)  # fmt: skip
+
+
+def _direction_problem(fit: EssentialFit, cov5: np.ndarray, c: PoseConfig) -> str:
+    """Why the pose's translation direction cannot carry a length ("" when it can)."""
+    if fit.parallax_deg < c.min_parallax_deg:
+        return (f"degenerate motion: {fit.parallax_deg:.2f} deg parallax is too little for a "
+                "translation direction (the rotation holds)")  # fmt: skip
+    s_dir = float(np.degrees(np.sqrt(np.linalg.eigvalsh(cov5[:2, :2])[-1])))
+    if s_dir > c.max_direction_sigma_deg:
+        return f"direction too uncertain (std {s_dir:.1f} deg)"
+    return ""

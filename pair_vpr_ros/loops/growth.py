@@ -75,12 +75,18 @@ def live_posed_loops(outcome: FrameOutcome) -> list[tuple[int, tuple[float, ...]
     return out
 
 
+def live_scores(outcome: FrameOutcome, global_weight: float) -> dict[int, float]:
+    """{id: re-rank score (pair score + global_weight x global similarity; NaN: not scored)} of
+    the outcome's live-map candidates: a stored keyframe's links keep them (compact's rule)."""
+    return {c.id: c.rerank_score(global_weight) for c in outcome.candidates if c.prior < 0}
+
+
 def recognised_ids(outcome: FrameOutcome, threshold: float, global_weight: float) -> set[int]:
     """Live-map keyframes that the outcome's re-ranking scored at or above `threshold` on their
     own (re-rank score: pair score + global_weight x global similarity; unscored ones are not):
     only these may represent the query (module docstring)."""
-    return {c.id for c in outcome.candidates
-            if c.prior < 0 and c.rerank_score(global_weight) >= threshold}  # fmt: skip
+    scores = live_scores(outcome, global_weight)
+    return {kf_id for kf_id, score in scores.items() if score >= threshold}
 
 
 class MapGrowth:
@@ -134,14 +140,16 @@ class MapGrowth:
         return None if best is None else (best[1], best[2])
 
     def stored(
-        self, place_map: PlaceMap, kf_id: int, signature: np.ndarray, posed: list[tuple]
-    ) -> None:
-        """Record a stored keyframe's signature and its links (one per posed loop)."""
-        tables = place_map.growth
+        self, place_map: PlaceMap, kf_id: int, signature: np.ndarray, posed: list[tuple],
+        scores: dict[int, float] | None = None,
+    ) -> None:  # fmt: skip
+        """Record a stored keyframe's signature and its links (one per posed loop), each with
+        the re-rank score its query gave the match (`scores`, `live_scores`)."""
+        tables, scores = place_map.growth, scores or {}
         tables.add_signature(kf_id, signature)
         for match_id, t_match_query in posed:
             if match_id != kf_id:
-                tables.add_link(kf_id, match_id, t_match_query)
+                tables.add_link(kf_id, match_id, t_match_query, scores.get(match_id))
 
     @staticmethod
     def represented(

@@ -42,6 +42,7 @@ from pair_vpr_ros.loops.growth import (
     MapGrowth,
     appearance_signature,
     live_posed_loops,
+    live_scores,
     recognised_ids,
     shift_pose,
 )
@@ -207,9 +208,9 @@ class LoopClosurePipeline(PipelineMaps):
             outcome.timings_ms["pose"] = 0.0
             for loop in accepted:  # each with its own match's features, from its own map
                 best = match_candidate(outcome, loop)
-                match, lent = self._match_features(best)
+                match, lent = self.match_features(best)
                 # a lent match is posed from its lender's features, camera and odometry
-                near = self._scale_neighbours(best if lent is None else replace(best, id=lent[0]))
+                near = self.scale_neighbours(best, lent)
                 outcome.timings_ms["pose"] += self.geometry.pose(loop, features, match, near)
                 if not loop.pose_status:  # an unposed loop is no sequence to follow (sequence.py)
                     self.detector.end_sequence(track_of(best, self.config.loop_per_map))
@@ -248,7 +249,8 @@ class LoopClosurePipeline(PipelineMaps):
         if places and self.growth.lender(self._place_map, posed) is not None:
             packed = b""  # a known place anew: a linked keyframe lends its features
         outcome.keyframe_id = self._place_map.add(desc, dense, meta, packed)
-        self.growth.stored(self._place_map, outcome.keyframe_id, signature, posed)
+        scores = live_scores(outcome, self.config.global_weight)
+        self.growth.stored(self._place_map, outcome.keyframe_id, signature, posed, scores)
         self.maps.added(replace(meta, id=outcome.keyframe_id))
         pending = self._place_map.index_diagnostics.get("map_keyframes_pending", 0)
         self.counts.map_keyframes_pending = pending

@@ -7,6 +7,7 @@ the pipeline's state: `model`, `index_kind`, `identity`, `maps`, `geometry`, `gr
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -107,11 +108,13 @@ class PipelineMaps:
         self.maps.close_priors()
 
     def _stored_features(self, match: Candidate) -> Features | None:
-        return self._match_features(match)[0]
+        return self.match_features(match)[0]
 
-    def _match_features(self, match: Candidate) -> tuple[Features | None, tuple | None]:
-        """The match's features, and None; for one stored without (map_growth), its feature
-        source's and (source id, T_match_source) (`MapGrowth.feature_source`)."""
+    def match_features(self, match: Candidate) -> tuple[Features | None, tuple | None]:
+        """What a loop to `match` is verified and posed with: the match's features, and None;
+        for one stored without (map_growth), its feature source's and (source id,
+        T_match_source) (`MapGrowth.feature_source`): the pose is then composed into the
+        match's frame (growth.shift_pose). The pipeline and the fleet's owner use it."""
         m = self.maps.map_of(match)
         own = m.features(match.id)
         source = None if own else self.growth.feature_source(m, match.id)
@@ -119,9 +122,11 @@ class PipelineMaps:
             return self.geometry.unpack(own), None
         return self.geometry.unpack(m.features(source[0])), source
 
-    def _scale_neighbours(self, match: Candidate) -> list[Neighbour]:
-        """Keyframes recorded next to the match, with an odometry baseline, for the scale of a
-        monocular loop (`MapSearch.near`)."""
+    def scale_neighbours(self, match: Candidate, lent: tuple | None = None) -> list[Neighbour]:
+        """Keyframes recorded next to the match (`lent`: next to its feature source, whose
+        features pose it), with an odometry baseline, for the scale of a monocular loop
+        (`MapSearch.near`)."""
+        match = match if lent is None else replace(match, id=lent[0])
         meta, near = self.maps.near(match, self.geometry.config.pose.scale_neighbours)
         # each neighbour's own features (lent ones would not fit its odometry pose)
         load = lambda i: self.geometry.unpack(self.maps.map_of(match).features(i))  # noqa: E731

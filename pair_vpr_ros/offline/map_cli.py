@@ -15,7 +15,7 @@ import argparse
 import json
 import sys
 
-from pair_vpr_ros.cli import run_cli
+from pair_vpr_ros.cli import finite_float, run_cli
 from pair_vpr_ros.place_map.dense_codec import CODECS, DEFAULT_CODEC
 from pair_vpr_ros.place_map.growth.compact import compact_map
 from pair_vpr_ros.place_map.growth.policy import GrowthConfig
@@ -84,6 +84,12 @@ def _compact_parser(sub) -> None:
         "(the node's exclude_recent_s; default %(default)s)",
     )  # fmt: skip
     compact.add_argument(
+        "--score-threshold", type=finite_float, default=0.0, metavar="S",
+        help="the detector's score_threshold: a keyframe is represented only by one its own "
+        "re-ranking scored at least this (the re-rank score its link keeps; default "
+        "%(default)s, the node's default)",
+    )  # fmt: skip
+    compact.add_argument(
         "--fingerprint", metavar="FP",
         help="refuse a map of another model (the fingerprint `pairvpr-map info` prints)",
     )  # fmt: skip
@@ -130,7 +136,10 @@ def _run(args: argparse.Namespace) -> int | None:
     if args.command == "compact":
         growth = GrowthConfig(exclude_recent_s=args.exclude_recent_s)
         compacted = compact_map(args.map, args.out, codec=args.codec, policy=not args.no_policy,
-                                growth=growth, fingerprint=args.fingerprint)  # fmt: skip
+                                growth=growth, fingerprint=args.fingerprint,
+                                score_threshold=args.score_threshold)  # fmt: skip
+        for warning in compacted.warnings:
+            print(f"warning: {warning}", file=sys.stderr)
         for note in compacted.notes:
             print(f"note: {note}", file=sys.stderr)
         print(compacted.line())

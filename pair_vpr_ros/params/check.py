@@ -13,6 +13,14 @@ from pair_vpr_ros.model.config import PATCH
 from pair_vpr_ros.params.table import SPECS, ParamSpec, Value
 
 TYPE_NAMES = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+# Parameters that were replaced: what an old parameter file should say instead.
+RETIRED = {
+    "pose_floor_rotation_px": (
+        ": replaced by pose_systematic_px (this camera's systematic error, default 0: the "
+        "covariance now comes from the inliers and the model checks) and pose_floor_px (a lower "
+        "bound on the pixel noise); see docs/real-cameras.md"
+    )
+}
 
 
 def check_value(name: str, value: Any, specs: Mapping[str, ParamSpec] | None = None) -> str | None:
@@ -20,7 +28,7 @@ def check_value(name: str, value: Any, specs: Mapping[str, ParamSpec] | None = N
     it is valid)."""
     spec = (SPECS if specs is None else specs).get(name)
     if spec is None:
-        return f"unknown parameter {name!r}"
+        return f"unknown parameter {name!r}{RETIRED.get(name, '')}"
     if spec.strings:
         return _check_strings(name, value)
     if isinstance(spec.default, tuple):

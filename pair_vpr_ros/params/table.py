@@ -131,12 +131,15 @@ PARAMS: tuple[ParamSpec, ...] = (
        1e-9, 10.0, **RO),
     _p("max_depth", 0.0, "depth beyond this (m) is not used for relative poses (0 = no limit)",
        0.0, 1.0e4, **RO),
-    _p("pose_floor_rotation_px", 1.8, "covariance floor of relative poses: rotation std per "
-       "axis for errors no residual shows (calibration, timing), as this many pixels' angle at "
-       "the camera's focal length (1.8: 0.2 deg at f = 517 px; docs/real-cameras.md)",
+    _p("pose_floor_px", 0.25, "relative poses' covariance: the pixel noise is the inliers' own "
+       "(a posteriori), at least this (px): a lower bound only (docs/real-cameras.md)",
        0.0, 100.0, **RO),
-    _p("pose_floor_rotation_deg", 0.0, "... and at least this (deg; before pose_floor_rotation_px "
-       "this alone was the floor, 0.2)", 0.0, 90.0, **RO),
+    _p("pose_systematic_px", 0.0, "relative poses' covariance: this camera's systematic error "
+       "that no residual shows (rolling shutter, a late image stamp), as a rotation std of this "
+       "many pixels' angle at the focal length on each axis (docs/real-cameras.md says how to "
+       "choose it)", 0.0, 100.0, **RO),
+    _p("pose_floor_rotation_deg", 0.0, "... and that rotation std at least this (deg)", 0.0,
+       90.0, **RO),
     _p("pose_floor_translation_m", 0.005, "covariance floor: translation std (m), plus ...",
        0.0, 100.0, **RO),
     _p("pose_floor_translation_rel", 0.01, "... this fraction of the translation's length",

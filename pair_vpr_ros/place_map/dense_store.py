@@ -76,6 +76,7 @@ class DenseStore:
         self.owned = owned
         self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
         self.bytes_read = 0  # from the file (benchmarks: bytes read per query)
+        self.copied_crcs: array | None = None  # of the last `copy_to` that re-coded entries
         flags = os.O_RDWR | os.O_CREAT if writable else os.O_RDONLY
         try:
             self._fd: int | None = os.open(self.path, flags, 0o644)
@@ -190,9 +191,9 @@ class DenseStore:
         tokens = np.stack(first) if first else self.read(np.arange(BASIS_FROM))
         size, n = self.entry_bytes, self.shape[0]
         basis = Basis.fit(tokens.reshape(-1, self.shape[1]), n, size, BASIS_FROM, self.weight)
-        if not (first and self.owned):
+        if not (first and self.owned):  # a save names the file: its entries stay as they are
             self._write_basis(basis)
-            self._first = None
+            self._first = first  # their float16 tokens: the next save's copy re-codes them
             return
         coded = [basis.encode(t, size) for t in first]
         crcs = [zlib.crc32(c) for c in coded]
@@ -281,17 +282,44 @@ class DenseStore:
                 if not self._intact(data[lo : lo + self.entry_bytes], i):
                     raise self._corrupt(i)
 
-    def crc_bytes(self) -> bytes:
-        """The CRC32 of each valid entry as little-endian uint32 [count]."""
-        return np.frombuffer(self.crcs, dtype=np.uint32).astype("<u4").tobytes()
-
     def sync(self) -> None:
         """Make the valid entries durable."""
         os.fsync(self._fd)
 
+    @property
+    def recode_pending(self) -> bool:
+        """p4: a basis fitted in a file a save named, while this store still holds the float16
+        tokens of the first entries (coded q4 before it): the next save writes a new
+        generation whose copy (`copy_to`) codes them with the basis too."""
+        first, basis = self._first, self.basis
+        if not first or basis is None:
+            return False
+        return not basis.recoded and len(first) == basis.start
+
     def copy_to(self, dst: Path) -> None:
-        """Write the valid entries to a new file `dst` (fsynced)."""
-        copy_prefix(self._fd, dst, self._at(self.count))
+        """Write the valid entries to a new file `dst` (fsynced). `recode_pending`: the first
+        entries coded with the basis, whose head then lists their CRC32s; that changes the
+        basis's CRC32, which seeds those of the later entries: `copied_crcs` are then the
+        CRC32s of the copy's entries, for its keyframe rows."""
+        self.copied_crcs = None
+        if not self.recode_pending:
+            copy_prefix(self._fd, dst, self._at(self.count))
+            return
+        old, size = self.basis, self.entry_bytes
+        coded = [old.encode(t, size) for t in self._first]
+        new = Basis(old.mean, old.enc16, old.bits, old.start, [zlib.crc32(c) for c in coded])
+        crcs = array("I", self.crcs[: len(coded)])  # theirs: the head's list is checked
+        with open(dst, "wb") as out:
+            out.write(new.to_bytes().ljust(self.head, b"\0") + b"".join(coded))
+            for i in range(len(coded), self.count):  # the same bytes, CRC32s seeded anew
+                data = os.pread(self._fd, size, self._at(i))
+                if not self._intact(data, i):
+                    raise self._corrupt(i)
+                crcs.append(zlib.crc32(data, new.crc))
+                out.write(data)
+            out.flush()
+            os.fsync(out.fileno())
+        self.copied_crcs = crcs
 
     def close(self) -> None:
         self._cache.clear()
@@ -302,16 +330,3 @@ class DenseStore:
     def __del__(self) -> None:
         if getattr(self, "_fd", None) is not None:
             self.close()
-
-
-def read_crcs(path: Path, count: int) -> array:
-    """Read a file written from `DenseStore.crc_bytes`; -> array of `count` CRC32 values."""
-    data = path.read_bytes()
-    if len(data) != 4 * count:
-        raise MapError(
-            f"dense checksum file {path} holds {len(data) // 4} entries, the manifest lists "
-            f"{count}: the map is damaged, restore it from a backup or rebuild it"
-        )
-    crcs = array("I")
-    crcs.frombytes(np.frombuffer(data, dtype="<u4").astype(np.uint32).tobytes())
-    return crcs

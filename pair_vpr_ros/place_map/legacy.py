@@ -8,15 +8,16 @@ folder writes format 3 around it (`dense_codec` f16: its tokens are not re-encod
 
 from __future__ import annotations
 
+from array import array
 from pathlib import Path
 
 import numpy as np
 
 from pair_vpr_ros.errors import MapError
-from pair_vpr_ros.place_map.dense_store import DenseStore, read_crcs
+from pair_vpr_ros.place_map.dense_store import DenseStore
 from pair_vpr_ros.place_map.index import DescriptorIndex
-from pair_vpr_ros.place_map.manifest import Manifest, check_files
-from pair_vpr_ros.place_map.metadata import MetadataStore
+from pair_vpr_ros.place_map.manifest import FORMAT_VERSION, Manifest, check_files
+from pair_vpr_ros.place_map.metadata import MetadataStore, identity_problem
 from pair_vpr_ros.place_map.parts import MapParts, check_count, index_config
 from pair_vpr_ros.place_map.store import KeyframeStore
 
@@ -56,7 +57,7 @@ def open_legacy(
             index = MilvusIndex.read(
                 index_path, m.desc_dim, config, m.fingerprint, m.count, read_only
             )
-        _convert(meta, store, index, crcs)
+        _convert(meta, store, index, crcs, d / m.files["meta"]["name"])
     except BaseException:
         store.close()
         if dense is not None:
@@ -70,16 +71,39 @@ def open_legacy(
     )  # fmt: skip
     note = (
         f"place map {d} is of format version {m.format_version}{named}: loaded through a working "
-        "copy, converted to format 3 by the next save into it (dense tokens stay float16)"
+        f"copy, converted to format {FORMAT_VERSION} by the next save into it (dense tokens stay "
+        "float16)"
     )
     return MapParts(index, store, dense, m.desc_dim, shape, m.fingerprint, m.format_version, note)
 
 
-def _convert(meta: MetadataStore, store: KeyframeStore, index, crcs) -> None:
-    """Every keyframe of the old metadata into the new store, with its descriptor and CRC."""
+def _convert(meta: MetadataStore, store: KeyframeStore, index, crcs, saved: Path) -> None:
+    """Every keyframe of the old metadata into the new store, with its descriptor and CRC; a
+    robot or session name that breaks the identity rule (written before it) is refused."""
     rows = meta.all()
+    for robot, session in sorted({(r.robot, r.session) for r in rows}):
+        problem = identity_problem(robot, session)
+        if problem:
+            raise MapError(
+                f"keyframe metadata {saved}: its keyframes' {problem}; "
+                "the map was written before robot and session names were checked: rebuild it "
+                "with valid names"
+            )
     for lo in range(0, len(rows), _CHUNK):
         chunk = rows[lo : lo + _CHUNK]
         descs = index.reconstruct(np.array([r.id for r in chunk], np.int64))
         for row, desc in zip(chunk, descs, strict=True):
             store.add(row, desc, crcs[row.id], meta.features(row.id))
+
+
+def read_crcs(path: Path, count: int) -> array:
+    """Read a format-1/2 `dense-g.crc` file (little-endian uint32 each) -> `count` CRC32s."""
+    data = path.read_bytes()
+    if len(data) != 4 * count:
+        raise MapError(
+            f"dense checksum file {path} holds {len(data) // 4} entries, the manifest lists "
+            f"{count}: the map is damaged, restore it from a backup or rebuild it"
+        )
+    crcs = array("I")
+    crcs.frombytes(np.frombuffer(data, dtype="<u4").astype(np.uint32).tobytes())
+    return crcs

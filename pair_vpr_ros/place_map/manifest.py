@@ -1,11 +1,18 @@
-"""`manifest.json`: the one file that says which generation of map files is the saved map.
+"""`manifest.json`: the one file that says which generation of map files is the saved map, and
+the record of its last completed save.
 
 Format 3 (written since issue 34): generation g is `map-g.sqlite` (the keyframe store, store.py:
 metadata, descriptors, features, per-row CRC32s; its own commits are the incremental saves) and
 the append-only `dense-h.q4` / `.p4` / `.q4a` / `.f16` (p4: its basis in the file's head);
 non-flat index kinds add a snapshot `index-g-k.faiss` / `.milvus` that the store names. The
-manifest is written only when a generation starts (first save into a folder, a save after
-`clear`, a converted old map) and carries a CRC32 of its own content.
+manifest carries a CRC32 of its own content. Format 4 (issue 48) is format 3 plus the record
+of each completed save: after every save's commit the manifest is written again with `count`,
+the keyframes that save holds, and `store_id`, the identity of the keyframe store it names
+(its `state` row). That record lives outside the store's write-ahead log, so a load finds a
+`-wal` that was deleted, truncated, replaced or left behind (fewer keyframes than recorded)
+and a store or `-wal` of another map (another identity). In format 3 `count` was the
+keyframes of the generation's first save, which the store always holds, so the same check
+holds for it; the next save writes format 4 (the store's schema migrated, schema.py).
 
 Formats 1 and 2 (read, converted to 3 by the next save): files of generation g are named
 `index-g.faiss` (kind "milvus": `index-g.milvus`, the record of its collection), `meta-g.sqlite`,
@@ -19,6 +26,7 @@ import json
 import os
 import re
 import zlib
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -29,12 +37,15 @@ from pair_vpr_ros.place_map.files import TMP_SUFFIX, remove_quietly, write_bytes
 
 MANIFEST_NAME = "manifest.json"
 FORMAT_NAME = "pair_vpr_ros.place_map"
-FORMAT_VERSION = 3  # 2: keyframes carry robot and session (issue 22); 3: incremental (34)
-READABLE_VERSIONS = (1, 2, 3)  # a version-1 map loads with its keyframes named at load
+# 2: keyframes carry robot and session (issue 22); 3: incremental (34); 4: the record of each
+# completed save, the store's identity and schema version (48)
+FORMAT_VERSION = 4
+READABLE_VERSIONS = (1, 2, 3, 4)  # a version-1 map loads with its keyframes named at load
 # Files a save may create; anything else in the directory is left alone.
 MAP_FILE_RE = re.compile(
     r"^(index-\d+(-\d+)?\.(faiss|milvus)|(meta|map)-\d+\.sqlite|dense-\d+\.(f16|crc|q4a|q4|p4))"
 )
+_SINCE_4 = {"store_id": ""}  # fields added by format 4, left out of the CRC at their default
 _CHECKED = ("index", "meta", "dense_crc")  # small files: size + sha256 in the manifest
 _ROLE_RE_V3 = {
     "store": re.compile(r"map-\d+\.sqlite"),
@@ -53,7 +64,7 @@ class Manifest:
     """Everything needed to open a saved map and to check its files."""
 
     generation: int
-    count: int
+    count: int  # format 4: keyframes of the last completed save (3: of the generation's first)
     desc_dim: int
     dense_shape: list[int]
     index: dict  # IndexConfig fields
@@ -64,10 +75,14 @@ class Manifest:
     dense_dtype: str = "float16"
     dense_codec: str = "f16"  # how dense entries are stored (dense_codec.py); 1 and 2: f16
     checksum: int = 0  # format 3: CRC32 of the manifest's other fields
+    store_id: str = ""  # format 4: the keyframe store's identity (its state row STORE_ID)
 
     def content_crc(self) -> int:
         data = asdict(self)
         data.pop("checksum")
+        for name, default in _SINCE_4.items():  # a format-3 manifest's CRC has none of them
+            if data[name] == default:
+                data.pop(name)
         return zlib.crc32(json.dumps(data, sort_keys=True).encode())
 
     def file_names(self) -> set[str]:
@@ -144,6 +159,8 @@ def _check_fields(m: Manifest) -> None:
         raise ValueError("dense_shape entries must be integers > 0")
     if m.dense_dtype != "float16" or not isinstance(m.fingerprint, str):
         raise ValueError("dense_dtype must be float16 and fingerprint a string")
+    if not isinstance(m.store_id, str) or (m.store_id and m.format_version < 4):
+        raise ValueError(f"bad store_id {m.store_id!r}")
     if m.dense_codec not in CODECS or (m.format_version < 3 and m.dense_codec != "f16"):
         raise ValueError(f"unknown dense_codec {m.dense_codec!r}")
     roles = _ROLE_RE_V3 if m.format_version >= 3 else _ROLE_RE
@@ -204,3 +221,60 @@ def remove_generation(directory: Path, generation: int, keep: set[str]) -> None:
     for name in os.listdir(directory):
         if pattern.match(name) and name not in keep:
             remove_quietly(directory / name)
+
+
+def check_record(
+    d: Path, m: Manifest, store, base_id: Callable[[], str | None], missing_ok: bool = False
+) -> tuple[int, str]:
+    """Check the keyframe store `store` of the map in `d` (opened through its write-ahead log)
+    against `m`'s record of the last completed save -> (its keyframe count, a note: "" or, with
+    `missing_ok`, what is missing). MapError: the store or its -wal belongs to another map (a
+    store identity other than the record's), or it holds fewer keyframes than recorded.
+    base_id(): the identity in the store's file read without its -wal (None: unreadable)."""
+    wal = Path(f"{store.path}-wal")
+    try:
+        count = store.count_checked()
+        found = store.store_id if m.store_id else ""
+    except MapError as err:  # pages of another map's log over this file read as damage
+        if m.store_id and wal.exists() and base_id() == m.store_id:
+            raise _foreign_wal(store.path, wal, "its pages do not fit this store") from err
+        raise
+    if m.store_id and found != m.store_id:
+        if wal.exists() and base_id() == m.store_id:
+            raise _foreign_wal(store.path, wal, f"it names store {found or '?'!r}")
+        raise MapError(
+            f"keyframe store {store.path} belongs to another map (store {found or '?'!r}; "
+            f"{d / MANIFEST_NAME} names {m.store_id!r}): it was replaced by another map's; "
+            "restore the map folder from a backup, or load the map it belongs to"
+        )
+    if count >= m.count:
+        return count, ""
+    if store.wal_ignored:
+        why = (f"its write-ahead log {wal.name} cannot be read here (SQLite must write "
+               f"{store.path.name}-shm beside it: a read-only folder?)")  # fmt: skip
+    elif wal.exists():
+        why = f"its write-ahead log {wal.name} is truncated or older than that save"
+    else:
+        why = (f"its write-ahead log {wal.name} is missing (deleted, or the folder was copied "
+               "without it while the map was open)")  # fmt: skip
+    lost = f"{m.count - count} keyframes ({count}..{m.count - 1})"
+    note = (
+        f"keyframe store {store.path} holds {count} keyframes, the last completed save "
+        f"recorded {m.count} ({d / MANIFEST_NAME}): {lost} are missing; {why}"
+    )
+    if missing_ok:
+        return count, note
+    raise MapError(
+        f"{note}: copy the map folder again with its {wal.name} (close the map first, or copy "
+        "the folder whole), or restore it from a backup; to go on with the "
+        f"{count} keyframes it holds: pairvpr-map compact {d} --out NEW_FOLDER"
+    )
+
+
+def _foreign_wal(path: Path, wal: Path, how: str) -> MapError:
+    return MapError(
+        f"keyframe store {path}: its write-ahead log {wal.name} belongs to another map ({how}; "
+        f"the store's own file is this map's): the map's own log was replaced; move {wal.name} "
+        "away and load the map again (it then holds the keyframes its file holds), or restore "
+        "the map folder from a backup"
+    )

@@ -25,13 +25,21 @@ from __future__ import annotations
 
 import os
 import shutil
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from tqdm import tqdm
 
-from pair_vpr_ros.errors import ConfigError, MapError, MapFingerprintError
+from pair_vpr_ros.errors import (
+    ConfigError,
+    MapError,
+    MapFingerprintError,
+    OutputError,
+    disk_full,
+    os_reason,
+)
 from pair_vpr_ros.identity import DEFAULT_ROBOT, LEGACY_SESSION
 from pair_vpr_ros.place_map.index import IndexConfig
 from pair_vpr_ros.place_map.place_map import PlaceMap
@@ -65,16 +73,16 @@ def merge_maps(
     other settings (default: the first input's settings); milvus_uri / milvus_collection
     replace the first input's (needed for kind "milvus" when the first input is not one).
     ConfigError (too few inputs, one given twice, `out` exists, index settings), MapError /
-    MapFingerprintError (an input is not a map, is damaged, or comes from another model);
-    `out` is not created then."""
+    MapFingerprintError (an input is not a map, is damaged, or comes from another model),
+    OutputError (`out`'s folder cannot be written, a full disk there); `out` is not created
+    then."""
     target = Path(out).expanduser().resolve()
     dirs = [Path(d).expanduser().resolve() for d in inputs]
     _check_arguments(dirs, target)
     remove_stale(target)
-    work = target.parent / f".{target.name}.merging-{os.getpid()}.work"
+    work = work_folder(target)
     maps: list[PlaceMap] = []
     try:
-        work.mkdir(exist_ok=True)
         for d in dirs:
             maps.append(_open(d))
         _check_same_model(maps)
@@ -82,13 +90,47 @@ def merge_maps(
         result = MergeResult(out=str(target))
         result.warnings += [m.load_note for m in maps if m.load_note]
         result.warnings += _shared_sessions(maps)
-        merged = _copy(maps, config, result, work, progress)
-        publish_map(merged, target)
+        with compacting(target, work, "merging"):
+            merged = _copy(maps, config, result, work, progress)
+            publish_map(merged, target)
     finally:
         for m in maps:
             m.close()
         shutil.rmtree(work, ignore_errors=True)
     return result
+
+
+def work_folder(target: Path) -> Path:
+    """The folder a merge or compact works in beside `target` (`.OUT.merging-PID.work`), made
+    before any work: OutputError when `target`'s folder cannot be written."""
+    work = target.parent / f".{target.name}.merging-{os.getpid()}.work"
+    try:
+        work.mkdir(exist_ok=True)
+    except OSError as err:
+        raise OutputError(
+            f"cannot write --out {target}: {target.parent} is not writable ({os_reason(err)}); "
+            "pick a writable folder"
+        ) from err
+    return work
+
+
+@contextmanager
+def compacting(target: Path, work: Path, what: str = "compacting") -> Iterator[None]:
+    """A full disk (or another OSError) while the new map is written in `work` -> one
+    OutputError with this tool's advice (the map's own, meant for a live map, does not apply:
+    nothing was written to --out, the inputs are unchanged)."""
+    try:
+        yield
+    except (MapError, OSError) as err:
+        chain = [err, err.__cause__, getattr(err.__cause__, "__cause__", None)]
+        full = next((e for e in reversed(chain) if e is not None and disk_full(e)), None)
+        if full is None and not isinstance(err, OSError):
+            raise  # an input's own error (damaged, another model): its message says it
+        raise OutputError(
+            f"{what} into --out {target} failed: {os_reason(full or err)}, writing in {work}; "
+            f"nothing was written to --out and the inputs are unchanged: free disk space in "
+            f"{target.parent} (or pick another --out) and run it again"
+        ) from err
 
 
 def remove_stale(target: Path) -> None:
@@ -228,9 +270,9 @@ def _copy_growth(m: PlaceMap, merged: PlaceMap, offset: int) -> None:
         signature = tables.signature(kf_id)
         if signature is not None:
             merged.growth.add_signature(kf_id + offset, signature)
-        for other, t_other_kf in tables.links(kf_id):
+        for other, t_other_kf, score in tables.scored_links(kf_id):
             if other < kf_id:
-                merged.growth.add_link(kf_id + offset, other + offset, t_other_kf)
+                merged.growth.add_link(kf_id + offset, other + offset, t_other_kf, score)
 
 
 def publish_map(merged: PlaceMap, target: Path) -> None:

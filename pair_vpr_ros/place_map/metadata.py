@@ -1,15 +1,12 @@
-"""Keyframe metadata (stamp, frame, optional pose, source, robot, session) and features in SQLite.
+"""Keyframe metadata (`KeyframeMeta`: stamp, frame, optional pose, source, robot, session), the
+checks of what callers pass a PlaceMap (metadata, descriptors, dense tokens, ids: bad input
+gives a MapError, never a crash), and `MetadataStore`, the metadata table of formats 1 and 2.
 
 Maps of format version 1 have no robot / session columns: loading one adds them to the working
-copy, filled with the identity the loader names (`from_saved(..., legacy=...)`); the next save
-writes version 2. The saved files are never changed by a load.
-
-Features (keypoints, descriptors, depth at keypoints, intrinsics: opaque bytes packed by
-`geometry.features.pack_features`) live in a second table, one row per keyframe that has them,
-with a CRC32 checked on every read. Maps saved before this table existed load with none.
-
-The live map writes to a private working database (no fsync: durability comes from `save`, which
-copies it with SQLite's backup API); a saved database is opened read-only and copied in on load.
+copy, filled with the identity the loader names (`from_saved(..., legacy=...)`). Features
+(opaque bytes packed by `geometry.features.pack_features`) live in a second table, one row per
+keyframe that has them, with a CRC32 checked on every read. Loading never changes the saved
+files: the saved database is copied into the working folder (legacy.py converts it).
 """
 
 from __future__ import annotations
@@ -17,11 +14,15 @@ from __future__ import annotations
 import math
 import sqlite3
 import zlib
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import quote
 
+import numpy as np
+
 from pair_vpr_ros.errors import MapError
+from pair_vpr_ros.identity import name_problem
 from pair_vpr_ros.types import Pose
 
 _SCHEMA = """
@@ -84,10 +85,22 @@ def validate_meta(meta: KeyframeMeta) -> KeyframeMeta:
         raise MapError(
             f"keyframe pose must be 7 finite numbers (x, y, z, qx, qy, qz, qw) or None, got {pose}"
         )
+    problem = identity_problem(str(meta.robot), str(meta.session))
+    if problem:
+        raise MapError(f"keyframe metadata: {problem}")
     return KeyframeMeta(
         meta.id, stamp, str(meta.frame_id), pose, str(meta.source), str(meta.robot),
         str(meta.session),
     )  # fmt: skip
+
+
+def identity_problem(robot: str, session: str) -> str | None:
+    """Why a keyframe's robot or session breaks the identity rule (identity.py); None when each
+    is valid or empty ("" = unnamed, e.g. a library user's map)."""
+    for kind, value in (("robot", robot), ("session", session)):
+        if value and (problem := name_problem(kind, value)):
+            return problem
+    return None
 
 
 class MetadataStore:
@@ -240,3 +253,52 @@ def _from_row(row: tuple) -> KeyframeMeta:
     kf_id, stamp, frame_id, source, *pose, robot, session = row
     pose_or_none = None if pose[0] is None else tuple(pose)
     return KeyframeMeta(kf_id, stamp, frame_id, pose_or_none, source, robot, session)
+
+
+# ---- validation of what callers pass to a PlaceMap: bad input gives a MapError, never a crash
+
+
+def unit_descriptor(desc: np.ndarray, dim: int) -> np.ndarray:
+    """desc [dim] (or [1, dim]) -> [dim] float32 with unit L2 norm."""
+    try:
+        vec = np.asarray(desc, dtype=np.float32)
+    except (TypeError, ValueError) as err:
+        raise MapError(f"descriptor is not a numeric array: {err}") from err
+    if vec.size != dim or vec.ndim > 2:
+        raise MapError(f"descriptor must have shape [{dim}], got {list(vec.shape)}")
+    vec = vec.reshape(dim)
+    norm = float(np.linalg.norm(vec))
+    if not np.isfinite(norm) or norm == 0.0:
+        raise MapError(f"descriptor must be finite and non-zero (its norm is {norm})")
+    return vec / np.float32(norm)
+
+
+def dense_tokens(dense: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """dense [N, D] any real dtype (numpy or CPU tensor) -> [N, D] float16, C-contiguous."""
+    try:
+        with np.errstate(over="ignore"):  # overflow to inf is reported below, with context
+            tokens = np.ascontiguousarray(np.asarray(dense), dtype=np.float16)
+    except (TypeError, ValueError) as err:
+        raise MapError(f"dense tokens are not a numeric array: {err}") from err
+    if tokens.shape != shape:
+        raise MapError(f"dense tokens must have shape {list(shape)}, got {list(tokens.shape)}")
+    if not np.isfinite(tokens).all():
+        raise MapError("dense tokens contain NaN/inf (or values beyond the float16 range)")
+    return tokens
+
+
+def keyframe_ids(ids: Iterable[int], count: int) -> np.ndarray:
+    """ids: 1-D sequence of ints in [0, count) -> [K] int64."""
+    try:
+        arr = np.asarray(ids if isinstance(ids, np.ndarray) else list(ids))
+    except TypeError as err:
+        raise MapError(f"keyframe ids must be a sequence of ints, got {ids!r}") from err
+    if arr.size == 0:
+        return np.empty(0, np.int64)
+    if arr.ndim != 1 or not np.issubdtype(arr.dtype, np.integer):
+        raise MapError(f"keyframe ids must be a 1-D sequence of ints, got {ids!r}")
+    arr = arr.astype(np.int64)
+    bad = arr[(arr < 0) | (arr >= count)]
+    if bad.size:
+        raise MapError(f"keyframe ids {bad[:5].tolist()} are not in the map (ids 0..{count - 1})")
+    return arr

@@ -3,11 +3,14 @@
 A save is incremental when the map continues the generation saved in that folder: the dense
 entries appended since are fsynced, a non-flat index writes a new snapshot, and one SQLite commit
 of the keyframe store (store.py) makes the new rows durable: that commit is the save's commit
-point, and it writes only the new rows. Otherwise (first save into a folder, save-as, a save after
-`clear`, an old-format map) it writes a new generation: dense file moved or copied, the store
-copied, fsynced, then `os.replace` of the manifest is the commit point. Until a commit point the
-previous save is untouched: the dense file may have grown, but only past the rows its store holds.
-`_SAVE_HOOK` is called after each step of `SAVE_STEPS` so tests can kill a save midway.
+point, and it writes only the new rows; then the manifest is written again as the record of the
+completed save (its keyframe count and the store's identity, manifest.py), which a load checks
+the store against. Otherwise (first save into a folder, save-as, a save after `clear`, an
+old-format map) it writes a new generation: dense file moved or copied, the store copied,
+fsynced, then `os.replace` of the manifest (its record) is the commit point. Until a commit
+point the previous save is untouched: the dense file may have grown, but only past the rows its
+store holds. `_SAVE_HOOK` is called after each step of `SAVE_STEPS` so tests can kill a save
+midway.
 """
 
 from __future__ import annotations
@@ -15,12 +18,12 @@ from __future__ import annotations
 import functools
 import os
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
 
-from pair_vpr_ros.errors import MapError, MapFingerprintError
+from pair_vpr_ros.errors import MapError, MapFingerprintError, os_reason
 from pair_vpr_ros.place_map.dense_store import DenseStore
 from pair_vpr_ros.place_map.files import (
     cache_path,
@@ -34,17 +37,20 @@ from pair_vpr_ros.place_map.files import (
 from pair_vpr_ros.place_map.index import DescriptorIndex, IndexConfig
 from pair_vpr_ros.place_map.legacy import open_legacy
 from pair_vpr_ros.place_map.manifest import (
+    FORMAT_VERSION,
     Manifest,
     check_files,
+    check_record,
     next_generation,
     read_manifest,
     remove_generation,
     write_manifest,
 )
-from pair_vpr_ros.place_map.parts import MapParts, check_count, index_config
-from pair_vpr_ros.place_map.store import KeyframeStore, SavedCrcs
+from pair_vpr_ros.place_map.parts import MapParts, SavedCrcs, check_count, index_config
+from pair_vpr_ros.place_map.schema import STORE_ID
+from pair_vpr_ros.place_map.store import KeyframeStore, new_id
 
-SAVE_STEPS = ("dense", "index", "store", "manifest", "committed", "cleaned")
+SAVE_STEPS = ("dense", "index", "store", "manifest", "committed", "recorded", "cleaned")
 _SAVE_HOOK: Callable[[str], None] | None = None  # tests: called with each SAVE_STEPS name
 INDEX_FILE = "index_file"  # the store's state key naming a non-flat index snapshot
 INDEX_CRC = "index_crc"  # ... and the one holding its CRC32
@@ -67,11 +73,15 @@ def _snapshot(d: Path, gen: int, parts: MapParts) -> dict[str, str]:
     return {INDEX_FILE: path.name, INDEX_CRC: str(crc32_file(path))}
 
 
-def save_increment(d: Path, parts: MapParts) -> None:
-    """Commit the rows added since the last save of `d` (whose store `parts.store` is)."""
+def save_increment(d: Path, parts: MapParts, manifest: Manifest) -> Manifest:
+    """Commit the rows added since the last save of `d` (whose store `parts.store` is and whose
+    manifest `manifest` is), then write its record -> the manifest now."""
     parts.dense.sync()  # the entries the new rows name are on disk before the rows
     reached("dense")
     state = _snapshot(d, parts.generation, parts)
+    # written by every save, so its page is in each save's WAL frames: a -wal of another map
+    # names that map (a store of format 3 gets its identity here)
+    state[STORE_ID] = parts.store.store_id or new_id()
     try:
         for key, value in state.items():
             parts.store.set_state(key, value)
@@ -80,9 +90,23 @@ def save_increment(d: Path, parts: MapParts) -> None:
         reached("manifest")
         parts.store.commit()
     except BaseException:
-        if state:
+        if INDEX_FILE in state:
             remove_quietly(d / state[INDEX_FILE])
         raise
+    reached("committed")
+    record = replace(manifest, format_version=FORMAT_VERSION, count=len(parts.index),
+                     store_id=state[STORE_ID])  # fmt: skip
+    try:
+        write_manifest(d, record)
+        fsync_path(d)
+    except OSError as err:
+        raise MapError(
+            f"the place map was saved to {d}, but the record of this save in manifest.json "
+            f"could not be written ({os_reason(err)}): free disk space and save again (the "
+            "keyframes are saved)"
+        ) from err
+    reached("recorded")
+    return record
 
 
 def save(d: Path, parts: MapParts, dense_in_place: bool) -> tuple[Manifest, Path | None]:
@@ -110,19 +134,21 @@ def write_generation(
     reached("dense")
     state = _snapshot(d, gen, parts)
     reached("index")
-    store_name = f"map-{gen}.sqlite"
-    publish(d, store_name, lambda p: parts.store.copy_to(p, state))
+    store_name, state[STORE_ID] = f"map-{gen}.sqlite", new_id()
+    crcs = None if copied is None else parts.dense.copied_crcs  # re-coded p4 entries' rows
+    publish(d, store_name, lambda p: parts.store.copy_to(p, state, crcs))
     reached("store")
     fsync_path(d)  # the renames above are durable before a manifest names them
     manifest = Manifest(
         generation=gen,
-        count=len(parts.index),  # informational: the store holds the count
+        count=len(parts.index),  # the record of this save (format 4)
         desc_dim=parts.desc_dim,
         dense_shape=list(parts.dense_shape),
         index=asdict(parts.index.config),
         fingerprint=parts.fingerprint,
         files={"store": {"name": store_name}, "dense": {"name": dense_name}},
         dense_codec=parts.dense.codec,
+        store_id=state[STORE_ID],
     )
     reached("manifest")
     return manifest, copied
@@ -144,7 +170,8 @@ def _place_dense(d: Path, gen: int, store: DenseStore, in_place: bool) -> tuple[
 
 def open_saved(d: Path, expected_fingerprint: str | None, work: Path, **options) -> MapParts:
     """Check and open the saved map in `d` (options: read_only, ef_search, cache_size,
-    verify_reads, legacy); formats 1 and 2 are opened by legacy.py (a working copy in `work`)."""
+    verify_reads, legacy, missing_ok); formats 1 and 2 are opened by legacy.py (a working copy
+    in `work`)."""
     m = read_manifest(d)
     if expected_fingerprint is not None and m.fingerprint != expected_fingerprint:
         raise MapFingerprintError(
@@ -153,13 +180,14 @@ def open_saved(d: Path, expected_fingerprint: str | None, work: Path, **options)
             "image size it was built with, or rebuild the map with this model (new directory)"
         )
     if m.format_version < 3:
+        options.pop("missing_ok", None)
         return open_legacy(d, m, work, **options)
     return _open_v3(d, m, **options)
 
 
 def _open_v3(
     d: Path, m: Manifest, *, read_only: bool, ef_search: int | None, cache_size: int,
-    verify_reads: bool, legacy: tuple[str, str] = ("", ""),
+    verify_reads: bool, legacy: tuple[str, str] = ("", ""), missing_ok: bool = False,
 ) -> MapParts:  # fmt: skip
     for entry in m.files.values():
         if not (d / entry["name"]).is_file():
@@ -172,7 +200,7 @@ def _open_v3(
     store = KeyframeStore(path, saved=True, read_only=True)  # checked before it is written
     dense = None
     try:
-        count = store.count_checked()
+        count, note = check_record(d, m, store, functools.partial(_base_id, path), missing_ok)
         index, cache = _open_index(d, store, config, m, count, read_only)
         if not read_only:
             store.close()
@@ -188,8 +216,22 @@ def _open_v3(
         if dense is not None:
             dense.close()
         raise
-    return MapParts(index, store, dense, m.desc_dim, shape, m.fingerprint, 3, "", m.generation,
-                    cache)  # fmt: skip
+    return MapParts(index, store, dense, m.desc_dim, shape, m.fingerprint, m.format_version,
+                    note, m.generation, cache, m)  # fmt: skip
+
+
+def _base_id(path: Path) -> str | None:
+    """The identity the store file `path` holds without its -wal (None: it cannot be read)."""
+    try:
+        store = KeyframeStore(path, saved=True, wal=False)
+    except MapError:
+        return None
+    try:
+        return store.store_id
+    except MapError:
+        return None
+    finally:
+        store.close()
 
 
 def _open_index(

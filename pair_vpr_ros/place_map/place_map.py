@@ -23,14 +23,19 @@ from typing import Any
 
 import numpy as np
 
-from pair_vpr_ros.errors import ConfigError, MapError
-from pair_vpr_ros.place_map.checks import dense_tokens, keyframe_ids, unit_descriptor
+from pair_vpr_ros.errors import ConfigError, MapError, os_reason
 from pair_vpr_ros.place_map.dense_codec import entry_bytes
 from pair_vpr_ros.place_map.dense_store import DenseStore
 from pair_vpr_ros.place_map.files import DirLock
 from pair_vpr_ros.place_map.growth.tables import GrowthTables
 from pair_vpr_ros.place_map.index import IndexConfig, make_index
-from pair_vpr_ros.place_map.metadata import KeyframeMeta, validate_meta
+from pair_vpr_ros.place_map.metadata import (
+    KeyframeMeta,
+    dense_tokens,
+    keyframe_ids,
+    unit_descriptor,
+    validate_meta,
+)
 from pair_vpr_ros.place_map.milvus.expr import Exclusion, identity, utc_session
 from pair_vpr_ros.place_map.saving import MapSaving
 from pair_vpr_ros.place_map.store import KeyframeStore
@@ -90,6 +95,7 @@ class PlaceMap(MapSaving):
         self._dense_committed = False  # the dense file is the one `_home`'s manifest names
         self._generation = 0  # of `_home` (its store is `_store` when `_store.saved`)
         self._desc_cache: tuple[int, int] | None = None  # (count, CRC32) of its cache file
+        self._manifest = None  # of `_home` (format 3+): the record each save writes again
         self._read_only = False
         self.load_note = ""  # what a caller should log about the load ("" = nothing)
         self._fresh_count = 0
@@ -99,7 +105,8 @@ class PlaceMap(MapSaving):
         try:
             self._tmp = Path(tempfile.mkdtemp(prefix="pairvpr-map-", dir=work_dir))
         except OSError as err:
-            raise MapError(f"cannot create a working folder in {work_dir}: {err}") from err
+            where = work_dir or tempfile.gettempdir()  # $TMPDIR: a full one said as such
+            raise MapError(f"cannot create a working folder in {where}: {os_reason(err)}") from err
         self._remove_tmp = weakref.finalize(self, shutil.rmtree, self._tmp, True)
 
     def _fresh_dense(self) -> DenseStore:
@@ -138,9 +145,13 @@ class PlaceMap(MapSaving):
                 undo = f"; undoing it failed too ({again})"
             self._dense.drop_last()
             if isinstance(err, sqlite3.Error) or undo:
+                if undo:  # the store may hold part of it
+                    undo += ": its rows may be half written; save nothing more and load the "
+                    raise MapError(f"storing keyframe {kf_id} failed: {os_reason(err)}{undo}"
+                                   "map's last save") from err  # fmt: skip
                 raise MapError(
-                    f"storing metadata of keyframe {kf_id} failed: {err}{undo}; free disk "
-                    "space (or load the map's last save) and go on"
+                    f"storing keyframe {kf_id} failed: {os_reason(err)}; the map keeps its "
+                    f"{kf_id} keyframes: free disk space and go on"
                 ) from err
             raise
         return kf_id

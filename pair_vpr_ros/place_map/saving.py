@@ -27,8 +27,8 @@ from pair_vpr_ros.place_map.files import (
     write_cache,
 )
 from pair_vpr_ros.place_map.manifest import MANIFEST_NAME, Manifest, read_manifest, remove_stale
-from pair_vpr_ros.place_map.parts import MapParts
-from pair_vpr_ros.place_map.store import KeyframeStore, SavedCrcs
+from pair_vpr_ros.place_map.parts import MapParts, SavedCrcs
+from pair_vpr_ros.place_map.store import KeyframeStore
 
 # The class `load` is called on (PlaceMap): saving.py never imports place_map.py, which imports it.
 MapT = TypeVar("MapT", bound="MapSaving")
@@ -83,13 +83,15 @@ class MapSaving:
             if created:
                 _remove_new_folder(target)
             raise
+        # p4 entries re-coded with the basis (dense_store.py) need a copy: a new generation
         in_place = self._dense_committed and target == self._home
+        in_place = in_place and not self._dense.recode_pending
         if self._home is not None and target != self._home and self.filters_in_index:
             self._index.rekey()  # milvus: `_home` keeps its rows, this save gets its own
         increment = in_place and self._store.saved
         try:
             if increment:
-                persist.save_increment(target, self._parts())
+                self._manifest = persist.save_increment(target, self._parts(), self._manifest)
             else:
                 manifest, copied = persist.save(target, self._parts(), in_place)
         except BaseException as err:
@@ -171,7 +173,6 @@ class MapSaving:
         )  # fmt: skip
 
     def _after_increment(self, d: Path) -> None:
-        persist.reached("committed")
         keep = {self._store.state(persist.INDEX_FILE)} - {None}
         remove_stale(d, self._keep(d, keep))
         persist.reached("cleaned")
@@ -197,14 +198,16 @@ class MapSaving:
             if self._lock is not None:
                 self._lock.release()
             self._lock, self._home = lock, d
+        self._manifest = manifest
         persist.reached("committed")
+        persist.reached("recorded")  # the manifest of a new generation is its record
         try:
             if copied is not None:  # continue in the new copy; the old file stays with its save
                 old = self._dense
                 self._dense = DenseStore(
                     copied,
                     self.dense_shape,
-                    old.crcs,
+                    old.crcs if old.copied_crcs is None else old.copied_crcs,
                     cache_size=self._cache_size,
                     verify_reads=self._verify_reads,
                     codec=old.codec,
@@ -236,9 +239,13 @@ class MapSaving:
         verify_dense_reads: bool = True,
         work_dir: str | os.PathLike | None = None,
         legacy_identity: tuple[str, str] = (DEFAULT_ROBOT, LEGACY_SESSION),
+        missing_ok: bool = False,
     ) -> MapT:
         """Open a saved map to continue mapping (or only to query, with read_only=True).
         legacy_identity: (robot, session) of the keyframes of a format-1 map (`load_note`).
+        missing_ok: a keyframe store that holds fewer keyframes than its last completed save
+        recorded (its -wal lost) loads with what it holds, `load_note` saying what is missing
+        (default: MapError); a save then records what it holds.
 
         expected_fingerprint: refuse (MapFingerprintError) a map built by another model.
         ef_search: override the saved HNSW ef_search. verify_dense: CRC-check every dense entry
@@ -261,6 +268,7 @@ class MapSaving:
                 cache_size=obj._cache_size,
                 verify_reads=obj._verify_reads,
                 legacy=legacy_identity,
+                missing_ok=missing_ok,
             )
             obj._index, obj._store, obj._dense = parts.index, parts.store, parts.dense
             if verify_dense:
@@ -272,7 +280,7 @@ class MapSaving:
         obj.fingerprint, obj._codec = parts.fingerprint, parts.dense.codec
         obj._home, obj._dense_committed, obj._read_only = d, True, read_only
         obj._generation, obj._desc_cache = parts.generation, parts.desc_cache
-        obj.load_note = parts.note
+        obj.load_note, obj._manifest = parts.note, parts.manifest
         return obj
 
 

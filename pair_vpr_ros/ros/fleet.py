@@ -13,7 +13,6 @@ the map thread of `MapControl` (messages are handed over from the subscription c
 
 from __future__ import annotations
 
-import re
 from array import array
 from collections.abc import Callable
 from concurrent.futures import Future
@@ -44,7 +43,6 @@ except ImportError as err:  # the bytes transport needs only std_msgs
 else:
     TYPED_MISSING = ""
 
-TOPIC_TOKEN = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 # Descriptors are kept by their publisher (transient local) for robots that join or return
 # later: the newest 1000 (~1.1 MB) reach a late subscriber; requests and responses are not kept.
 DEPTH = {"keyframes": 1000, "request": 4, "response": 50}
@@ -91,12 +89,7 @@ class FleetLink:
         identity: Identity,
         on_loop: Callable[[InterRobotLoop], None],
     ) -> None:
-        robot, session = identity.robot, identity.session
-        if not TOPIC_TOKEN.fullmatch(robot):
-            raise ConfigError(
-                f"fleet robot id {robot!r} cannot name a request topic: use letters, digits "
-                "and _ (starting with a letter), e.g. -p robot_id:=robot_1"
-            )
+        robot, session = identity.robot, identity.session  # the identity rule makes topic tokens
         config = fleet_config(values, robot, session)
         self.typed = typed_wanted(values["fleet_messages"], node.get_logger().warning)
         if self.typed:

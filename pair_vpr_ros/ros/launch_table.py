@@ -172,13 +172,20 @@ def launch_description(launch: str):
     from launch.actions import DeclareLaunchArgument, OpaqueFunction, Shutdown
     from launch.substitutions import LaunchConfiguration
     from launch_ros.actions import Node
+    from launch_ros.parameter_descriptions import ParameterValue
+
+    def typed(entry):  # launch_ros reads a plain string as YAML: robot_id:=7 would be a number
+        if not isinstance(entry, dict):
+            return entry  # a parameter file
+        return {k: ParameterValue(v, value_type=str) if isinstance(v, str) else v
+                for k, v in entry.items()}  # fmt: skip
 
     def nodes(context) -> list:
         values = {a.name: LaunchConfiguration(a.name).perform(context) for a in LAUNCHES[launch]}
         return [
             Node(
                 package=PACKAGE, executable=setup.executable, name=setup.name, output="screen",
-                parameters=setup.parameters, remappings=setup.remappings,
+                parameters=[typed(p) for p in setup.parameters], remappings=setup.remappings,
                 on_exit=Shutdown(reason=f"{setup.name} exited") if setup.shutdown_on_exit
                 else None,
             )

@@ -166,14 +166,14 @@ def test_an_old_map_loads_with_its_keyframes_named_and_a_note(tmp_path):
     assert [(k.robot, k.session) for k in loaded.all_meta()] == [("r7", "legacy")] * 12
     assert loaded.load_note == (
         f"place map {tmp_path / 'map'} is of format version 1; its 12 keyframes are named robot "
-        "'r7', session 'legacy': loaded through a working copy, converted to format 3 by the "
+        "'r7', session 'legacy': loaded through a working copy, converted to format 4 by the "
         "next save into it (dense tokens stay float16)"
     )
     loaded.add(np.eye(8)[3], np.zeros((4, 8)), KeyframeMeta(stamp=9.0, robot="r7", session="s2"))
     loaded.save(tmp_path / "map")
     loaded.close()
     again = PlaceMap.load(tmp_path / "map", read_only=True)
-    assert json.loads((tmp_path / "map" / MANIFEST_NAME).read_text())["format_version"] == 3
+    assert json.loads((tmp_path / "map" / MANIFEST_NAME).read_text())["format_version"] == 4
     assert [k.session for k in again.all_meta()] == ["legacy"] * 12 + ["s2"]
     assert not again.load_note
     again.close()

@@ -172,3 +172,36 @@ def test_tests_mirror_the_source_tree():
     assert folders - stages == {"core"}
     names = [p.name for p in TEST.glob("*/test_*.py")]
     assert sorted({n for n in names if names.count(n) > 1}) == []
+
+
+def unreachable_imports(path: Path, root: Path = TEST) -> set[str]:
+    """Modules `path` imports by a test/ helper's name (test_*.py or a module of test/) that are
+    neither beside it nor in test/ itself: found only when pytest happened to put another
+    folder on the path first, so the file fails to import when it runs alone."""
+    local = {p.stem for p in path.parent.glob("*.py")} | {p.stem for p in root.glob("*.py")}
+    helpers = {p.stem for p in root.glob("*/*.py")} | {p.stem for p in root.glob("*.py")}
+    names = set()
+    for node in ast.walk(_tree(path)):
+        if isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            names.add(node.module.split(".")[0])
+        elif isinstance(node, ast.Import):
+            names |= {a.name.split(".")[0] for a in node.names}
+    return {n for n in names if n in helpers and n not in local}
+
+
+def test_every_test_helper_a_file_imports_is_reachable_when_it_runs_alone():
+    files = sorted(TEST.glob("*/test_*.py"))
+    problems = {str(f.relative_to(TEST)): sorted(unreachable_imports(f)) for f in files}
+    assert {name: mods for name, mods in problems.items() if mods} == {}, (
+        "move what these files share into a module of test/ (e.g. test/loop_records.py)"
+    )
+
+
+def test_the_check_finds_a_helper_of_another_folder(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    (tmp_path / "shared.py").write_text("X = 1\n")
+    (tmp_path / "a" / "test_one.py").write_text("def helper(): ...\n")
+    mine = tmp_path / "b" / "test_two.py"
+    mine.write_text("import numpy\nfrom shared import X\nfrom test_one import helper\n")
+    assert unreachable_imports(mine, root=tmp_path) == {"test_one"}

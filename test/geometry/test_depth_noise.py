@@ -1,11 +1,14 @@
 """Depth-noise model, robust keypoint depth, and PnP covariances that match their error under
-a physically realistic noise model (pixel noise + sigma_z = a + b z^2)."""
+a physically realistic noise model (pixel noise + sigma_z = a + b z^2): PoseLib's pose, the
+covariance of `metric_pose`."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from pair_vpr_ros.geometry import PoseConfig, camera_from_params
+from pair_vpr_ros.geometry.camera import project
 from pair_vpr_ros.geometry.depth_noise import (
     depth_sigma,
     point_covariances,
@@ -13,12 +16,13 @@ from pair_vpr_ros.geometry.depth_noise import (
     robust_depth_at,
     sigma_at,
 )
-from pair_vpr_ros.geometry.pnp import project, solve_pnp
-from pair_vpr_ros.geometry.pnp_uncertainty import refine_with_covariance
+from pair_vpr_ros.geometry.features import Features
+from pair_vpr_ros.geometry.metric_pose import metric_fit
 from pair_vpr_ros.geometry.rotations import exp_so3, log_so3
 
 AB = (0.0012, 0.0019)
 K = np.array([[520.0, 0.0, 320.0], [0.0, 520.0, 240.0], [0.0, 0.0, 1.0]])
+CAM = camera_from_params(640, 480, 520.0, 520.0, 320.0, 240.0)
 
 
 def test_depth_sigma_grows_with_the_square_of_the_depth():
@@ -72,7 +76,8 @@ def test_point_covariance_is_depth_noise_along_the_ray_and_pixel_noise_across():
 
 def _trial(rng, depth_ab, sigma_px=0.7):
     """Random scene 1-6 m in front of the match camera, query camera 0.6 m and ~8 deg away;
-    noisy depth (the model's sigma_z) and pixels -> chi-square of the refined pose's error."""
+    noisy depth (the model's sigma_z) and pixels -> chi-square of the error of PoseLib's pose
+    under the bare covariance (`metric_pose.metric_fit`, no covariance_scale)."""
     n = 80
     px_m = rng.uniform([20, 20], [620, 460], (n, 2))
     z_true = rng.uniform(1.0, 6.0, n)
@@ -81,11 +86,13 @@ def _trial(rng, depth_ab, sigma_px=0.7):
     x_q = (rays * z_true[:, None] - t_true) @ r_true
     px_q = project(K, x_q) + rng.normal(0, sigma_px, (n, 2))
     z = z_true + rng.normal(0, 1, n) * depth_sigma(z_true, *AB)
-    pts = rays * z[:, None]
-    r_ba, t_ba, idx = solve_pnp(pts, px_q, K, 4 * sigma_px, 15)
-    fit = refine_with_covariance(pts[idx], px_q[idx], K, r_ba.T, -r_ba.T @ t_ba, True, 0.5,
-                                 depth_ab)  # fmt: skip
-    r, t, cov = fit[:3]
+    code = np.zeros((n, 128), np.uint8)
+    q = Features(px_q.astype(np.float32), code, "sift", None, CAM)
+    m = Features(px_m.astype(np.float32), code, "sift", z.astype(np.float32), CAM)
+    config = PoseConfig(ransac_px=4 * sigma_px, covariance_scale=1.0,
+                        depth_sigma_a=depth_ab[0], depth_sigma_b=depth_ab[1])  # fmt: skip
+    fit = metric_fit(q, m, np.c_[np.arange(n), np.arange(n)], "match", z, config)
+    r, t, cov = fit.rotation, fit.translation, fit.covariance
     d = np.r_[t_true - t, log_so3(r_true @ r.T)]
     return float(d @ np.linalg.solve(cov, d))
 
@@ -98,7 +105,7 @@ def test_pnp_covariance_with_depth_noise_matches_the_error():
 
 
 def test_pixel_noise_larger_than_assumed_is_estimated_from_the_residuals():
-    """2 px of pixel noise with a 0.5 px prior: the variance factor scales the covariance."""
+    """2 px of pixel noise: the a-posteriori sigma follows the residuals (floor 0.25 px)."""
     rng = np.random.default_rng(4)
     chi2 = [_trial(rng, AB, sigma_px=2.0) for _ in range(40)]
     assert 3.5 < np.median(chi2) < 8.0, np.median(chi2)

@@ -13,9 +13,10 @@ from pair_vpr_ros.demo.camera import Camera
 from pair_vpr_ros.demo.views import camera_model, pose_errors, render_keyframe, true_relative_pose
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.geometry import PoseConfig, camera_from_params, extract_features, relative_pose
+from pair_vpr_ros.geometry.camera import project
 from pair_vpr_ros.geometry.covariance import SCALE_FREE_VARIANCE
+from pair_vpr_ros.geometry.epipolar import essential_fit
 from pair_vpr_ros.geometry.features import Features, empty_features
-from pair_vpr_ros.geometry.pnp import project
 from pair_vpr_ros.geometry.rotations import exp_so3
 
 CAM = Camera()
@@ -148,10 +149,10 @@ def test_pose_config_checks_its_values():
         ("max_depth_m", float("nan"), "pose max_depth_m=nan must be >= 0"),
         ("depth_agreement_sigmas", -1.0, "pose depth_agreement_sigmas=-1.0 must be > 0"),
         ("floor_rotation_deg", -0.2, "pose floor_rotation_deg=-0.2 must be >= 0"),
-        ("floor_rotation_px", -1.0, "pose floor_rotation_px=-1.0 must be >= 0"),
-        ("floor_rotation_px", float("nan"), "pose floor_rotation_px=nan must be >= 0"),
+        ("systematic_px", -1.0, "pose systematic_px=-1.0 must be >= 0"),
+        ("systematic_px", float("nan"), "pose systematic_px=nan must be >= 0"),
+        ("floor_px", -0.1, "pose floor_px=-0.1 must be >= 0"),
         ("depth_registration_px", -1.0, "pose depth_registration_px=-1.0 must be >= 0"),
-        ("max_model_disagreement_chi2", 0.0, "pose max_model_disagreement_chi2=0.0 must be > 0"),
     ],
 )
 def test_depth_noise_and_floor_settings_are_checked(field, value, message):
@@ -160,20 +161,18 @@ def test_depth_noise_and_floor_settings_are_checked(field, value, message):
     assert str(err.value) == message
 
 
-def test_covariance_floor_is_added_to_every_pose(views):
+def test_systematic_terms_are_added_to_every_pose(views):
     rq, _, rm, dm, _ = views
     q, m = extract_features(rq, camera=MODEL), extract_features(rm, depth=dm, camera=MODEL)
-    # (no model-disagreement scaling: the floor also enters that check's chi-square)
-    zero = dict(floor_rotation_px=0.0, floor_translation_m=0.0, floor_translation_rel=0.0)
-    off = dict(max_model_disagreement_chi2=1e9)
-    bare = relative_pose(q, m, PoseConfig(**zero, **off))
-    floored = relative_pose(q, m, PoseConfig(**off))
-    diff = floored.covariance - bare.covariance
+    zero = dict(floor_translation_m=0.0, floor_translation_rel=0.0)
+    bare = relative_pose(q, m, PoseConfig(**zero))
+    added = relative_pose(q, m, PoseConfig(systematic_px=1.8))
+    diff = added.covariance - bare.covariance
     length = np.linalg.norm(bare.translation)
     np.testing.assert_allclose(np.diag(diff), [(0.005 + 0.01 * length) ** 2] * 3
                                + [(1.8 / MODEL.fx) ** 2] * 3)  # fmt: skip
     # pose_floor_rotation_deg is a lower bound: 1.8 px is 0.64 deg on this 160 px focal length
-    at_least = relative_pose(q, m, PoseConfig(**off, floor_rotation_deg=1.0))
+    at_least = relative_pose(q, m, PoseConfig(**zero, floor_rotation_deg=1.0))
     np.testing.assert_allclose(np.diag(at_least.covariance - bare.covariance)[3:],
                                [math.radians(1.0) ** 2] * 3, rtol=1e-6)  # fmt: skip
 
@@ -191,16 +190,29 @@ def _synthetic_pair(f: float, size: tuple[int, int]):
     return Features(px_q, code, "sift", None, cam), Features(px_m, code, "sift", pts[:, 2], cam)
 
 
-def test_rotation_floor_is_pixels_at_each_cameras_focal_length():
+def test_systematic_rotation_is_pixels_at_each_cameras_focal_length():
     """A camera with twice the focal length (twice the pixels over the same view) gets half the
-    rotation floor: pose_floor_rotation_px (1.8) pixels' angle, not one angle for every camera."""
+    systematic rotation: pose_systematic_px pixels' angle, not one angle for every camera."""
     added = []
     for f, size in ((400.0, (640, 480)), (800.0, (1280, 960))):
         q, m = _synthetic_pair(f, size)
-        off = dict(max_model_disagreement_chi2=1e9)
-        bare = relative_pose(q, m, PoseConfig(floor_rotation_px=0.0, **off))
-        floored = relative_pose(q, m, PoseConfig(**off))
-        assert (bare.status, floored.status) == ("metric", "metric")
-        added.append(np.diag(floored.covariance - bare.covariance)[3:])
+        bare = relative_pose(q, m, PoseConfig())
+        with_term = relative_pose(q, m, PoseConfig(systematic_px=1.8))
+        assert (bare.status, with_term.status) == ("metric", "metric")
+        added.append(np.diag(with_term.covariance - bare.covariance)[3:])
         np.testing.assert_allclose(added[-1], [(1.8 / f) ** 2] * 3, rtol=1e-6)
     np.testing.assert_allclose(np.sqrt(added[0] / added[1]), 2.0, rtol=1e-6)
+
+
+def test_the_pixel_floor_is_a_lower_bound_only():
+    """Noise-free pixels fit to ~0: the floor, not the residuals, sets sigma, and the
+    covariance grows with its square; pixel noise larger than the floor sets it instead."""
+    q, m = _synthetic_pair(400.0, (640, 480))
+    m.depth = None
+    pairs = np.c_[np.arange(len(q)), np.arange(len(q))]
+    fits = [essential_fit(q, m, pairs, PoseConfig(floor_px=f)) for f in (0.25, 0.5)]
+    np.testing.assert_allclose(fits[1].covariance, 4 * fits[0].covariance, rtol=1e-6)
+    noisy = replace(q, keypoints=q.keypoints + np.random.default_rng(0).normal(0, 0.6, (80, 2))
+                    .astype(np.float32))  # fmt: skip
+    loose = [essential_fit(noisy, m, pairs, PoseConfig(floor_px=f)) for f in (0.0, 0.25)]
+    np.testing.assert_allclose(loose[1].covariance, loose[0].covariance)

@@ -14,6 +14,8 @@ from bag_fixtures import textured
 from exact_match import EXACT_MATCH
 
 from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.fleet.messages import ScoreRequest
+from pair_vpr_ros.fleet.owner import score_request
 from pair_vpr_ros.geometry.camera import CameraModel
 from pair_vpr_ros.geometry.rotations import exp_so3, log_so3
 from pair_vpr_ros.loops import pipeline as pipeline_module
@@ -111,11 +113,22 @@ def test_a_new_appearance_of_a_known_place_is_stored(tiny_model, monkeypatch):
     assert m.features(4) == b"" and m.features(0) != b""
     source, t_4_0 = pipe.growth.feature_source(m, 4)
     assert source == 0 and t_4_0 == pytest.approx((0, 0, 0, 0, 0, 0, 1), abs=1e-2)
-    lent, shift = pipe._match_features(Candidate(4, 4.0, "cam", 1.0, 1))
+    lent, shift = pipe.match_features(Candidate(4, 4.0, "cam", 1.0, 1))
     assert shift == (0, t_4_0) and lent is not None  # (source id, T_match_source)
-    assert lent.keypoints.shape == pipe._match_features(Candidate(0, 0.0, "cam", 1.0, 1))[
+    assert lent.keypoints.shape == pipe.match_features(Candidate(0, 0.0, "cam", 1.0, 1))[
         0].keypoints.shape  # fmt: skip
-    assert pipe._match_features(Candidate(1, 1.0, "cam", 1.0, 1))[1] is None  # its own
+    assert pipe.match_features(Candidate(1, 1.0, "cam", 1.0, 1))[1] is None  # its own
+    # issue 48, loose end 3: another robot's request for keyframe 4 is answered as the local
+    # path answers: posed with its lender's features, composed into its own frame
+    req = ScoreRequest("b", "s1", b"", 0, "robot", "default", 7, 50.0, [4], [1.0],
+                       m.get_dense([0])[0], m.features(0))  # fmt: skip
+    loop, response = score_request(pipe, req, "robot", "default")
+    rec = loop.record
+    assert (rec.match_id, rec.accepted, rec.pose_status, response.pose_status) == (
+        4, True, "metric", "metric",
+    )  # fmt: skip
+    pose = (rec.tx, rec.ty, rec.tz, rec.qx, rec.qy, rec.qz, rec.qw)
+    assert pose == pytest.approx(compose(t_4_0, (0, 0, 0, 0, 0, 0, 1)), abs=2e-2)
     pipe.close()
     # with the policy off every keyframe keeps its own features
     pipe, out = drive(tiny_model, "all")
@@ -238,6 +251,28 @@ def test_compact_applies_the_policy_and_the_codec_and_round_trips(tiny_model, tm
     # the default window (30 s): keyframes 0-5 s apart of one session never represent each other
     result = compact_map(tmp_path / "in", tmp_path / "recent")
     assert (result.stored, result.represented) == (6, 0)
+
+
+def test_a_link_keeps_its_re_rank_score_and_compact_applies_the_threshold(tiny_model, tmp_path):
+    """Issue 48, loose end 2: each link keeps the re-rank score with which its keyframe's query
+    recognised the match (the live rule's third condition); compact represents a keyframe only
+    by one it recognised at or above --score-threshold, as the live map_growth would have."""
+    pipe, out = drive(tiny_model, "all", order=[0, 1, 2, 3, 0, 1], codec="f16")
+    pipe.save_map(tmp_path / "in")
+    scores = []
+    for q in (4, 5):
+        ((match, _, score),) = pipe.place_map.growth.scored_links(q)
+        assert (match, score) == (q - 4, out[q].loop.pair_score)  # global_weight 0
+        scores.append(score)
+    pipe.close()
+    args = ["compact", str(tmp_path / "in"), "--exclude-recent-s", "2.5", "--score-threshold"]
+    assert main([*args, str(min(scores)), "--out", str(tmp_path / "at")]) == 0
+    assert main([*args, str(max(scores) + 1.0), "--out", str(tmp_path / "above")]) == 0
+    with PlaceMap.load(tmp_path / "at", read_only=True) as at:
+        assert (len(at), at.growth.counts().represented) == (4, 2)
+    with PlaceMap.load(tmp_path / "above", read_only=True) as above:
+        assert (len(above), above.growth.counts().represented) == (6, 0)
+        assert [s for _, _, s in above.growth.scored_links(4)] == [scores[0]]  # carried
 
 
 def test_compact_of_a_map_without_signatures_only_re_encodes(tmp_path, capsys):

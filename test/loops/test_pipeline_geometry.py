@@ -163,11 +163,11 @@ def test_monocular_scale_baselines_come_from_the_map_keyframes_next_to_the_match
     order = frames([0, 1, 2, 3, 1], camera=CAMERA)
     batch = [replace(f, pose=p) for f, p in zip(order, poses, strict=True)]
     list(pipe.process_many(batch))
-    near = pipe._scale_neighbours(_match(2))
+    near = pipe.scale_neighbours(_match(2))
     # least turn, then the longest baseline first
     assert [(n.id, n.baseline_m, n.turn_deg) for n in near] == [(0, 2.0, 0.0), (4, 2.0, 0.0),
                                                                 (1, 1.0, 0.0)]  # fmt: skip
     assert near[0].load().kind == "sift" and len(near[0].load()) > 0
     no_scale = pipeline(model, pose=PoseConfig(odometry_scale=False))
     list(no_scale.process_many(batch))
-    assert no_scale._scale_neighbours(_match(2)) == []
+    assert no_scale.scale_neighbours(_match(2)) == []

@@ -15,7 +15,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from test_loop_factor import posed_record
+from loop_records import posed_record
 
 from pair_vpr_ros.errors import FleetMessageError, PoseGraphError
 from pair_vpr_ros.fleet import (

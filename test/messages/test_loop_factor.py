@@ -2,31 +2,18 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
+from loop_records import COV, posed_record
 from rosbags.typesys import Stores, get_typestore
 
-from pair_vpr_ros.loops.records import LoopRecord
 from pair_vpr_ros.messages import factor as lf
 
 TS = get_typestore(Stores.ROS2_JAZZY)
-COV = tuple(float(v) for v in np.diag([0.01, 0.02, 0.03, 1e-4, 2e-4, 3e-4]).ravel())
-
-
-def posed_record(**over) -> LoopRecord:
-    fields = dict(
-        query_id=40, query_stamp=1700000012.25, query_frame_id="cam_q", match_id=3,
-        match_stamp=1700000001.5, match_frame_id="cam_m", pair_score=2.0, global_similarity=0.9,
-        rank_before=1, rank_after=1, accepted=True, pose_status="metric", pose_inliers=88,
-        tx=0.5, ty=-0.1, tz=2.0, qx=0.0, qy=math.sin(0.2), qz=0.0, qw=math.cos(0.2),
-        covariance=COV,
-    )  # fmt: skip
-    return LoopRecord(**{**fields, **over})
 
 
 def test_factor_from_record_needs_an_accepted_loop_with_a_pose():

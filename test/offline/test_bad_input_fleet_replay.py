@@ -190,6 +190,31 @@ def test_a_full_disk_while_writing_the_results_is_an_output_error(tmp_path, monk
     with pytest.raises(OutputError) as err:
         replay.write_fleet_run(replay.FleetRun(robot_loops={"a": []}), tmp_path / "out")
     assert str(err.value) == (
-        f"cannot write the fleet run's outputs into {tmp_path / 'out'}: No space left on device "
-        f"({tmp_path / 'out' / 'inter_robot_loops.json'}); free space or pick another --out"
+        f"cannot write the fleet run's outputs into {tmp_path / 'out'}: the disk is full (No "
+        f"space left on device), writing {tmp_path / 'out' / 'inter_robot_loops.json'}; free "
+        "space or pick another --out"
     )
+
+
+def test_a_full_disk_under_the_writes_names_the_file_and_leaves_no_tmp(tmp_path, monkeypatch):
+    """Issue 48: the OS fails the write itself (no file name in its error): the file is named
+    all the same, and its .tmp is not left behind (before: "(None)", inter_robot_loops.tmp)."""
+    import errno
+    from pathlib import Path
+
+    from pair_vpr_ros.errors import OutputError
+    from pair_vpr_ros.offline.fleet import replay
+
+    def full(self, data, *args, **kwargs):
+        Path.write_bytes(self, data[:10].encode())  # what a full disk leaves: a partial file
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", full)
+    with pytest.raises(OutputError) as err:
+        replay.write_fleet_run(replay.FleetRun(robot_loops={"a": []}), tmp_path / "out")
+    assert str(err.value) == (
+        f"cannot write the fleet run's outputs into {tmp_path / 'out'}: the disk is full (No "
+        f"space left on device), writing {tmp_path / 'out' / 'inter_robot_loops.json'}; free "
+        "space or pick another --out"
+    )
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == []

@@ -33,6 +33,7 @@ def bags(tmp_path_factory):
     rng = np.random.default_rng(0)
     stranger = fd.loops(b, a, ("c", "s1"), ("a", "s1"), 30, rng, every=20, stop=60)
     write_loops(root / "stranger", stranger, identity=True)
+    write_loops(root / "unnamed", stranger, identity=False)  # a replay without --robot-id
     write_loops(root / "none", [], identity=True)
     return root, len(stranger)
 
@@ -274,6 +275,46 @@ def test_a_full_disk_while_writing_is_one_error_line(bags, tmp_path, capsys, mon
     assert main(argv) == 1
     err = capsys.readouterr().err
     assert err.endswith(
-        f"error: cannot write the pose graph's outputs into {out}: No space left on device "
-        f"({out / 'a' / 's1' / 'odometry.tum'}); free space or pick another --out\n"
+        f"error: cannot write the pose graph's outputs into {out}: the disk is full (No space "
+        f"left on device), writing {out / 'a' / 's1' / 'odometry.tum'}; free space or pick "
+        "another --out\n"
     )
+
+
+def test_a_full_disk_under_evo_s_writer_names_the_file(bags, tmp_path, capsys, monkeypatch):
+    """Issue 48: evo's own write fails (no file name in the OS error): named, never "(None)"."""
+    import errno
+
+    from evo.tools import file_interface
+
+    def full(path, trajectory):
+        open(path, "w").write("partial")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(file_interface, "write_tum_trajectory_file", full)
+    root, _ = bags
+    out = tmp_path / "out"
+    argv = [*trajectory(root, "a", "s1", "a"), *trajectory(root, "b", "s1", "b"), "--loops",
+            str(root / "none"), "--out", str(out)]  # fmt: skip
+    assert main(argv) == 1
+    assert capsys.readouterr().err.endswith(
+        f"error: cannot write the pose graph's outputs into {out}: the disk is full (No space "
+        f"left on device), writing {out / 'a' / 's1' / 'odometry.tum'}; free space or pick "
+        "another --out\n"
+    )
+    assert not (out / "a" / "s1" / "odometry.tum").exists()
+
+
+def test_loops_that_name_no_robot_get_advice_that_can_be_followed(bags, tmp_path, capsys):
+    """Issue 48: loops of a replay without --robot-id ('*/*') among several trajectories: the
+    advice is --loops-of, not a --trajectory for '*/*'."""
+    root, count = bags
+    argv = [*trajectory(root, "a", "s1", "a"), *trajectory(root, "b", "s1", "b"), "--loops",
+            str(root / "unnamed"), "--out", str(tmp_path / "out")]  # fmt: skip
+    assert main(argv) == 0
+    assert (
+        f"warning: {count} loops skipped: robot-session */* is not in the graph (the loops name "
+        "no robot or session (a replay without "
+        "--robot-id): give each such loops file as --loops-of ROBOT SESSION PATH, the "
+        "robot-session it was replayed for)"
+    ) in capsys.readouterr().err

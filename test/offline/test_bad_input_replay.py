@@ -8,6 +8,7 @@ from __future__ import annotations
 import errno
 import importlib.util
 import json
+import os
 import re
 import tempfile
 from pathlib import Path
@@ -308,8 +309,30 @@ def test_map_open_for_writing_elsewhere_is_refused_before_the_run(setup, tmp_pat
         assert run(setup, tmp_path, "--map-dir", str(copy), "--overwrite") == 1
         err = capsys.readouterr().err
         assert tree_digest(copy) == before  # (closing the writer folds its WAL: checked before)
-    assert err.startswith(f"error: map directory {copy} is open for writing by another PlaceMap")
+    assert err == (  # issue 48: the replay's own advice, not the library's
+        f"error: map folder {copy} is being written by another process (pid {os.getpid()}): "
+        "wait until it ends (another replay, or a vpr_node with this map_dir), or give another "
+        "--map-dir\n"
+    )
     assert not (tmp_path / "out").exists()
+
+
+def test_a_second_replay_into_the_same_map_folder_is_refused_at_its_start(setup, tmp_path, capsys):
+    """Issue 48: a replay holds its map folder from its start (before: only its save took the
+    lock, so a second replay into the same new folder ran its whole bag first)."""
+    from pair_vpr_ros.offline.replay.outputs import check_map_dir
+
+    first = check_map_dir(tmp_path / "shared", overwrite=False)  # a first replay, running
+    try:
+        assert (tmp_path / "shared").is_dir()
+        assert run(setup, tmp_path, "--map-dir", str(tmp_path / "shared")) == 1
+        assert capsys.readouterr().err.startswith(
+            f"error: map folder {tmp_path / 'shared'} is being written by another process (pid "
+        )
+        assert not (tmp_path / "out").exists()  # refused before the bag was read
+    finally:
+        first.release()
+    assert not (tmp_path / "shared").exists()  # made for the first one, which saved nothing
 
 
 @pytest.mark.parametrize("how", ["flag", "params file"])

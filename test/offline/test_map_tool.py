@@ -19,7 +19,7 @@ def test_info_reports_sessions_model_index_and_sizes(tmp_path, capsys):
     a = make_map(tmp_path / "a", "r1", "mon", 3, seed=1)
     info = map_info(a)
     assert (info.keyframes, info.fingerprint, info.index["kind"], info.format_version) == (
-        3, "model-a", "flat", 3,
+        3, "model-a", "flat", 4,
     )  # fmt: skip
     assert [(s.robot, s.session, s.keyframes, s.first_id, s.last_id) for s in info.sessions] == [
         ("r1", "mon", 3, 0, 2)

@@ -98,17 +98,24 @@ CASES = {
         (section("top_k: 3") + section("top_k: 4")).encode(),
         "'/**' is given twice (lines 1 and 4): keep one",
     ),
-    "negative pixel floor": (
-        section("pose_floor_rotation_px: -1.0").encode(),
-        "pose_floor_rotation_px=-1.0 is out of range [0.0, 100.0]",
+    "negative systematic error": (
+        section("pose_systematic_px: -1.0").encode(),
+        "pose_systematic_px=-1.0 is out of range [0.0, 100.0]",
     ),
     "nan pixel floor": (
-        section("pose_floor_rotation_px: .nan").encode(),
-        "pose_floor_rotation_px must be a finite number, got nan",
+        section("pose_floor_px: .nan").encode(),
+        "pose_floor_px must be a finite number, got nan",
     ),
     "string pixel floor": (
-        section('pose_floor_rotation_px: "2 px"').encode(),
-        "pose_floor_rotation_px must be a number, got '2 px'",
+        section('pose_floor_px: "2 px"').encode(),
+        "pose_floor_px must be a number, got '2 px'",
+    ),
+    "retired rotation floor": (
+        section("pose_floor_rotation_px: 1.8").encode(),
+        "unknown parameter 'pose_floor_rotation_px': replaced by pose_systematic_px (this "
+        "camera's systematic error, default 0: the covariance now comes from the inliers and the "
+        "model checks) and pose_floor_px (a lower bound on the pixel noise); see "
+        "docs/real-cameras.md",
     ),
     "zero pixel limit": (
         section("max_image_pixels: 0").encode(),

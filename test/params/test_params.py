@@ -101,16 +101,19 @@ def test_read_params_file_fills_defaults_and_checks(tmp_path):
 
 def test_an_old_file_with_the_degree_floor_still_works(tmp_path):
     """`pose_floor_rotation_deg` was the rotation floor itself (0.2); it is now a lower bound
-    under the per-camera `pose_floor_rotation_px`, so an old file keeps at least its floor."""
+    of the per-camera systematic term `pose_systematic_px` (default 0), so an old file keeps
+    at least its floor; a camera with `pose_systematic_px` set gets its pixels' angle."""
     from pair_vpr_ros.geometry.camera import camera_from_params
-    from pair_vpr_ros.geometry.covariance import rotation_floor_deg
+    from pair_vpr_ros.geometry.covariance import systematic_rotation_deg
     from pair_vpr_ros.params.configs import geometry_config
     from pair_vpr_ros.params.file import read_params_file
 
     old = tmp_path / "old.yaml"
     old.write_text("/**:\n  ros__parameters:\n    pose_floor_rotation_deg: 0.2\n")
     pose = geometry_config(read_params_file(old)).pose
-    assert (pose.floor_rotation_deg, pose.floor_rotation_px) == (0.2, 1.8)
+    assert (pose.floor_rotation_deg, pose.systematic_px, pose.floor_px) == (0.2, 0.0, 0.25)
     wide = camera_from_params(1242, 375, 718.0, 718.0, 621.0, 187.0)  # 1.8 px: 0.14 deg
-    assert rotation_floor_deg(pose, wide, wide) == 0.2
-    assert rotation_floor_deg(type(pose)(), wide) == pytest.approx(0.1436, abs=1e-4)
+    assert systematic_rotation_deg(pose, wide, wide) == 0.2
+    assert systematic_rotation_deg(type(pose)(), wide) == 0.0
+    rolling = type(pose)(systematic_px=1.8)
+    assert systematic_rotation_deg(rolling, wide) == pytest.approx(0.1436, abs=1e-4)

@@ -64,7 +64,7 @@ CASES = {
     ),
     "IN of an old format": (
         lambda t: Path(shutil.copytree(MAPS / "format-2", t / "old")), [], 1,
-        "input map {t}/old is of format version 2: compact reads format 3; load it in the node "
+        "input map {t}/old is of format version 2: compact reads formats 3-4; load it in the node "
         "or a replay (--map-dir) and save it once to convert it, then compact",
     ),
     "a damaged signature": (
@@ -77,6 +77,17 @@ CASES = {
         lambda t: _damage(_with_growth(t / "a"), "UPDATE links SET tx = 9.0") or t / "a", [], 1,
         "keyframe store {t}/a/map-1.sqlite holds the link of keyframes 2 and 0 with a wrong "
         "CRC32 (a damaged row)",
+    ),
+    "a damaged link score": (  # issue 48: a link's CRC32 covers its re-rank score
+        lambda t: _damage(_with_growth(t / "a"), "UPDATE links SET score = 5.0") or t / "a", [],
+        1, "keyframe store {t}/a/map-1.sqlite holds the link of keyframes 2 and 0 with a wrong "
+        "CRC32 (a damaged row)",
+    ),
+    "a store of a newer schema": (
+        lambda t: _damage(_with_growth(t / "a"), "PRAGMA user_version = 9") or t / "a", [], 1,
+        "input map {t}/a cannot be compacted: keyframe store {t}/a/map-1.sqlite has schema "
+        "version 9, this pair_vpr_ros reads up to 1: it was written by a newer pair_vpr_ros; use "
+        "that release",
     ),
     "a bad codec": (lambda t: _with_growth(t / "a"), ["--codec", "q2"], 2, ""),
 }  # fmt: skip
@@ -131,6 +142,7 @@ def test_a_full_disk_while_recording_a_growth_row_is_a_map_error(tmp_path):
         with pytest.raises(MapError) as err:
             tables.add_link(1, 0, (0, 0, 0, 0, 0, 0, 1))
         assert str(err.value) == (
-            "recording a growth row failed: database or disk is full; free disk space (or load "
-            "the map's last save) and go on"
+            f"keyframe store {tmp_path / 'a' / 'map-1.sqlite'} could not record a growth row: the "
+            "disk is full (database or disk is full): free disk space there (SQLite also writes "
+            "temporary files to $TMPDIR) and retry"
         )

@@ -20,7 +20,7 @@ from test_place_map_persist import DIM, N0, SHAPE, add_range, flip_byte
 
 from pair_vpr_ros.errors import MapError, MapFingerprintError
 from pair_vpr_ros.hashing import sha256_file
-from pair_vpr_ros.place_map import PlaceMap
+from pair_vpr_ros.place_map import KeyframeMeta, PlaceMap
 
 MAPS = Path(__file__).parents[1] / "data" / "maps"  # written by pair_vpr_ros at cc01a8d
 
@@ -118,7 +118,7 @@ CORRUPTIONS = {
     ),
     "version": (
         lambda d: _rewrite_manifest(d, lambda m: m.update(format_version=99)),
-        r"has format_version 99, this version of pair_vpr_ros reads versions 1, 2, 3: use a "
+        r"has format_version 99, this version of pair_vpr_ros reads versions 1, 2, 3, 4: use a "
         r"matching pair_vpr_ros release or rebuild the map",
     ),
     "field": (
@@ -324,10 +324,83 @@ def test_a_full_disk_during_add_is_a_map_error(tmp_path, monkeypatch, undo_fails
             monkeypatch.setattr(store, "delete_from", malformed)
         with pytest.raises(MapError) as err:
             m.add(desc_for(3), dense_for(3), meta_for(3))
-        undo = "; undoing it failed too (database disk image is malformed)" if undo_fails else ""
+        if undo_fails:  # the store may hold part of it: the node's last save is the way back
+            tail = ("; undoing it failed too (database disk image is malformed): its rows may be "
+                    "half written; save nothing more and load the map's last save")  # fmt: skip
+        else:
+            tail = "; the map keeps its 3 keyframes: free disk space and go on"
         assert str(err.value) == (
-            f"storing metadata of keyframe 3 failed: database or disk is full{undo}; free disk "
-            "space (or load the map's last save) and go on"
+            f"storing keyframe 3 failed: the disk is full (database or disk is full){tail}"
         )
         monkeypatch.undo()
         assert len(m) == 3 and m.add(desc_for(3), dense_for(3), meta_for(3)) == 3
+
+
+# ---- issue 48, loose end 4: robot and session names of a map's keyframes follow the identity
+# rule (identity.py): a new keyframe is refused, an old map's rows are named, never passed on.
+def test_a_keyframe_named_against_the_rule_is_refused(tmp_path) -> None:
+    from test_place_map_persist import dense_for, desc_for
+
+    with PlaceMap(DIM, SHAPE, "fp-a") as m:
+        with pytest.raises(MapError) as err:
+            m.add(desc_for(0), dense_for(0), KeyframeMeta(stamp=1.0, robot="a/b", session="s"))
+        assert len(m) == 0
+    assert str(err.value) == (
+        "keyframe metadata: robot 'a/b' must be 1-64 characters of ASCII letters, digits or '_' "
+        "(a robot id starts with a letter): it names folders, a ROS topic and pose-graph keys, "
+        "e.g. robot1"
+    )
+
+
+def test_an_old_maps_names_against_the_rule_are_refused_at_load(tmp_path) -> None:
+    """A format-2 map written before the rule, a keyframe of session '..': its load says so."""
+    import hashlib
+
+    d = Path(shutil.copytree(MAPS / "format-2", tmp_path / "map"))
+    conn = sqlite3.connect(d / "meta-1.sqlite")
+    with conn:
+        conn.execute("UPDATE keyframes SET robot = 'r1', session = '..' WHERE id = 4")
+    conn.close()
+    data = json.loads((d / "manifest.json").read_text())
+    meta = d / "meta-1.sqlite"
+    data["files"]["meta"].update(
+        size=meta.stat().st_size, sha256=hashlib.sha256(meta.read_bytes()).hexdigest()
+    )
+    (d / "manifest.json").write_text(json.dumps(data))
+    before = tree_digest(d)
+    with pytest.raises(MapError) as err:
+        PlaceMap.load(d, read_only=True)
+    assert str(err.value) == (
+        f"keyframe metadata {meta}: its keyframes' session '..' must be 1-64 characters of ASCII "
+        "letters, digits or '_' (a robot id starts with a letter): it names folders, a ROS topic "
+        "and pose-graph keys, e.g. 20261125T093000Z; the map was written before robot and "
+        "session names were checked: rebuild it with valid names"
+    )
+    assert tree_digest(d) == before
+
+
+def test_a_stored_row_named_against_the_rule_is_never_passed_on(tmp_path) -> None:
+    """A format-3 row of robot 'x y' (its CRC32 right: written so by an older library user)."""
+    from pair_vpr_ros.place_map.schema import COLUMNS, row_crc
+
+    with PlaceMap(DIM, SHAPE, "fp-a") as m:
+        add_range(m, 0, 3)
+        m.save(tmp_path / "map")
+    conn = sqlite3.connect(tmp_path / "map" / "map-1.sqlite")
+    row = conn.execute(f"SELECT {COLUMNS} FROM keyframes WHERE id = 1").fetchone()
+    values = (*row[:11], "x y", *row[12:15])
+    with conn:
+        conn.execute(
+            "UPDATE keyframes SET robot = 'x y', crc = ? WHERE id = 1", (row_crc(values),)
+        )
+    conn.close()
+    with PlaceMap.load(tmp_path / "map", read_only=True) as m:
+        assert m.meta(0).id == 0
+        with pytest.raises(MapError) as err:
+            m.meta(1)
+    assert str(err.value) == (
+        f"keyframe store {tmp_path / 'map' / 'map-1.sqlite'}: keyframe 1's robot 'x y' must be "
+        "1-64 characters of ASCII letters, digits or '_' (a robot id starts with a letter): it "
+        "names folders, a ROS topic and pose-graph keys, e.g. robot1; the map was written before "
+        "robot and session names were checked: rebuild it with valid names"
+    )

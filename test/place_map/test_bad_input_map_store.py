@@ -359,7 +359,7 @@ def _commit_full(rollback: bool):
 FULL_DISK_AT = {
     "dense copy": lambda m, mp: mp.setattr(dense_store, "copy_prefix", _copy_then_enospc),
     "store": lambda m, mp: mp.setattr(
-        KeyframeStore, "copy_to", lambda _self, path, _state: _partial_then_enospc(path)
+        KeyframeStore, "copy_to", lambda _self, path, _state, _crcs: _partial_then_enospc(path)
     ),
     "manifest": lambda m, mp: mp.setattr(manifest, "write_bytes_durably", _partial_then_enospc),
     "fsync": lambda m, mp: mp.setattr(persist, "fsync_path", _enospc),

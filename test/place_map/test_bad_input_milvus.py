@@ -14,7 +14,7 @@ from test_place_map_persist import DIM, SHAPE, add_range, dense_for, desc_for, m
 
 from pair_vpr_ros.errors import ConfigError, MapError, MapFingerprintError, MapUnavailableError
 from pair_vpr_ros.place_map import IndexConfig, PlaceMap
-from pair_vpr_ros.place_map.milvus.index import read_record
+from pair_vpr_ros.place_map.milvus.record import read_record
 
 URI_RULE = (
     "milvus_uri must be a milvus-lite file (a path ending in .db) or a Milvus server address "
@@ -321,3 +321,96 @@ def test_a_read_only_open_of_a_map_whose_lite_file_is_gone(tmp_path: Path) -> No
         map_info(tmp_path / "map")
     assert str(err.value).endswith(message)
     assert not uri.exists() and tree_digest(tmp_path) == before
+
+
+# ---- issue 48: a full disk under a lite file is one error naming it (finding 6); a lite path
+# of a saved map that is a plain file is named as damaged, with the way back (finding 7); a
+# read-only open never writes the rows the collection lost (loose end 4).
+def _full(*_args, **_kwargs):
+    import errno
+
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def test_a_full_disk_under_a_new_lite_file_is_one_error(tmp_path, monkeypatch, capfd) -> None:
+    import milvus_lite.db  # the in-process server's storage: where the disk fills up
+
+    monkeypatch.setattr(milvus_lite.db, "save_schema", _full)
+    uri = tmp_path / "x.db"
+    with pytest.raises(MapError) as err:
+        PlaceMap(DIM, SHAPE, "fp", index=IndexConfig(kind="milvus", milvus_uri=str(uri)))
+    assert str(err.value) == (
+        f"cannot open collection 'pairvpr_keyframes' in milvus-lite file {uri}: its disk is "
+        "full ([Errno 28] No space left on device): free disk space there, or set milvus_uri to "
+        "a disk with room"
+    )
+    out, errs = capfd.readouterr()
+    assert "Traceback" not in out + errs and "RPC error" not in out + errs
+
+
+def test_a_full_disk_while_inserting_keeps_the_keyframes(tmp_path, monkeypatch, caplog) -> None:
+    from milvus_lite.storage import wal
+
+    uri = tmp_path / "x.db"
+    with PlaceMap(DIM, SHAPE, "fp", index=IndexConfig(kind="milvus", milvus_uri=str(uri),
+                                                       milvus_index="FLAT")) as m:  # fmt: skip
+        add_range(m, 0, 2)
+        monkeypatch.setattr(wal.WAL, "write_insert", _full)
+        add_range(m, 2, 3)  # kept in the map's copy
+        with pytest.raises(MapUnavailableError) as err:
+            m.search(desc_for(0), 2)
+        assert str(err.value) == (
+            f"collection 'pairvpr_keyframes' in milvus-lite file {uri} cannot store rows: its "
+            "disk is full ([Errno 28] No space left on device): query skipped, 1 keyframe(s) "
+            "kept for insertion"
+        )
+        assert m.index_diagnostics == {"map_searches_skipped": 1, "map_keyframes_pending": 1}
+        monkeypatch.undo()  # room again: the kept keyframe goes in first
+        assert m.search(desc_for(2), 1) == [(2, pytest.approx(1.0, abs=1e-5))]
+    assert "Traceback" not in caplog.text
+
+
+def test_a_saved_maps_lite_file_that_is_a_plain_file(tmp_path) -> None:
+    import shutil
+
+    uri = tmp_path / "own.db"
+    config = IndexConfig(kind="milvus", milvus_uri=str(uri), milvus_index="FLAT")
+    with PlaceMap(DIM, SHAPE, "fp", index=config) as m:
+        add_range(m, 0, 3)
+        m.save(tmp_path / "map")
+    shutil.rmtree(uri)
+    uri.write_bytes(b"SQLite format 3\0" + bytes(100))  # damaged, or another tool's file
+    message = (
+        f"cannot open milvus-lite file {uri} of the map in {tmp_path / 'map'}: it is a plain "
+        "file, not milvus-lite's data (a folder of that name): damaged or replaced; the map "
+        "itself is intact: move the file away and load the map writable once, which inserts "
+        "its keyframes again from the map's own copy"
+    )
+    for read_only in (True, False):
+        with pytest.raises(MapError) as err:
+            PlaceMap.load(tmp_path / "map", read_only=read_only)
+        assert str(err.value) == message
+    # (the way back, a writable load inserting the rows into a new lite file, needs a process
+    # of its own: milvus-lite keeps serving a file it opened in this one)
+
+
+def test_a_read_only_open_never_inserts_the_rows_the_collection_lost(tmp_path, caplog) -> None:
+    """The collection lost 2 of a map's 4 rows: a read-only open (info, prior maps) inserts
+    nothing and answers from the map's own copy, exactly; a writable open inserts them."""
+    from pymilvus import MilvusClient
+
+    uri = tmp_path / "own.db"
+    config = IndexConfig(kind="milvus", milvus_uri=str(uri), milvus_index="FLAT")
+    with PlaceMap(DIM, SHAPE, "fp", index=config) as m:
+        add_range(m, 0, 4)
+        m.save(tmp_path / "map")
+        base = m._index.base
+    client = MilvusClient(str(uri))
+    client.delete(config.milvus_collection, filter=f"pk >= {base + 2} and pk < {base + 4}")
+    client.close()
+    with PlaceMap.load(tmp_path / "map", read_only=True) as m:
+        assert [m.search(desc_for(i), 1)[0][0] for i in range(4)] == [0, 1, 2, 3]
+        assert m._index._count(f"pk >= {base} and pk < {base + 4}") == 2  # nothing written
+    assert "held 2 of this map's 4 keyframes; searching the map's own copy of them" in caplog.text
+    with PlaceMap.load(tmp_path / "map") as m:
+        assert m._index._count(f"pk >= {base} and pk < {base + 4}") == 4

@@ -136,6 +136,32 @@ def test_a_reloaded_map_gives_the_same_tokens_and_continues(tmp_path: Path, firs
         assert m.index_config.dense_codec == "p4" and m.dense_basis.start == BASIS_FROM
 
 
+def test_a_map_saved_before_the_fit_codes_its_first_entries_at_the_next_save(tmp_path):
+    """Issue 48, loose end 5: saved at 12 keyframes, the basis fitted at the 17th: the next save
+    writes a new generation whose dense copy codes the first 16 with the basis too (their
+    float16 tokens were kept for it); the later entries keep their bytes, their CRC32s (seeded
+    by the basis's, which now lists the first 16's) follow in the new store's rows."""
+    data, d = tokens(6, BASIS_FROM + 6), tmp_path / "m"
+    with PlaceMap(DIM, SHAPE, "fp", P4) as m:
+        for i in range(12):
+            m.add(_desc(i), data[i], _meta(i))
+        m.save(d)
+        for i in range(12, len(data)):
+            m.add(_desc(i), data[i], _meta(i))
+        assert m._dense.recode_pending and m.dense_basis.recoded == []
+        later = m.get_dense(range(BASIS_FROM, len(data)))
+        m.save(d)
+        assert not m._dense.recode_pending and len(m.dense_basis.recoded) == BASIS_FROM
+        assert sorted(p.name for p in d.glob("dense-*")) == ["dense-2.p4"]  # a new generation
+    with PlaceMap.load(d, verify_dense=True) as m:
+        basis, size = m.dense_basis, entry_bytes(SHAPE, "p4")
+        first = np.stack([basis.decode(basis.encode(t, size), SHAPE[0]) for t in data[:16]])
+        np.testing.assert_array_equal(m.get_dense(range(BASIS_FROM)), first)
+        np.testing.assert_array_equal(m.get_dense(range(BASIS_FROM, len(data))), later)
+        q4_err = np.abs(np.stack([q4(t) for t in data[:16]]) - data[:16]).mean()
+        assert np.abs(first.astype(np.float32) - data[:16]).mean() < q4_err
+
+
 def test_merge_and_compact_recode_into_one_basis(tmp_path: Path) -> None:
     """Two maps with their own bases merged: the first's basis codes every merged entry (from
     entry 0); each comes back near its input's decoded tokens; compact keeps the basis."""

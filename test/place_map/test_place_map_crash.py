@@ -114,6 +114,82 @@ def test_sigkill_during_repeated_saves(tmp_path: Path, saved: Path) -> None:
         assert_holds(m, list(range(len(m))))
 
 
+TRIALS = """
+import os, random, signal, sys, time
+import numpy as np
+sys.path.insert(0, {test_dir!r})
+from test_place_map_persist import add_range, assert_holds
+from pair_vpr_ros.place_map import PlaceMap
+
+directory, trials, seed = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+rng = random.Random(seed)
+
+
+def saving(w):  # continue the map; each completed save is reported (acknowledged)
+    m = PlaceMap.load(directory)
+    while True:
+        n = len(m)
+        add_range(m, n, n + 1 + n % 3)
+        for i in range(n, len(m)):  # growth rows: committed with their keyframes
+            m.growth.add_signature(i, np.full(96, i % 7 / 7.0))
+        m.save(directory, checkpoint=n % 2 == 0)  # or folded in later, as the node does
+        os.write(w, f"{{len(m)}}\\n".encode())
+        if n % 3 == 0:
+            m.checkpoint()
+
+
+def check(acked):  # in a child of its own: this process never opens the map
+    try:
+        with PlaceMap.load(directory, read_only=True) as m:
+            assert len(m) >= acked, (len(m), acked)
+            assert_holds(m, list(range(len(m))))
+            assert m.growth.counts().signatures == len(m) - 12
+        os._exit(0)
+    except BaseException as err:
+        print("FAILED", repr(err), flush=True)
+        os._exit(1)
+
+
+acked = 12
+for trial in range(trials):
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:
+        os.close(r)
+        saving(w)
+    os.close(w)
+    reader = os.fdopen(r)
+    for _ in range(rng.randrange(0, 3)):  # let 0-2 saves complete, then a random moment
+        acked = max(acked, int(reader.readline()))
+    time.sleep(rng.uniform(0.0, 0.02))
+    os.kill(pid, signal.SIGKILL)
+    os.waitpid(pid, 0)
+    acked = max([acked, *(int(line) for line in reader.read().split())])
+    reader.close()
+    checker = os.fork()
+    if checker == 0:
+        check(acked)
+    status = os.waitpid(checker, 0)[1]
+    print(trial, acked, "ok" if status == 0 else "bad", flush=True)
+"""
+
+
+def test_kill_9_at_random_moments_keeps_every_acknowledged_keyframe(tmp_path, saved) -> None:
+    """Issue 48: 40 children continue the map and save it (1-3 keyframes and their growth rows
+    a save, the WAL folded in by the save or later), each SIGKILLed at a random moment; after
+    each, the map loads and holds every keyframe a completed save acknowledged, as added (the
+    first children cross p4's basis fit and the new generation that codes the first 16)."""
+    script = tmp_path / "trials.py"
+    script.write_text(TRIALS.format(test_dir=str(Path(__file__).parent)))
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    done = subprocess.run([sys.executable, str(script), str(saved), "40", "48"], env=env,
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    lines = done.stdout.splitlines()
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert [line.split()[2] for line in lines] == ["ok"] * 40, done.stdout[-2000:]
+    assert int(lines[-1].split()[1]) > 40  # saves were acknowledged along the way
+
+
 class Boom(Exception):
     pass
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import sqlite3
 import threading
 from pathlib import Path
 
@@ -40,13 +41,13 @@ def test_an_old_map_loads_with_a_note_and_the_next_save_converts_it(tmp_path: Pa
     with PlaceMap.load(d, legacy_identity=("", "")) as m:  # v1: keyframes named at load
         assert_holds(m, list(range(N0)), "f16")  # float16 tokens, bit for bit
         assert f"is of format version {version}" in m.load_note
-        assert "converted to format 3 by the next save into it" in m.load_note
+        assert "converted to format 4 by the next save into it" in m.load_note
         add_range(m, N0, N0 + 2)
         m.save(d)
         add_range(m, N0 + 2, N0 + 3)
         m.save(d)  # incremental from here
     manifest = json.loads((d / "manifest.json").read_text())
-    assert (manifest["format_version"], manifest["dense_codec"]) == (3, "f16")
+    assert (manifest["format_version"], manifest["dense_codec"]) == (4, "f16")
     assert files(d) == [
         "dense-1.f16",
         "manifest.json",
@@ -135,3 +136,64 @@ def test_negative_zero_in_a_pose_survives_the_row_crc(tmp_path: Path) -> None:
         m.save(tmp_path / "map")
     with PlaceMap.load(tmp_path / "map") as m:
         assert m.meta(0).pose == pose and m.all_meta()[0].stamp == 0.0
+
+
+def _growth_rows(m: PlaceMap) -> None:
+    """The growth rows of test/data/maps/format-3-growth (README): signatures, links, two
+    represented keyframes; links without a score (none was kept before issue 48)."""
+    from pair_vpr_ros.place_map.growth.tables import Represented
+
+    for i in range(len(m)):
+        m.growth.add_signature(i, np.linspace(0, 1, 96) * (i % 4) / 4)
+    if len(m) == 12:
+        m.growth.add_link(5, 1, (1.0, 0.5, 0.0, 0.0, 0.0, 0.0, 1.0))
+        m.growth.add_link(9, 5, (0.5, 0.0, 0.0, 0.0, 0.0, 0.08715574, 0.9961947))
+        return
+    m.growth.add_link(13, 9, (0.2, 0.1, 0.0, 0.0, 0.0, 0.0, 1.0))
+    m.growth.add_link(17, 1, (0.3, 0.0, 0.1, 0.0, 0.0, 0.0, 1.0))
+    m.growth.add_represented(Represented(250.0, "", "", 1, 0.01))
+    m.growth.add_represented(Represented(251.0, "", "", 9, 0.02))
+
+
+def _rows(m: PlaceMap) -> list:
+    g = m.growth
+    links = [g.scored_links(k) for k in range(len(m))]
+    signatures = [g.signature(k) for k in range(len(m))]
+    return [[None if s is None else s.tolist() for s in signatures], links, g.represented()]
+
+
+def test_a_map_of_growth_rows_before_scores(tmp_path: Path) -> None:
+    """test/data/maps/format-3-growth, written by main at 2b1c4db (schema version 0: links
+    without a score column): read as written (its rows equal today's of the same calls, scores
+    unknown); a read-only load changes nothing; a writable load migrates the store in its open
+    transaction (schema.py), the next save commits it with format 4, and new links keep
+    their score."""
+    from pair_vpr_ros.place_map import schema
+
+    with PlaceMap(DIM, SHAPE, "fp-a") as made:  # what the fixture's script did, today
+        add_range(made, 0, 12)
+        _growth_rows(made)
+        add_range(made, 12, 20)
+        _growth_rows(made)
+        expected = _rows(made)
+    d = Path(shutil.copytree(MAPS / "format-3-growth", tmp_path / "map"))
+    version = "SELECT user_version FROM pragma_user_version"
+    with PlaceMap.load(d, read_only=True) as m:
+        assert _rows(m) == expected and m.growth.scored_links(9)[0][2] is None
+    with sqlite3.connect(f"file:{d / 'map-1.sqlite'}?mode=ro", uri=True) as conn:
+        assert conn.execute(version).fetchone() == (0,)
+        assert not schema.has_column(conn, "links", "score")
+    with PlaceMap.load(d) as m:
+        assert _rows(m) == expected
+        add_range(m, 20, 21)
+        m.growth.add_link(20, 13, (0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), score=71.5)
+        m.save(d)
+    with sqlite3.connect(f"file:{d / 'map-1.sqlite'}?mode=ro", uri=True) as conn:
+        assert conn.execute(version).fetchone() == (schema.SCHEMA_VERSION,)
+    assert json.loads((d / "manifest.json").read_text())["format_version"] == 4
+    with PlaceMap.load(d, read_only=True) as m:
+        assert _rows(m)[1][:20] == expected[1][:13] + [
+            links + ([(20, (-0.1, 0.0, 0.0, -0.0, -0.0, -0.0, 1.0), 71.5)] if k == 13 else [])
+            for k, links in enumerate(expected[1][13:], 13)
+        ]
+        assert m.growth.scored_links(20) == [(13, (0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), 71.5)]

@@ -8,8 +8,8 @@ import json
 from dataclasses import replace
 
 import pytest
+from loop_records import posed_record
 from rosbags.typesys import Stores, get_typestore
-from test_loop_factor import posed_record
 from test_posegraph import loop, loop_covariance
 
 from pair_vpr_ros.messages import factor as lf

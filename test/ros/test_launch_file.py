@@ -18,6 +18,7 @@ from ament_index_python.packages import get_package_share_directory
 from package_layout import PACKAGE, ROOT, console_scripts, install_prefix
 from ros_cli import Graph, wait_for
 
+from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.params.table import RANDOM_TINY, SPECS
 from pair_vpr_ros.ros.node import VprNode
 
@@ -77,7 +78,8 @@ def test_its_arguments_start_the_node_with_the_remapped_topics(share, ros):
     args = ls.ros_args(node)
     assert args == [
         "--ros-args", "-r", "__node:=vpr_node",
-        "--params-file", str(share / "config" / "vpr_node.yaml"), "-p", f"weights:={RANDOM_TINY}",
+        "--params-file", str(share / "config" / "vpr_node.yaml"),
+        "-p", f'weights:="{RANDOM_TINY}"',
         "-r", "image:=/camera/image_raw", "-r", "loop_closure:=/lio_loop/loop_closure_detection",
     ]  # fmt: skip
     vpr, graph = ros(args)
@@ -129,3 +131,17 @@ def test_sensor_topics_reach_the_node_and_relative_poses_follow_them(share):
         {"depth_topic": "/cam/depth", "pose_topic": "/odom", "robot_id": "7",
          "relative_pose": True},
     ]  # fmt: skip
+
+
+def test_text_arguments_arrive_as_text(share, ros, tmp_path):
+    """Issue 48: robot_id:=7 or map_dir:=2024 through ros2 launch reach the node as strings
+    (launch_ros would pass them on as numbers): map_dir 2024 is a folder, and robot_id 7 is
+    refused by the identity rule, not by a parameter type error."""
+    node = launched(share, weights=RANDOM_TINY, robot_id="r7", map_dir="2024")
+    vpr, _ = ros(ls.ros_args(node))
+    assert (vpr.get_parameter("robot_id").value, vpr.get_parameter("map_dir").value) == (
+        "r7", "2024",
+    )  # fmt: skip
+    numeric = launched(share, weights=RANDOM_TINY, robot_id="7")
+    with pytest.raises(ConfigError, match=r"^invalid parameters: robot_id '7' must be 1-64 "):
+        ros(ls.ros_args(numeric))

@@ -28,7 +28,7 @@ from pair_vpr_ros.loops.frames import Frame, FrameOutcome
 from pair_vpr_ros.loops.pipeline import LoopClosurePipeline
 from pair_vpr_ros.model import PairVPRModel
 from pair_vpr_ros.offline.bags.sources import FrameCounts, source_frames
-from pair_vpr_ros.offline.report.folder import check_writable, writing_outputs
+from pair_vpr_ros.offline.report.folder import check_writable, naming, writing_outputs
 
 SUMMARY = "fleet_summary.json"
 
@@ -176,5 +176,6 @@ def write_fleet_run(run: FleetRun, out: str | Path) -> Path:
 
 def _write_json(path: Path, data: Any) -> None:
     tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(data, indent=1, allow_nan=True) + "\n", encoding="utf-8")
+    with naming(path, tmp):  # a full disk: named, and no .tmp left behind
+        tmp.write_text(json.dumps(data, indent=1, allow_nan=True) + "\n", encoding="utf-8")
     tmp.replace(path)

@@ -176,9 +176,7 @@ def _summarise(summary: FleetSummary, graph: PoseGraph) -> None:
     for reason, n in graph.counts.skipped.items():
         summary.skipped[reason] = summary.skipped.get(reason, 0) + n
         if reason.startswith("loop: robot-session "):
-            summary.warnings.append(
-                f"{n} loops skipped: {reason[6:]} (give its --trajectory ROBOT SESSION BAG)"
-            )
+            summary.warnings.append(f"{n} loops skipped: {reason[6:]} ({_hint(reason)})")
     for track in graph.tracks:
         item = summary.trajectories[label(track.trajectory)]
         item.nodes, item.joined = len(track.nodes), track.joined
@@ -193,6 +191,17 @@ def _summarise(summary: FleetSummary, graph: PoseGraph) -> None:
                 f"{graph.config.join_min_loops} agreeing loops to the others): its optimised.tum "
                 "is its odometry, in its own frame"
             )
+
+
+def _hint(reason: str) -> str:
+    """What to do about loops whose robot-session the graph cannot place: a named one needs
+    its trajectory; loops that name none ('*', a replay without --robot-id) need an owner."""
+    if "*" not in reason.split(" ")[2]:  # "loop: robot-session R/S ..."
+        return "give its --trajectory ROBOT SESSION BAG"
+    return (
+        "the loops name no robot or session (a replay without --robot-id): give each such "
+        "loops file as --loops-of ROBOT SESSION PATH, the robot-session it was replayed for"
+    )
 
 
 def _write(

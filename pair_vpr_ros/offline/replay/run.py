@@ -105,7 +105,16 @@ def replay_bag(
     check_writable(out, "output folder")
     if o.save_map:
         check_writable(o.map_path(out), "map folder")
-        check_map_dir(o.map_path(out), o.overwrite)
+    folder = check_map_dir(o.map_path(out), o.overwrite) if o.save_map else None
+    try:  # the map folder's lock is held until the save (another writer is refused now)
+        return _replay(bag, out, o, folder, model, weights, config, geometry)
+    finally:
+        if folder is not None:
+            folder.release()
+
+
+def _replay(bag, out: Path, o: ReplayOptions, folder, model, weights, config, geometry):
+    """`replay_bag` once its outputs are checked; `folder`: the map folder (lock held)."""
     identity = resolve_identity(o.robot_id, o.session_id)
     calibration_notes: list[str] = []
     if model is None:
@@ -169,6 +178,8 @@ def replay_bag(
             drive(run, pipe, source, o.batch_size, writer, bar)
         summary.bag_out = str(bag_out) if writer is not None else None
         summary.seconds = time.perf_counter() - start
+    if folder is not None:
+        folder.release()  # the save takes the folder's lock itself
     _finish(run, pipe, out, o, (truth, poses, Path(bag).name))
     return summary
 
@@ -194,6 +205,7 @@ def _finish(
         summary.warnings.append(f"no image of {summary.topic} could be used, e.g.: {first}")
     summary.stamps_backwards, summary.stamps_repeated = counts.backwards, counts.repeated
     summary.warnings += counts.stamp_warnings(summary.topic)
+    summary.warnings += pipe.geometry.camera_warnings  # once per camera (lens distortion)
     summary.candidates = len(run.records)
     summary.pipeline_counts = pipe.counts.to_dict()
     try:

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from pair_vpr_ros.errors import OutputError
+from pair_vpr_ros.errors import OutputError, os_reason
 from pair_vpr_ros.messages.loop import LOOP_RECORD_FIELDS, csv_row, record_dict
 from pair_vpr_ros.offline.report.loop_truth import KeyframeInfo, LoopEvaluation, evaluate_loops
 from pair_vpr_ros.offline.report.plots import plot_pr_curves, plot_trajectory
@@ -43,14 +43,28 @@ def check_writable(path: Path, what: str) -> None:
 @contextmanager
 def writing_outputs(out: Path, what: str = "outputs") -> Iterator[None]:
     """An OSError while the block writes into `out` (a full disk, ...) -> OutputError naming
-    the file: the results are not lost to a bare traceback."""
+    the file when the error does (`naming`): the results are not lost to a bare traceback."""
     try:
         yield
     except OSError as err:
+        file = f", writing {err.filename}" if err.filename else ""
         raise OutputError(
-            f"cannot write the {what} into {out}: {err.strerror or err} ({err.filename}); free "
-            "space or pick another --out"
+            f"cannot write the {what} into {out}: {os_reason(err)}{file}; free space or pick "
+            "another --out"
         ) from err
+
+
+@contextmanager
+def naming(path: Path, partial: Path | None = None) -> Iterator[None]:
+    """An OSError while the block writes `path` (through `partial`, renamed to it later) names
+    `path` (a failed write() names no file); what the block wrote is removed."""
+    try:
+        yield
+    except OSError as err:
+        Path(partial or path).unlink(missing_ok=True)
+        if err.filename:
+            raise
+        raise OSError(err.errno, err.strerror or str(err), str(path)) from err
 
 
 def write_loops_csv(records: Sequence[Any], path: str | Path) -> None:

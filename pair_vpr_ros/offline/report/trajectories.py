@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from pair_vpr_ros.errors import PoseGraphError
+from pair_vpr_ros.offline.report.folder import naming
 
 
 @dataclass(frozen=True)
@@ -66,7 +67,8 @@ def write_tum(path: str | Path, trajectory: Trajectory) -> Path:
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    file_interface.write_tum_trajectory_file(path, trajectory.to_evo())
+    with naming(path):  # a full disk: the file named in the error
+        file_interface.write_tum_trajectory_file(path, trajectory.to_evo())
     return path
 
 

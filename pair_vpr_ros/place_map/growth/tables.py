@@ -3,7 +3,9 @@ keyframe rows, so a save commits them together and a kill -9 rolls them back tog
 
 - `signatures`: per stored keyframe, its appearance signature (float16 [S], loops/growth.py);
 - `links`: two stored keyframes joined by an accepted loop with a confident relative pose,
-  `T_b_a` (keyframe a's camera in keyframe b's optical frame, x y z qx qy qz qw);
+  `T_b_a` (keyframe a's camera in keyframe b's optical frame, x y z qx qy qz qw), and the
+  re-rank score with which keyframe a's query recognised b (NULL: not known, a link written
+  before issue 48; compact's recognition rule, compact.py);
 - `represented`: a keyframe that was not stored because a stored one already represents its
   place and appearance: its stamp, robot, session, the representative's id and the distance of
   their signatures.
@@ -15,6 +17,7 @@ transaction by the first write (so only a save makes them durable) and read as e
 
 from __future__ import annotations
 
+import math
 import sqlite3
 import zlib
 from dataclasses import dataclass
@@ -22,23 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pair_vpr_ros.errors import MapError
-
-GROWTH_SCHEMA = (
-    "CREATE TABLE IF NOT EXISTS signatures (id INTEGER PRIMARY KEY, data BLOB NOT NULL, "
-    "crc INTEGER NOT NULL)",
-    "CREATE TABLE IF NOT EXISTS links (a INTEGER NOT NULL, b INTEGER NOT NULL, tx REAL, ty REAL, "
-    "tz REAL, qx REAL, qy REAL, qz REAL, qw REAL, crc INTEGER NOT NULL, PRIMARY KEY (a, b))",
-    "CREATE INDEX IF NOT EXISTS links_b ON links (b)",
-    "CREATE TABLE IF NOT EXISTS represented (stamp REAL NOT NULL, robot TEXT NOT NULL, "
-    "session TEXT NOT NULL, representative INTEGER NOT NULL, distance REAL NOT NULL, "
-    "crc INTEGER NOT NULL)",
-)
-# table -> its columns, in the order a copy writes them
-GROWTH_TABLES = {
-    "signatures": "id, data, crc",
-    "links": "a, b, tx, ty, tz, qx, qy, qz, qw, crc",
-    "represented": "stamp, robot, session, representative, distance, crc",
-}
+from pair_vpr_ros.place_map.schema import GROWTH_SCHEMA, GROWTH_TABLES, has_column
 
 
 def _crc(values: tuple) -> int:
@@ -70,26 +57,30 @@ class GrowthCounts:
 
 class GrowthTables:
     """The growth tables of one open keyframe store (`KeyframeStore.growth()`): `conn` is the
-    store's connection (its open transaction, when it has one), `damaged` its error maker."""
+    store's connection (its open transaction, when it has one), `damaged` its error maker for
+    a damaged row, `failure(err, what)` for a failed SQLite call (a full disk said as one),
+    `begin` opens the store's write transaction (when it has none) before a write."""
 
-    def __init__(self, conn: sqlite3.Connection, damaged, writable: bool) -> None:
+    def __init__(
+        self, conn: sqlite3.Connection, damaged, writable: bool, failure=None, begin=None
+    ) -> None:
         self._conn, self._damaged, self._writable = conn, damaged, writable
+        self._failure = failure or (lambda err, what: damaged(f"{what} ({err})"))
+        self._begin = begin or (lambda: None)
 
     # ------------------------------------------------------------------------ writing
 
-    def _write(self, sql: str, values: tuple) -> None:
+    def _write(self, sql: str, values: tuple, crc_of: tuple | None = None) -> None:
         if not self._writable:
             raise MapError("cannot record growth rows in a map loaded with read_only=True")
         try:
+            self._begin()
             if not self.present():
                 for statement in GROWTH_SCHEMA:  # inside the open transaction: durable at save
                     self._conn.execute(statement)
-            self._conn.execute(sql, (*values, _crc(values)))
+            self._conn.execute(sql, (*values, _crc(values if crc_of is None else crc_of)))
         except sqlite3.Error as err:  # a full disk: the keyframe rows' own error, said alike
-            raise MapError(
-                f"recording a growth row failed: {err}; free disk space (or load the map's last "
-                "save) and go on"
-            ) from err
+            raise self._failure(err, "could not record a growth row") from err
 
     def add_signature(self, kf_id: int, signature: np.ndarray) -> None:
         """signature [S] float (stored float16)."""
@@ -97,11 +88,17 @@ class GrowthTables:
         self._write("INSERT OR REPLACE INTO signatures (id, data, crc) VALUES (?, ?, ?)",
                     (int(kf_id), data))  # fmt: skip
 
-    def add_link(self, a: int, b: int, pose: tuple[float, ...]) -> None:
-        """Keyframes a and b (a != b) joined by a posed loop; pose: T_b_a (x y z qx qy qz qw)."""
+    def add_link(
+        self, a: int, b: int, pose: tuple[float, ...], score: float | None = None
+    ) -> None:
+        """Keyframes a and b (a != b) joined by a posed loop; pose: T_b_a (x y z qx qy qz qw);
+        score: the re-rank score of b for a's query (None / NaN: not known)."""
         values = (int(a), int(b), *(float(v) for v in pose))
-        self._write(f"INSERT OR REPLACE INTO links ({GROWTH_TABLES['links']}) VALUES "
-                    f"({','.join('?' * 10)})", values)  # fmt: skip
+        known = score is not None and math.isfinite(float(score))
+        scored = (*values, float(score)) if known else values  # a row's CRC covers its score
+        self._write("INSERT OR REPLACE INTO links (a, b, tx, ty, tz, qx, qy, qz, qw, score, crc) "
+                    f"VALUES ({','.join('?' * 11)})", (*values, scored[9] if known else None),
+                    scored)  # fmt: skip
 
     def add_represented(self, row: Represented) -> None:
         values = (float(row.stamp), row.robot, row.session, int(row.representative),
@@ -128,15 +125,31 @@ class GrowthTables:
     def links(self, kf_id: int) -> list[tuple[int, tuple[float, ...]]]:
         """Keyframes linked to `kf_id`: (other id, T_other_kf as x y z qx qy qz qw) each,
         read from either end of the link (the pose inverted where `kf_id` is its `b`)."""
-        cols = GROWTH_TABLES["links"]
-        rows = self._all(f"SELECT {cols} FROM links WHERE a = ? OR b = ? ORDER BY a, b",
-                         int(kf_id), int(kf_id))  # fmt: skip
+        return [(other, pose) for other, pose, _ in self.scored_links(kf_id)]
+
+    def scored_links(self, kf_id: int) -> list[tuple[int, tuple[float, ...], float | None]]:
+        """`links`, each with the re-rank score of the link's `b` for its `a`'s query (None:
+        not known: a link written before issue 48, or by a merge of such a map)."""
+        score = "score" if self._scored() else "NULL"
+        rows = self._all(f"SELECT a, b, tx, ty, tz, qx, qy, qz, qw, crc, {score} FROM links "
+                         "WHERE a = ? OR b = ? ORDER BY a, b", int(kf_id), int(kf_id))  # fmt: skip
         out = []
         for row in rows:
-            self._check(row, f"the link of keyframes {row[0]} and {row[1]}")
+            values = row[:9] if row[10] is None else (*row[:9], row[10])
+            self._check((*values, row[9]), f"the link of keyframes {row[0]} and {row[1]}")
             pose = tuple(float(v) for v in row[2:9])
-            out.append((row[1], pose) if row[0] == kf_id else (row[0], invert(pose)))
+            kept = (row[1], pose) if row[0] == kf_id else (row[0], invert(pose))
+            out.append((*kept, None if row[10] is None else float(row[10])))
         return out
+
+    def _scored(self) -> bool:
+        """The links table has the score column (a store migrated or written since issue 48;
+        a read-only open of an older one has not)."""
+        if getattr(self, "_has_score", None) is None:
+            if not self.present():
+                return True  # no rows: a first one makes the table with the column
+            self._has_score = has_column(self._conn, "links", "score")
+        return self._has_score
 
     def represented(self) -> list[Represented]:
         rows = self._all(f"SELECT {GROWTH_TABLES['represented']} FROM represented ORDER BY rowid")
@@ -158,7 +171,7 @@ class GrowthTables:
         try:
             return self._conn.execute(sql, args).fetchone()
         except (sqlite3.Error, UnicodeDecodeError) as err:
-            raise self._damaged(f"cannot be read ({err})") from err
+            raise self._failure(err, "cannot be read") from err
 
     def _all(self, sql: str, *args) -> list[tuple]:
         if not self.present():
@@ -166,7 +179,7 @@ class GrowthTables:
         try:
             return self._conn.execute(sql, args).fetchall()
         except (sqlite3.Error, UnicodeDecodeError) as err:
-            raise self._damaged(f"cannot be read ({err})") from err
+            raise self._failure(err, "cannot be read") from err
 
 
 def invert(pose: tuple[float, ...]) -> tuple[float, ...]:

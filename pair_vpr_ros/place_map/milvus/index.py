@@ -16,18 +16,15 @@ Rows that a failed call may have stored are written again with `upsert` (never d
 
 from __future__ import annotations
 
-import io
-import json
 import logging
 import secrets
-import zipfile
 from pathlib import Path
 
 import numpy as np
 
 from pair_vpr_ros.errors import MapError, MapUnavailableError
-from pair_vpr_ros.place_map.milvus import collection as mc
-from pair_vpr_ros.place_map.milvus.collection import index_params, search_params
+from pair_vpr_ros.place_map.milvus import client as mc
+from pair_vpr_ros.place_map.milvus.collection import index_params, open_collection, search_params
 from pair_vpr_ros.place_map.milvus.expr import (
     ID_BITS,
     MAX_WRITER,
@@ -38,10 +35,10 @@ from pair_vpr_ros.place_map.milvus.expr import (
     ids_expr,
 )
 from pair_vpr_ros.place_map.milvus.fresh import FreshRows, local_mask, local_search, merge
+from pair_vpr_ros.place_map.milvus.record import read_record, write_record
 
 CHUNK = 2000  # rows per upsert call
 MAX_LIMIT = 16384  # Milvus's largest top-k
-RECORD_FORMAT = "pair_vpr_ros.milvus_record.v1"
 Row = tuple[str, str, float]  # robot, session, stamp of one keyframe
 _log = logging.getLogger(__name__)
 
@@ -60,7 +57,7 @@ class MilvusIndex:
         self.uri, self.collection = config.milvus_uri, config.milvus_collection
         self.client = mc.connect(self.uri, config.milvus_token_env)
         index = index_params(config)
-        self.index_type = mc.open_collection(
+        self.index_type = open_collection(
             self.client, self.uri, self.collection, self.dim, self.fingerprint, index
         )
         if self.index_type != index["index_type"]:
@@ -75,6 +72,8 @@ class MilvusIndex:
         self._synced = 0  # rows [0, _synced) are in the collection
         self._unsure = 0  # rows below this may be in it already (a failed call): upsert them
         self.down = False  # the last call to Milvus failed
+        self.why = "cannot be reached"  # why it failed, as messages say it
+        self.local = False  # a read-only map whose rows the collection lost: searched here
         self.skipped = 0  # searches refused while Milvus was unreachable
         self._fresh = FreshRows()  # rows a Bounded search may not see yet: searched here too
         self.writer = self._new_writer() if writer is None else int(writer)
@@ -131,20 +130,23 @@ class MilvusIndex:
     def flush(self) -> bool:
         """Insert the kept keyframes -> True when none is left over."""
         try:
-            while self._synced < len(self._rows):
-                lo, hi = self._synced, min(self._synced + CHUNK, len(self._rows))
-                # insert, unless a failed call may have stored some of them: then upsert,
-                # which replaces rows of the same key instead of adding duplicates
-                write = self.client.upsert if lo < self._unsure else self.client.insert
-                write(self.collection, self._row_dicts(lo, hi))
-                self._synced = hi
-                self._fresh.written(lo)
+            with mc.quiet():
+                while self._synced < len(self._rows):
+                    lo, hi = self._synced, min(self._synced + CHUNK, len(self._rows))
+                    # insert, unless a failed call may have stored some of them: then upsert,
+                    # which replaces rows of the same key instead of adding duplicates
+                    write = self.client.upsert if lo < self._unsure else self.client.insert
+                    write(self.collection, self._row_dicts(lo, hi))
+                    self._synced = hi
+                    self._fresh.written(lo)
         except _faults() as err:
             self._unsure = len(self._rows)
+            full = mc.full_disk(err, self.uri)  # a lite file's disk: no server to wait for
+            self.why = f"cannot store rows: {full}" if full else "cannot be reached"
             if not self.down:
                 _log.warning(
-                    "place map: %s cannot be reached (%s); keeping %d keyframe(s) until it "
-                    "answers, searches are skipped", self._where(), mc._reason(err), self.pending,
+                    "place map: %s %s (%s); keeping %d keyframe(s) until it answers, searches "
+                    "are skipped", self._where(), self.why, mc._reason(err), self.pending,
                 )  # fmt: skip
             self.down = True
             return False
@@ -225,20 +227,24 @@ class MilvusIndex:
         expr = expr if exclusion else ids_expr(self.base, limit, allowed)
         if expr is None or k <= 0:
             return np.empty(0, np.int64), np.empty(0, np.float32)
+        query = np.asarray(desc, np.float32).reshape(1, self.dim)
+        if self.local:  # exact, on the map's own copy: the collection lacks some of its rows
+            mask = local_mask(self._rows, 0, limit, allowed, exclusion)
+            return local_search(self._desc, query, 0, mask, min(int(k), MAX_LIMIT))
         if not self.flush():
             self.skipped += 1
             raise MapUnavailableError(
-                f"{self._where()} cannot be reached: query skipped, {self.pending} keyframe(s) "
-                "kept for insertion"
+                f"{self._where()} {self.why}: query skipped, {self.pending} keyframe(s) kept "
+                "for insertion"
             )
-        query = np.asarray(desc, np.float32).reshape(1, self.dim)
         level = self.config.milvus_consistency
         try:
-            found = self.client.search(
-                self.collection, query, filter=expr, limit=min(int(k), MAX_LIMIT),
-                anns_field="desc", search_params=search_params(self.config, k, self.index_type),
-                consistency_level=level,
-            )[0]  # fmt: skip
+            with mc.quiet():
+                found = self.client.search(
+                    self.collection, query, filter=expr, limit=min(int(k), MAX_LIMIT),
+                    anns_field="desc", consistency_level=level,
+                    search_params=search_params(self.config, k, self.index_type),
+                )[0]  # fmt: skip
         except _faults() as err:
             self.down, self.skipped = True, self.skipped + 1
             raise MapUnavailableError(
@@ -272,18 +278,8 @@ class MilvusIndex:
 
     def write(self, path: Path) -> None:
         """The record of this index: where its rows live, its writer key and its copy."""
-        n = len(self._rows)
         self.unrecorded = False  # from here on a save may name this key (kept even if it fails)
-        record = dict(format=RECORD_FORMAT, uri=self.uri, collection=self.collection,
-                      writer=self.writer, dim=self.dim, count=n)  # fmt: skip
-        robots, sessions, stamps = [list(c) for c in zip(*self._rows, strict=True)] or [[]] * 3
-        buf = io.BytesIO()
-        np.savez(
-            buf, record=np.array(json.dumps(record)), desc=self._desc[:n],
-            stamps=np.array(stamps, np.float64).reshape(n), robots=np.array(robots, str),
-            sessions=np.array(sessions, str),
-        )  # fmt: skip
-        Path(path).write_bytes(buf.getvalue())
+        write_record(path, self, self._desc[: len(self._rows)], self._rows)
 
     @classmethod
     def read(cls, path: Path, dim: int, config, fingerprint: str, count: int, read_only: bool):
@@ -318,31 +314,13 @@ class MilvusIndex:
             )  # fmt: skip
             if not read_only:
                 self.client.delete(self.collection, filter=id_range(self.base, count, 2**ID_BITS))
-        self._synced = count if held == count else 0
-        self._unsure = count
-        if held != count:
+        self._synced = count if held == count or read_only else 0
+        self._unsure, self.local = count, held != count and read_only
+        if held != count:  # a read-only open writes nothing: it searches its own copy
             _log.warning(
-                "place map: %s held %d of this map's %d keyframes; inserting them again",
-                self._where(), held, count,
+                "place map: %s held %d of this map's %d keyframes; %s", self._where(), held,
+                count, "searching the map's own copy of them (a read-only open inserts "
+                "nothing; a writable one inserts them again)" if read_only else
+                "inserting them again",
             )  # fmt: skip
             self.flush()
-
-
-def read_record(path: Path, dim: int, count: int) -> tuple[dict, dict]:
-    """The record file written by `MilvusIndex.write`, checked against the manifest."""
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {key: data[key] for key in data.files}
-        record = json.loads(str(arrays.pop("record")))
-        ok = record.get("format") == RECORD_FORMAT and record.get("count") == count
-        ok = ok and record.get("dim") == dim and 0 < int(record.get("writer", 0)) <= MAX_WRITER
-        ok = ok and arrays["desc"].shape == (count, dim)
-        ok = ok and all(len(arrays[k]) == count for k in ("stamps", "robots", "sessions"))
-    except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as err:
-        raise MapError(f"milvus record {path} cannot be read ({err}): the map is damaged") from err
-    if not ok:
-        raise MapError(
-            f"milvus record {path} does not match the manifest ({count} keyframes of {dim}-d): "
-            "the map is damaged, restore it from a backup or rebuild it"
-        )
-    return record, arrays

@@ -16,7 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pair_vpr_ros.errors import MapUnavailableError
-from pair_vpr_ros.place_map.milvus import collection as mc
+from pair_vpr_ros.place_map.milvus import client as mc
+from pair_vpr_ros.place_map.milvus.collection import search_params
 from pair_vpr_ros.place_map.milvus.expr import ID_BITS, quote
 from pair_vpr_ros.place_map.milvus.index import MAX_LIMIT, MilvusIndex, _faults
 
@@ -52,7 +53,7 @@ def search_peers(
         found = index.client.search(
             index.collection, query, filter=peer_expr(robot, peers),
             limit=min(int(k), MAX_LIMIT), anns_field="desc",
-            search_params=mc.search_params(index.config, k, index.index_type),
+            search_params=search_params(index.config, k, index.index_type),
             output_fields=["robot", "session", "stamp"],
             consistency_level=index.config.milvus_consistency,
         )[0]  # fmt: skip

@@ -24,9 +24,10 @@ from pathlib import Path
 from pair_vpr_ros.errors import ConfigError, MapError
 from pair_vpr_ros.place_map.index import IndexConfig
 from pair_vpr_ros.place_map.manifest import MANIFEST_NAME, read_manifest
-from pair_vpr_ros.place_map.milvus import collection as mc
+from pair_vpr_ros.place_map.milvus import client as mc
+from pair_vpr_ros.place_map.milvus.collection import check_layout, ensure_loaded
 from pair_vpr_ros.place_map.milvus.expr import ID_BITS, id_range
-from pair_vpr_ros.place_map.milvus.index import read_record
+from pair_vpr_ros.place_map.milvus.record import read_record
 from pair_vpr_ros.place_map.persist import saved_index_file
 
 BATCH = 1000  # rows per query-iterator page
@@ -120,8 +121,8 @@ def _prune(client, uri: str, collection: str, saved: dict, apply: bool) -> Prune
             f"{place} does not exist (collections there: {sorted(client.list_collections())}): "
             "give --collection the maps' milvus_collection"
         )
-    mc.check_layout(client.describe_collection(collection), place)
-    mc.ensure_loaded(client, collection)
+    check_layout(client.describe_collection(collection), place)
+    ensure_loaded(client, collection)
     keep = " or ".join(id_range(w << ID_BITS, 0, n) for w, (n, _) in sorted(saved.items()))
     stale_expr = f"not ({keep})" if keep else "pk >= 0"
     total = _count(client, collection, "pk >= 0")
