@@ -326,7 +326,8 @@ def summarise(args: argparse.Namespace, soak: Soak, samples: list[dict]) -> int:
         **{k: d.get(k) for k in (
             "loops", "bytes_per_keyframe", "latency_ms_p50", "latency_ms_p95", "latency_ms_max",
             "encode_ms_p50", "encode_ms_p95", "rerank_ms_p50", "rerank_ms_p95", "rerank_ms_max",
-            "candidates_scored", "rerank_budget_cut")},
+            "candidates_scored", "rerank_budget_cut", "decoder_passes", "rerank_covered",
+            "rerank_skipped")},
         "records": len(soak.loop_ms), "keyframe_latency_ms": stats(soak.loop_ms),
         "records_cut_by_budget": len(cut),
         "scored_per_record": stats([float(k) for _, k in soak.scored]),
@@ -356,6 +357,13 @@ def summarise(args: argparse.Namespace, soak: Soak, samples: list[dict]) -> int:
     print(
         f"  candidates scored per record: {summary['scored_per_record']} (top_k {args.top_k}, "
         f"budget {args.budget_ms} ms; {len(cut)} records cut by the budget)"
+    )
+    looked = int(d.get("rerank_covered") or 0) + int(d.get("rerank_skipped") or 0)
+    summary["covered_share"] = looked / len(soak.scored) if soak.scored else None
+    print(
+        f"  every candidate scored at least one way, or the keyframe skipped by a floor: "
+        f"{looked} of {len(soak.scored)} records; decoder passes {d.get('decoder_passes')} "
+        f"(one direction of one pair each)"
     )
     print(
         f"  node, last 300 frames: latency p50 {d.get('latency_ms_p50')} / p95 "

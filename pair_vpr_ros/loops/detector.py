@@ -16,6 +16,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from pair_vpr_ros.errors import ConfigError
+from pair_vpr_ros.loops.cascade import Cascade, Goal, OneWay
+from pair_vpr_ros.loops.floor import LearnedFloor
 from pair_vpr_ros.loops.records import Candidate, LoopRecord, rank_by_pair_score
 from pair_vpr_ros.loops.sequence import DecisionTracks
 
@@ -53,6 +55,11 @@ class DetectorConfig:
     mode: str = "mapping"  # "mapping": query then add; "localization": query only
     map_growth: str = "places"  # mapping: "places" stores no represented keyframe (growth.py)
     rerank_budget_ms: float = 0.0  # stop re-ranking once this is spent (0: score all top_k)
+    # Score each candidate one direction first, the second only where it can still change the
+    # decision (cascade.py); False: every candidate both ways, as the paper
+    rerank_cascade: bool = False
+    # With rerank_cascade: skip keyframes below the floor learned from accepted loops (floor.py)
+    learned_floor: bool = True
     # With prior maps: each map (live, each prior) gives its own top_k and at most one loop of
     # the keyframe; False: one top_k of all maps together, one loop. One map: the same.
     loop_per_map: bool = True
@@ -76,6 +83,8 @@ class DetectorConfig:
             ("mode", self.mode in MODES, f"one of {MODES}"),
             ("map_growth", self.map_growth in GROWTH, f"one of {GROWTH}"),
             ("loop_per_map", isinstance(self.loop_per_map, bool), "true or false"),
+            ("rerank_cascade", isinstance(self.rerank_cascade, bool), "true or false"),
+            ("learned_floor", isinstance(self.learned_floor, bool), "true or false"),
             ("score_threshold", math.isfinite(self.score_threshold), "a finite number"),
             (
                 "global_weight",
@@ -123,9 +132,19 @@ class LoopDetector:
 
     def __post_init__(self) -> None:
         self._tracks = DecisionTracks(self.config)
+        self.cascade = Cascade()  # what its bounds learned: kept for the detector's life
+        self.floor = LearnedFloor()  # reset with the map (`reset_map`)
+        self.last_passes = 0  # decoder passes of the last `decide` (one direction of a pair: 1)
+        self.last_cut = False  # the last `decide` stopped at rerank_budget_ms
+        self.last_skipped = False  # the last `decide` skipped re-ranking (a global floor)
+        self.last_covered = False  # ... scored every candidate at least one way
 
     def reset(self) -> None:
         self._tracks.reset()
+
+    def reset_map(self) -> None:
+        """A new, loaded or cleared map: the learned floor starts again."""
+        self.floor.reset()
 
     def set_config(self, config: DetectorConfig) -> None:
         self.config = config
@@ -153,20 +172,28 @@ class LoopDetector:
         first: int = 1,
         query_identity: tuple[str, str] = ("", ""),
         track: int | None = None,
+        one_way: OneWay | None = None,
     ) -> LoopRecord | None:
         """Re-rank `candidates` (global order) and accept or reject the best one (or, with
         `sequence_margin`, one that continues the last accepted loop: sequence.py). `rerank`
         scores a list of candidates ([k] scores); with a budget it is called for the first
         `first`, then `step` at a time. `query_identity`: (robot, session) of the query.
         `track`: whose temporal consistency this decision counts in (one per map searched on
-        its own, `loop_per_map`; None: the one stream of decisions)."""
+        its own, `loop_per_map`; None: the one stream of decisions). `one_way`: one direction
+        of a list of candidates ([k] logits), for `rerank_cascade` (None: full scoring)."""
+        self.last_passes, self.last_cut, self.last_skipped = 0, False, False
+        self.last_covered = False
         record, match = self._decide(query_stamp, query_frame_id, candidates, rerank, verify,
-                                     step, first, query_identity, track)  # fmt: skip
-        self._tracks.decided(track, match, record is not None and record.accepted)
+                                     step, first, query_identity, track, one_way)  # fmt: skip
+        accepted = record is not None and record.accepted
+        self._tracks.decided(track, match, accepted)
+        if accepted:
+            self.floor.accepted(candidates[0].global_similarity)
         return record
 
     def _decide(self, query_stamp, query_frame_id, candidates, rerank, verify, step, first,
-                query_identity, track) -> tuple[LoopRecord | None, Candidate | None]:  # fmt: skip
+                query_identity, track,
+                one_way) -> tuple[LoopRecord | None, Candidate | None]:  # fmt: skip
         """`decide` without the sequence bookkeeping: (record, the candidate it is about)."""
         recent = self._tracks.recent(track)
         if not candidates:
@@ -175,12 +202,25 @@ class LoopDetector:
         c = self.config
         query = (query_stamp, query_frame_id, *query_identity)
         best_global = candidates[0]
-        if best_global.global_similarity < c.global_floor:
+        floor, reason = c.global_floor, "below global floor"
+        learned = self.floor.value() if c.rerank_cascade and c.learned_floor else None
+        if self._tracks.follow_goal(track)[0] is not None:
+            learned = None  # a keyframe that may continue the last loop is always re-ranked
+        if learned is not None and learned > floor:
+            floor, reason = learned, f"below learned global floor ({learned:.3f})"
+        if best_global.global_similarity < floor:
             recent.clear()
-            record = self._record(*query, best_global, "below global floor")
+            self.last_skipped = True
+            record = self._record(*query, best_global, reason)
             record.candidates = len(candidates)
             return record, best_global
-        scored = self.score(candidates, rerank, step, first)
+        if c.rerank_cascade and one_way is not None:
+            scored = self._cascade(candidates, one_way, step, first, track)
+        else:
+            scored = self.score(candidates, rerank, step, first)
+            self.last_passes = 2 * len(scored)
+            self.last_cut = len(scored) < len(candidates)
+        self.last_covered = all(cand.directions > 0 for cand in candidates)
         best, rank = scored[0], 1
         below = best.rerank_score(c.global_weight) < c.score_threshold
         if below and (follower := self._tracks.follower(track, scored)) is not None:
@@ -206,6 +246,17 @@ class LoopDetector:
                 return record, best
         record.accepted = True
         return record, best
+
+    def _cascade(self, candidates, one_way, step, first, track) -> list[Candidate]:
+        """The candidates the cascade scored both ways, best re-rank score first (cascade.py)."""
+        c = self.config
+        floor, continues = self._tracks.follow_goal(track)
+        goal = Goal(c.score_threshold, c.global_weight, floor, continues)
+        run = self.cascade.run(candidates, one_way, goal, step, first, c.rerank_budget_ms,
+                               self.clock)  # fmt: skip
+        self.last_passes, self.last_cut = run.passes, run.cut
+        scored = run.scored()
+        return sorted(scored, key=lambda x: (-x.rerank_score(c.global_weight), x.rank_before))
 
     def score(
         self,

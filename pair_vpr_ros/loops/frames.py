@@ -86,12 +86,24 @@ class PipelineCounts:
     intrinsics_wrong_size: int = 0  # keyframes whose intrinsics were for another size
     features_damaged: int = 0  # stored features that could not be unpacked
     candidates_scored: int = 0  # pair scores computed (candidates re-ranked, all keyframes)
+    decoder_passes: int = 0  # pair decoder runs: one direction of one pair each (full: 2 a pair)
     rerank_budget_cut: int = 0  # keyframes whose re-ranking stopped at rerank_budget_ms
+    rerank_skipped: int = 0  # keyframes not re-ranked: best below global_floor / learned floor
+    rerank_covered: int = 0  # keyframes whose every candidate got at least one direction
     clock_jumps: int = 0  # stamps that went back by more than CLOCK_JUMP_S: new sessions
     stereo_depth: int = 0  # keyframes whose depth came from the stereo pair
     stereo_invalid: int = 0  # keyframes whose stereo pair could not give depth (unrectified..)
     map_searches_skipped: int = 0  # keyframes not queried: the map's Milvus did not answer
     map_keyframes_pending: int = 0  # now: keyframes kept until the map's Milvus answers again
+
+    def decided(self, scored: int, detector) -> None:
+        """Count one decision's re-rank work: `scored` candidates, and the `LoopDetector`'s
+        account of its last `decide` (passes, budget cut, skipped, covered)."""
+        self.candidates_scored += scored
+        self.decoder_passes += detector.last_passes
+        self.rerank_budget_cut += int(detector.last_cut)
+        self.rerank_skipped += int(detector.last_skipped)
+        self.rerank_covered += int(detector.last_covered)
 
     def to_dict(self) -> dict[str, int]:
         return asdict(self)

@@ -18,7 +18,6 @@ life cycle (new, checked, saved, loaded, cleared) in pipeline_maps.py (`Pipeline
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import replace
@@ -26,7 +25,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from pair_vpr_ros.errors import ConfigError, MapUnavailableError
+from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.geometry.features import Features
 from pair_vpr_ros.geometry.keyframes import GeometryConfig, KeyframeGeometry
 from pair_vpr_ros.identity import Identity
@@ -49,10 +48,10 @@ from pair_vpr_ros.loops.growth import (
 from pair_vpr_ros.loops.map_search import MapSearch
 from pair_vpr_ros.loops.pipeline_maps import PipelineMaps
 from pair_vpr_ros.loops.recency import ClockWatch
-from pair_vpr_ros.loops.records import Candidate, LoopRecord, rerank_score
+from pair_vpr_ros.loops.records import Candidate, best_record
 from pair_vpr_ros.loops.rig import Rig, to_base
 from pair_vpr_ros.loops.rig_frames import any_new
-from pair_vpr_ros.loops.scoring import dense_pair_scores, encode_for_map
+from pair_vpr_ros.loops.scoring import QueryDirections, dense_pair_scores, encode_for_map
 from pair_vpr_ros.loops.sequence import track_of
 from pair_vpr_ros.model import PairVPRModel, preprocess_batch
 from pair_vpr_ros.model.decoder import default_chunk
@@ -120,6 +119,7 @@ class LoopClosurePipeline(PipelineMaps):
     def _reset_tracking(self) -> None:
         self.maps.reset(self._place_map)
         self._clock.reset()
+        self.detector.reset_map()
         self._new_session()
 
     def _new_session(self) -> None:
@@ -293,16 +293,8 @@ class LoopClosurePipeline(PipelineMaps):
         maps, `outcome.loops`: one decision per map), `outcome.candidates` (all maps')."""
         timings = outcome.timings_ms
         t0 = time.perf_counter()
-        per_map, who = self.config.loop_per_map, self.identity
-        try:
-            if per_map:
-                groups = self.maps.search_each(desc, frame.stamp, who, self.config)
-            else:
-                found = self.maps.search(desc, frame.stamp, who, self.config)
-                groups = None if found is None else [found]
-        except MapUnavailableError:  # logged by the map once per outage; nothing is lost
-            self.counts.map_searches_skipped += 1
-            return
+        who = self.identity
+        groups = self._search_groups(desc, frame.stamp)
         if groups is None:
             return
         timings["search"] = (time.perf_counter() - t0) * 1e3
@@ -318,6 +310,14 @@ class LoopClosurePipeline(PipelineMaps):
             timings["rerank"] = timings.get("rerank", 0.0) + (time.perf_counter() - t1) * 1e3
             return scores
 
+        directions = QueryDirections(self.model, dense)
+
+        def one_way(cands: list[Candidate], first: str) -> np.ndarray:  # the re-rank cascade
+            t1 = time.perf_counter()
+            logits = directions.logits(self.maps.dense(cands), first)
+            timings["rerank"] = timings.get("rerank", 0.0) + (time.perf_counter() - t1) * 1e3
+            return logits
+
         def verify(match: Candidate) -> tuple[int, float]:
             stored, lent = self.match_features(match)
             inliers, ratio, points = self.geometry.verify_points(features, stored)
@@ -328,23 +328,19 @@ class LoopClosurePipeline(PipelineMaps):
         # A back end compiled for a fixed chunk (OpenVINO) pads shorter calls: whole chunks.
         fixed = getattr(self.model, "chunk_size", None)
         step = fixed or self.rerank_chunk or default_chunk(torch.device(self.model.device))
+        cascade = self.config.rerank_cascade and QueryDirections.supported(self.model)
         records = []
         for candidates in groups:  # one group (all maps together) unless loop_per_map
-            record = self.detector.decide(
-                frame.stamp, frame.frame_id, candidates, rerank, verify, step=step,
-                first=fixed or 1, query_identity=(who.robot, who.session),
+            record = self.detector.decide(  # the cascade: a candidate and a direction a step
+                frame.stamp, frame.frame_id, candidates, rerank, verify,
+                step=1 if cascade else step, first=1 if cascade else fixed or 1,
+                query_identity=(who.robot, who.session),
                 track=self._track(frame, candidates[0]),
+                one_way=one_way if cascade else None,
             )  # fmt: skip
             if record is not None:
                 record.query_camera = frame.camera_id
-                self.counts.candidates_scored += record.scored
-                self.counts.rerank_budget_cut += int(0 < record.scored < record.candidates)
+                self.counts.decided(record.scored, self.detector)
                 records.append(record)
-        weight = self.config.global_weight
-
-        def order(r: LoopRecord) -> tuple:  # accepted first, then the best re-rank score
-            score = rerank_score(r.pair_score, r.global_similarity, weight)
-            return not r.accepted, -score if math.isfinite(score) else math.inf, r.rank_before
-
-        outcome.loop = min(records, key=order) if records else None
+        outcome.loop = best_record(records, self.config.global_weight)
         outcome.loops = records if len(records) > 1 else []

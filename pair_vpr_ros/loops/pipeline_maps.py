@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pair_vpr_ros.errors import MapFingerprintError
+from pair_vpr_ros.errors import MapFingerprintError, MapUnavailableError
 from pair_vpr_ros.geometry.features import Features
 from pair_vpr_ros.geometry.odometry_scale import Neighbour
 from pair_vpr_ros.identity import LEGACY_SESSION
@@ -138,6 +138,20 @@ class PipelineMaps:
         """The metadata of the match of `loop` (default `outcome.loop`), from its own map."""
         best = match_candidate(outcome, loop)
         return None if best is None else self.maps.map_of(best).meta(best.id)
+
+    def _search_groups(self, desc: np.ndarray, stamp: float) -> list[list[Candidate]] | None:
+        """The candidates of a query descriptor [D]: one group of all maps together, or one a
+        map with `loop_per_map`; None when there are none, or the map's Milvus did not answer
+        (counted: `map_searches_skipped`; logged by the map once per outage, nothing lost)."""
+        who, config = self.identity, self.config
+        try:
+            if config.loop_per_map:
+                return self.maps.search_each(desc, stamp, who, config)
+            found = self.maps.search(desc, stamp, who, config)
+        except MapUnavailableError:
+            self.counts.map_searches_skipped += 1
+            return None
+        return None if found is None else [found]
 
     def pair_scores(self, dense: np.ndarray, ids: list[int]) -> np.ndarray:
         """Query dense [N,D] against map keyframes `ids` -> bidirectional scores [K]."""

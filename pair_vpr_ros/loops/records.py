@@ -5,6 +5,7 @@ it was not: the CSV row and the topic layout), and the one order re-ranking sort
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
@@ -81,10 +82,23 @@ class Candidate:
     session: str = ""
     prior: int = -1  # -1: the live map; i >= 0: the pipeline's i-th prior map (read-only)
     camera: int = 0  # the rig camera that took it (loops/rig.py; 0: the only camera)
+    # The two directions' logits when the re-rank cascade scored them one at a time (NaN: not
+    # scored that way, or scored both at once by full scoring); pair_score is their sum, NaN
+    # until both are scored (`directions`)
+    logit_qc: float = float("nan")  # logit(query first, candidate second)
+    logit_cq: float = float("nan")  # logit(candidate first, query second)
 
     def rerank_score(self, global_weight: float = 0.0) -> float:
         """What re-ranking sorts by and the threshold compares (`DetectorConfig.global_weight`)."""
         return rerank_score(self.pair_score, self.global_similarity, global_weight)
+
+    @property
+    def directions(self) -> int:
+        """2: scored both ways (`pair_score`); 1: one way only (the cascade left it there); 0:
+        not scored."""
+        if not math.isnan(self.pair_score):
+            return 2
+        return int(not math.isnan(self.logit_qc)) + int(not math.isnan(self.logit_cq))
 
     @property
     def group(self) -> tuple[int, str, str]:
@@ -97,6 +111,17 @@ def rerank_score(pair_score: float, global_similarity: float, global_weight: flo
     if global_weight == 0:
         return pair_score
     return pair_score + global_weight * global_similarity
+
+
+def best_record(records: list[LoopRecord], global_weight: float) -> LoopRecord | None:
+    """The decision a keyframe reports among its maps' (one, or one a map): accepted first,
+    then the best re-rank score, then the best global rank; None without records."""
+
+    def order(r: LoopRecord) -> tuple:
+        score = rerank_score(r.pair_score, r.global_similarity, global_weight)
+        return not r.accepted, -score if math.isfinite(score) else math.inf, r.rank_before
+
+    return min(records, key=order) if records else None
 
 
 def rank_by_pair_score(

@@ -43,3 +43,27 @@ def dense_pair_scores(
     c = torch.from_numpy(np.asarray(candidates)).to(device=device, dtype=dtype)
     with torch.inference_mode():
         return model.pair_scores(q, c, chunk=chunk).float().cpu().numpy()
+
+
+class QueryDirections:
+    """One query's pair decoder, one direction at a time (the re-rank cascade): the query's
+    side is computed at the first call and kept for the next ones. Needs a model with
+    `query_scorer` (`supported`)."""
+
+    def __init__(self, model: PairVPRModel, dense: np.ndarray) -> None:
+        self.model, self.dense, self._scorer = model, dense, None
+
+    @staticmethod
+    def supported(model: PairVPRModel) -> bool:
+        return callable(getattr(model, "query_scorer", None))
+
+    def logits(self, candidates: np.ndarray, first: str) -> np.ndarray:
+        """Candidate dense tokens [K,N,D] -> logits float32 [K] of the direction whose first
+        image is `first` ("query": logit(q,c); "candidate": logit(c,q))."""
+        device, dtype = self.model.device, self.model.dense_dtype
+        c = torch.from_numpy(np.asarray(candidates)).to(device=device, dtype=dtype)
+        with torch.inference_mode():
+            if self._scorer is None:
+                q = torch.from_numpy(np.asarray(self.dense)).to(device=device, dtype=dtype)
+                self._scorer = self.model.query_scorer(q)
+            return self._scorer.logits(c, first).float().cpu().numpy()

@@ -68,6 +68,16 @@ class DecisionTracks:
                 return rank, cand
         return None
 
+    def follow_goal(self, track: int | None) -> tuple[float | None, Any]:
+        """(floor, continues): what `follower` would accept, for the re-rank cascade: the
+        lower floor and whether a candidate continues the previous loop; (None, never) when
+        there is no sequence to follow."""
+        c = self.config
+        if c.sequence_margin <= 0 or track not in self._followed:
+            return None, lambda cand: False
+        last = self._followed[track]
+        return c.score_threshold - c.sequence_margin, lambda cand: self._continues(last, cand)
+
     def _continues(self, last: tuple, match: Any) -> bool:
         """`match` agrees with the earlier match `last` (group, id): the same map, robot and
         session, its id within `temporal_tolerance`."""

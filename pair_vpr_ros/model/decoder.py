@@ -10,6 +10,8 @@ compute the same numbers:
   once; in the reverse direction the query is every pair's cross-attention memory, so its keys and
   values are computed once per block; block 0's self-attention of the query (identical for all K)
   runs once; the last block computes only the class-token row.
+`QueryScorer` keeps one query's side for many calls and also scores one direction at a time
+(`chunk_logits`: the re-rank cascade, loops/cascade.py), with the same block code.
 """
 
 from __future__ import annotations
@@ -223,14 +225,11 @@ class PairClassifier(nn.Module):
         reference per candidate at 2, 0.94x at 8, 1.0x at 16), and 32 on a GPU."""
         if cands.shape[0] == 0:
             return query.new_zeros(0)
-        if chunk is None:
-            chunk = default_chunk(query.device)
-        x_query, memory_query = self.query_side(query)
-        out = [
-            self.score_chunk(x_query, memory_query, cands[i : i + chunk])
-            for i in range(0, cands.shape[0], chunk)
-        ]
-        return torch.cat(out)
+        return self.query_scorer(query, chunk).scores(cands)
+
+    def query_scorer(self, query: Tensor, chunk: int | None = None) -> QueryScorer:
+        """The query [N,D]'s side of the fast path, computed once, for any number of calls."""
+        return QueryScorer(self, query, default_chunk(query.device) if chunk is None else chunk)
 
     def query_side(self, query: Tensor) -> tuple[Tensor, list[Memory]]:
         """What the fast path computes once per query [N,D]: its first-image stream after block
@@ -251,12 +250,71 @@ class PairClassifier(nn.Module):
         x_cands = self.dec_blocks[0].self_attend(self.first_input(ec))
         x = torch.cat([x_query.expand(k, -1, -1), x_cands])  # [2k, 1+N, C]
         memories = (
-            [block.memory(y_cands), (kq.expand(k, -1, -1, -1), vq.expand(k, -1, -1, -1))]
-            for block, (kq, vq) in zip(self.dec_blocks, memory_query, strict=True)
+            [block.memory(y_cands), _expanded(memory, k)]
+            for block, memory in zip(self.dec_blocks, memory_query, strict=True)
         )
-        cls = self._decode(x, memories, first_self_attended=True, cls_only=True)[:, 0]
-        logits = self.classvprmodule(cls).squeeze(-1)
+        logits = self._logits(x, memories)
         return logits[:k] + logits[k:]
+
+    def chunk_logits(
+        self, x_query: Tensor, memory_query: list[Memory], cands: Tensor, first: str
+    ) -> Tensor:
+        """One direction of k candidates [k,N,D] -> logits [k]: `first` "query" runs the query's
+        stream against each candidate's memory, logit(q,c); "candidate" runs each candidate's
+        stream against the query's memory, shared, logit(c,q). `score_chunk`'s two halves."""
+        k = cands.shape[0]
+        ec = self.decoder_embed(cands)
+        if first == "query":
+            y_cands = self.second_input(ec)
+            memories = ([block.memory(y_cands)] for block in self.dec_blocks)
+            return self._logits(x_query.expand(k, -1, -1), memories)
+        if first == "candidate":
+            x_cands = self.dec_blocks[0].self_attend(self.first_input(ec))
+            return self._logits(x_cands, ([_expanded(m, k)] for m in memory_query))
+        raise ValueError(f"first must be one of {DIRECTIONS}, got {first!r}")
+
+    def _logits(self, x: Tensor, memories: Iterable[Sequence[Memory]]) -> Tensor:
+        """Streams x [B,1+N,C] after block 0's self-attention -> class logits [B]."""
+        cls = self._decode(x, memories, first_self_attended=True, cls_only=True)[:, 0]
+        return self.classvprmodule(cls).squeeze(-1)
+
+
+DIRECTIONS = ("query", "candidate")  # which image the decoder reads first: logit(q,c), logit(c,q)
+
+
+def _expanded(memory: Memory, k: int) -> Memory:
+    """A query's keys/values [1,H,N,d] as k pairs' memory (views, no copies)."""
+    keys, values = memory
+    return keys.expand(k, -1, -1, -1), values.expand(k, -1, -1, -1)
+
+
+class QueryScorer:
+    """One query's re-ranking: its side of the fast path computed once (`query_side`), then
+    candidates scored in chunks of `chunk`, both directions (`scores`) or one (`logits`)."""
+
+    def __init__(self, model: PairClassifier, query: Tensor, chunk: int) -> None:
+        self.model, self.chunk = model, chunk
+        self.x_query, self.memory = model.query_side(query)
+
+    def scores(self, cands: Tensor) -> Tensor:
+        """cands [K,N,D] -> logit(q,c) + logit(c,q) [K]."""
+        return self._chunked(cands, None)
+
+    def logits(self, cands: Tensor, first: str) -> Tensor:
+        """cands [K,N,D] -> one direction's logits [K] (`PairClassifier.chunk_logits`)."""
+        if first not in DIRECTIONS:
+            raise ValueError(f"first must be one of {DIRECTIONS}, got {first!r}")
+        return self._chunked(cands, first)
+
+    def _chunked(self, cands: Tensor, first: str | None) -> Tensor:
+        out = []
+        for i in range(0, cands.shape[0], self.chunk):
+            part = cands[i : i + self.chunk]
+            if first is None:
+                out.append(self.model.score_chunk(self.x_query, self.memory, part))
+            else:
+                out.append(self.model.chunk_logits(self.x_query, self.memory, part, first))
+        return torch.cat(out) if out else self.x_query.new_zeros(0)
 
 
 def default_chunk(device: torch.device) -> int:

@@ -4,9 +4,12 @@ The pipeline, the map builder, the replay and evaluation use only these members,
 other than PyTorch's `PairVPR` (an OpenVINO or ONNX runtime, a remote model) plugs in by
 implementing them. Training and the checkpoint code use `PairVPR` itself.
 
-Optional member: `chunk_size` (int), for a back end compiled for a fixed number of candidates
+Optional members: `chunk_size` (int), for a back end compiled for a fixed number of candidates
 per `pair_scores` call that pads shorter calls (`OpenVINOModel`); the re-rank budget then scores
-whole chunks.
+whole chunks. `query_scorer(query [N,D])`, for the re-rank cascade (`rerank_cascade`): an
+object with `scores(cands [K,N,D]) -> [K]` (both directions, as `pair_scores`) and
+`logits(cands, first) -> [K]` (one direction: `first` "query" gives logit(q,c), "candidate"
+logit(c,q)), the query's side computed once; without it the cascade scores in full.
 """
 
 from __future__ import annotations

@@ -28,7 +28,13 @@ from torch import Tensor
 from pair_vpr_ros.errors import ConfigError
 from pair_vpr_ros.model.calibration import CALIBRATION_IMAGES, synthetic_calibration
 from pair_vpr_ros.model.config import ModelConfig
-from pair_vpr_ros.model.export import Graphs, example_inputs, export_graphs
+from pair_vpr_ros.model.export import (
+    ONE_WAY,
+    ONE_WAY_CHUNK,
+    Graphs,
+    example_inputs,
+    export_graphs,
+)
 from pair_vpr_ros.model.network import PairVPR, fingerprint
 from pair_vpr_ros.model.openvino_cache import CacheEntry, entry_parts, shared_core
 
@@ -60,7 +66,8 @@ def require(module: str) -> ModuleType:
 
 class OpenVINOModel:
     """`PairVPRModel` on OpenVINO: encode one image per inference, re-rank `chunk_size`
-    candidates per inference (the last chunk padded)."""
+    candidates per inference (the last chunk padded), both directions or, for the re-rank
+    cascade (`query_scorer`), one."""
 
     def __init__(
         self,
@@ -168,19 +175,27 @@ class OpenVINOModel:
     def pair_scores(self, query: Tensor, cands: Tensor, chunk: int | None = None) -> Tensor:
         """query [N,D], cands [K,N,D] -> logit(q,c) + logit(c,q) [K]. `chunk` is ignored: the
         graph was compiled for `chunk_size` candidates per call."""
-        k = cands.shape[0]
-        if k == 0:
+        if cands.shape[0] == 0:
             return torch.zeros(0)
-        x_query, keys, values = self._run("query", query.float())
+        return self.query_scorer(query).scores(cands)
+
+    def query_scorer(self, query: Tensor, chunk: int | None = None) -> OpenVINOQueryScorer:
+        """The query [N,D]'s side (the "query" graph) run once, for any number of calls."""
+        return OpenVINOQueryScorer(self, self._run("query", query.float()))
+
+    def run_chunks(self, name: str, query_side: list[Tensor], cands: Tensor) -> Tensor:
+        """The chunk graph `name` over cands [K,N,D], as many at a time as it was compiled for
+        (`chunk_size`; the one-direction graphs `ONE_WAY_CHUNK`) -> [K]."""
+        size = ONE_WAY_CHUNK if name in ONE_WAY else self.chunk_size
         out = []
-        for i in range(0, k, self.chunk_size):
-            part = cands[i : i + self.chunk_size].float()
-            short = self.chunk_size - part.shape[0]
+        for i in range(0, cands.shape[0], size):
+            part = cands[i : i + size].float()
+            short = size - part.shape[0]
             if short:  # pad with copies of the last candidate; their scores are dropped
                 part = torch.cat([part, part[-1:].expand(short, -1, -1)])
-            scores = self._run("chunk", x_query, keys, values, part)[0]
-            out.append(scores[: self.chunk_size - short])
-        return torch.cat(out)
+            scores = self._run(name, *query_side, part)[0]
+            out.append(scores[: size - short])
+        return torch.cat(out) if out else torch.zeros(0)
 
     def _run(self, name: str, *inputs: Tensor) -> list[Tensor]:
         request = self._requests[name]
@@ -188,9 +203,29 @@ class OpenVINOModel:
         return [torch.from_numpy(out.data.copy()) for out in request.output_tensors]
 
 
+class OpenVINOQueryScorer:
+    """One query's re-ranking on OpenVINO (`PairClassifier.query_scorer`'s counterpart)."""
+
+    def __init__(self, model: OpenVINOModel, query_side: list[Tensor]) -> None:
+        self.model, self.query_side = model, query_side
+
+    def scores(self, cands: Tensor) -> Tensor:
+        """cands [K,N,D] -> logit(q,c) + logit(c,q) [K] (the "chunk" graph)."""
+        return self.model.run_chunks("chunk", self.query_side, cands)
+
+    def logits(self, cands: Tensor, first: str) -> Tensor:
+        """cands [K,N,D] -> one direction's logits [K]: `first` "query" or "candidate"."""
+        for name, (graph_first, inputs) in ONE_WAY.items():
+            if graph_first == first:
+                side = [self.query_side[i] for i in inputs]
+                return self.model.run_chunks(name, side, cands)
+        raise ValueError(f"first must be 'query' or 'candidate', got {first!r}")
+
+
 def build_graphs(ov: ModuleType, model: PairVPR, chunk: int) -> dict:
-    """The network as OpenVINO graphs {"encoder", "query", "chunk"}, float: exported with
-    `torch.export`, then converted (the slow part of a start without a cache entry)."""
+    """The network as OpenVINO graphs {"encoder", "query", "chunk", "chunk_query",
+    "chunk_candidate"}, float: exported with `torch.export`, then converted (the slow part of a
+    start without a cache entry)."""
     return convert(ov, export_graphs(model, chunk), model)
 
 
@@ -198,7 +233,9 @@ def convert(ov: ModuleType, graphs: Graphs, model: PairVPR) -> dict:
     """Exported programs -> OpenVINO models with their inputs fixed to the exported shapes."""
     inputs = example_inputs(model, graphs.chunk_size)
     out = {}
-    for name in ("encoder", "query", "chunk"):
+    for name in ("encoder", "query", "chunk", *ONE_WAY):
+        if getattr(graphs, name) is None:
+            continue
         graph = ov.convert_model(getattr(graphs, name))
         shapes = [ov.PartialShape(list(x.shape)) for x in inputs[name]]
         graph.reshape(dict(zip(graph.inputs, shapes, strict=True)))
@@ -207,9 +244,10 @@ def convert(ov: ModuleType, graphs: Graphs, model: PairVPR) -> dict:
 
 
 def quantize(converted: dict, model: PairVPR, images: Tensor, chunk: int) -> dict:
-    """Static int8 (NNCF) of the encoder and the re-rank chunk; activation ranges from `images`
-    [B,3,S,S] and, for re-ranking, pairs of their dense tokens. The per-query graph runs once
-    per query and stays as it is."""
+    """Static int8 (NNCF) of the encoder and the re-rank chunks; activation ranges from `images`
+    [B,3,S,S] and, for re-ranking, pairs of their dense tokens (the same pairs for the
+    two-direction chunk and the one-direction ones). The per-query graph runs once per query
+    and stays as it is."""
     nncf = require("nncf")
     with torch.no_grad():
         dense = torch.cat([model.encode(images[i : i + 1])[0] for i in range(len(images))])
@@ -219,7 +257,15 @@ def quantize(converted: dict, model: PairVPR, images: Tensor, chunk: int) -> dic
             keys, values = (torch.stack(t).numpy() for t in zip(*memory, strict=True))
             others = [(i + 1 + j) % len(images) for j in range(chunk)]
             pairs.append((x_query.numpy(), keys, values, dense[others].numpy()))
-    samples = {"encoder": [images[i : i + 1].numpy() for i in range(len(images))], "chunk": pairs}
+    samples = {"encoder": [images[i : i + 1].numpy() for i in range(len(images))]}
+    samples["chunk"] = pairs
+    for name, (_, inputs) in ONE_WAY.items():  # the same pairs, the inputs each graph takes
+        if name in converted:
+            samples[name] = [
+                (*(p[i] for i in inputs), p[3][j : j + ONE_WAY_CHUNK])
+                for p in pairs
+                for j in range(0, len(p[3]), ONE_WAY_CHUNK)
+            ]
     out = dict(converted)
     for name, data in samples.items():
         out[name] = nncf.quantize(
@@ -258,7 +304,8 @@ def head_layers(graph, name: str) -> list[str]:
     """The layers int8 leaves in float, as torch int8 does: the encoder's patch embedding and
     global head, the re-rank's decoder embedding and pair classifier. They are cheap, and the
     descriptor and the logit are what users threshold. Found by position (first and last
-    weighted layers in topological order), since exported names are generic."""
+    weighted layers in topological order; every re-rank chunk starts with the decoder embedding
+    and ends with the classifier), since exported names are generic."""
     ops = [op for op in graph.get_ordered_ops() if op.get_type_name() in ("MatMul", "Convolution")]
     names = [op.get_friendly_name() for op in ops]
     return names[:1] + names[-1:] if name == "encoder" else names[:1] + names[-2:]

@@ -33,10 +33,10 @@ from pair_vpr_ros.model.network import PairVPR
 
 # Bump when what is cached changes for the same inputs: `openvino_backend.convert`, `quantize`
 # or `advanced_parameters`, `head_layers`, or the export graphs.
-CACHE_VERSION = 2  # 2: int8 with NNCF's overflow fix on every layer
+CACHE_VERSION = 3  # 2: int8 with NNCF's overflow fix on every layer; 3: one-direction chunks
 AUTO = "auto"  # the parameter value for the per-user cache folder
-GRAPHS = ("encoder", "query", "chunk")
-OUTPUTS = {"encoder": 2, "query": 3, "chunk": 1}
+GRAPHS = ("encoder", "query", "chunk", "chunk_query", "chunk_candidate")
+OUTPUTS = {"encoder": 2, "query": 3, "chunk": 1, "chunk_query": 1, "chunk_candidate": 1}
 MANIFEST = "manifest.json"
 STALE_TEMP_S = 3600.0  # temporary folders older than this were left by a killed process
 LOG = logging.getLogger("pair_vpr_ros.openvino_cache")

@@ -223,6 +223,15 @@ PARAMS: tuple[ParamSpec, ...] = (
     _p("rerank_budget_ms", 0.0, "latency budget of re-ranking per keyframe, ms: candidates are "
        "scored best-global first until the next step would overrun it (the global best always "
        "is); the record's 'scored' says how many. 0 = no budget: all top_k", 0.0, 600000.0),
+    _p("rerank_cascade", False, "score each candidate one direction first (the query first) "
+       "and the second only where it can still change the decision (its bound, learned from "
+       "the pairs scored both ways, reaches score_threshold and the best score so far): the "
+       "same loops from about half the decoder passes on the demo worlds (docs/performance.md); "
+       "false = every candidate both ways, as the paper"),
+    _p("learned_floor", True, "with rerank_cascade: skip re-ranking a keyframe whose best global "
+       "similarity lies below the floor learned from this map's accepted loops (their 1st "
+       "percentile - 0.05); never before 50 loops were accepted in the map, nor while a loop "
+       "may be continued (sequence_margin)"),
     _p("score_threshold", 0.0, "accept when the re-rank score (logit(q,c) + logit(c,q) + "
        "global_weight x global similarity) >= this", -1.0e6, 1.0e6),
     _p("global_weight", 0.0, "re-rank by pair score + this x global similarity (cosine); 0 = "
@@ -263,6 +272,8 @@ DETECTOR_PARAMS = (
     "preset",
     "top_k",
     "rerank_budget_ms",
+    "rerank_cascade",
+    "learned_floor",
     "score_threshold",
     "global_weight",
     "global_floor",

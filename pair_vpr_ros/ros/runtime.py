@@ -182,7 +182,10 @@ def diagnostic_values(
         "loops_pose_scale_free": live.counts.pose_scale_free,
         "loops_pose_none": live.counts.pose_none,
         "candidates_scored": live.counts.candidates_scored,
+        "decoder_passes": live.counts.decoder_passes,  # one direction of one pair each
         "rerank_budget_cut": live.counts.rerank_budget_cut,
+        "rerank_skipped": live.counts.rerank_skipped,  # below global_floor / the learned floor
+        "rerank_covered": live.counts.rerank_covered,  # every candidate scored one way at least
         "map_searches_skipped": live.counts.map_searches_skipped,  # index milvus unreachable
         "map_keyframes_pending": live.counts.map_keyframes_pending,
         "camera_info_invalid": c.camera_info_invalid,

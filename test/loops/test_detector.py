@@ -232,6 +232,8 @@ def test_keyframe_selection_by_similarity():
         (dict(temporal_consistency=0), "temporal_consistency=0 must be >= 1"),
         (dict(global_weight=-1.0), "detector global_weight=-1.0 must be a finite number >= 0"),
         (dict(loop_per_map="no"), "detector loop_per_map='no' must be true or false"),
+        (dict(rerank_cascade=1), "detector rerank_cascade=1 must be true or false"),
+        (dict(learned_floor="yes"), "detector learned_floor='yes' must be true or false"),
         (dict(global_weight=float("inf")), "detector global_weight=inf must be a finite number"),
         (dict(sequence_margin=-1.0), "detector sequence_margin=-1.0 must be a finite number >= 0"),
         (dict(sequence_margin=float("nan")), "detector sequence_margin=nan must be a finite"),

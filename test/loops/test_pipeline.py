@@ -56,6 +56,9 @@ def test_revisits_found_and_recent_frames_excluded(tiny_model, places):
         rejected=3,
         pose_none=2,
         candidates_scored=2,
+        decoder_passes=4,
+        rerank_covered=2,
+        rerank_skipped=3,
     )  # no intrinsics given: the two loops get no relative pose; the 3 rejected are not scored
 
 

@@ -118,6 +118,27 @@ def test_pair_score_is_sum_of_both_directions(tiny):
     assert tiny.pair_scores(dense[0], dense[:0]).shape == (0,)
 
 
+def test_one_direction_at_a_time_is_the_same_arithmetic(tiny):
+    """The re-rank cascade's `QueryScorer.logits`: each direction as the plain path computes
+    it, and their sum the fast path's score (to float rounding: other batch sizes)."""
+    dense, _ = tiny.encode(torch.randn(6, 3, 56, 56, generator=torch.Generator().manual_seed(1)))
+    q, cands = dense[0], dense[1:]
+    with torch.no_grad():
+        scorer = tiny.query_scorer(q, chunk=2)
+        qc, cq = scorer.logits(cands, "query"), scorer.logits(cands, "candidate")
+        first = q[None].expand(5, -1, -1)
+        torch.testing.assert_close(qc, tiny.pair_logits(first, cands, fast=False), atol=1e-5,
+                                   rtol=0)  # fmt: skip
+        torch.testing.assert_close(cq, tiny.pair_logits(cands, first, fast=False), atol=1e-5,
+                                   rtol=0)  # fmt: skip
+        torch.testing.assert_close(qc + cq, tiny.pair_scores(q, cands, chunk=2), atol=1e-6,
+                                   rtol=0)  # fmt: skip
+        assert torch.equal(scorer.scores(cands), tiny.pair_scores(q, cands, chunk=2))
+        assert scorer.logits(cands[:0], "query").shape == (0,)
+    with pytest.raises(ValueError, match="first must be one of .*got 'both'"):
+        scorer.logits(cands, "both")
+
+
 def test_single_block_decoder_fast_path():
     model = build_pairvpr(ModelConfig.tiny(dec_depth=1), seed=1)
     with torch.no_grad():

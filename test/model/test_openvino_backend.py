@@ -73,6 +73,16 @@ def test_fp32_agrees_with_torch(torch_model, inputs, ov_fp32):
     torch.testing.assert_close(got, want, rtol=0, atol=1e-5)
     torch.testing.assert_close(got, reference, rtol=0, atol=1e-5)
     assert ov_fp32.pair_scores(dense[0], dense[1:1]).shape == (0,)
+    # the re-rank cascade's one-direction graphs (3 candidates: one padded chunk)
+    scorer, q = ov_fp32.query_scorer(dense[0]), dense[0][None].expand(3, -1, -1)
+    with torch.inference_mode():
+        want_qc = torch_model.pair_logits(q, dense[1:4], fast=False)
+        want_cq = torch_model.pair_logits(dense[1:4], q, fast=False)
+    torch.testing.assert_close(scorer.logits(dense[1:4], "query"), want_qc, rtol=0, atol=1e-5)
+    torch.testing.assert_close(scorer.logits(dense[1:4], "candidate"), want_cq, rtol=0, atol=1e-5)
+    torch.testing.assert_close(scorer.scores(dense[1:4]), want[:3], rtol=0, atol=1e-5)
+    with pytest.raises(ValueError, match="first must be 'query' or 'candidate', got 'both'"):
+        scorer.logits(dense[1:4], "both")
 
 
 def test_the_pipeline_stores_what_torch_stores(torch_model, inputs, ov_fp32):
@@ -114,6 +124,9 @@ def test_int8_is_close_and_says_so(torch_model, inputs):
     # (a broken quantization, e.g. with SmoothQuant, was off by more than the spread). The
     # agreement that matters is measured on trained weights by benchmarks/bench_model.py.
     assert torch.isfinite(scores).all() and (scores - want).abs().max() < 0.15
+    scorer = model.query_scorer(dense[0])  # the one-direction graphs, quantized alike
+    both = scorer.logits(dense[1:], "query") + scorer.logits(dense[1:], "candidate")
+    assert (both - want).abs().max() < 0.15
 
 
 def test_calibration_scenes_are_fixed_and_varied():

@@ -48,7 +48,7 @@ def files(root: Path) -> list[str]:
 def test_second_start_reads_the_cache(tiny_model, tmp_path, monkeypatch):
     first = OpenVINOModel(tiny_model, "fp32", cache_dir=tmp_path)
     assert not first.from_cache and first.cache_path.parent == tmp_path
-    names = {"encoder", "query", "chunk"}
+    names = {"encoder", "query", "chunk", "chunk_query", "chunk_candidate"}
     assert files(tmp_path) == sorted(
         [f"{first.cache_path.name}/manifest.json"]
         + [f"{first.cache_path.name}/{n}{s}" for n in names for s in (".bin", ".xml")]

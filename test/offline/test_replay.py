@@ -60,7 +60,8 @@ def test_replay_end_to_end(tmp_path, tiny_model):
         rate_limited=0, encoded=17, similar_to_keyframe=0, keyframes=17, represented=0, loops=7,
         rejected=0, pose_metric=0, pose_metric_odometry=0, pose_scale_free=0, pose_none=7,
         depth_wrong_size=0, intrinsics_wrong_size=0, features_damaged=0, candidates_scored=7,
-        rerank_budget_cut=0, clock_jumps=0, stereo_depth=0, stereo_invalid=0,
+        decoder_passes=14, rerank_budget_cut=0, rerank_skipped=0, rerank_covered=7, clock_jumps=0,
+        stereo_depth=0, stereo_invalid=0,
         map_searches_skipped=0, map_keyframes_pending=0,
     )  # fmt: skip
     ev = s.evaluation

@@ -170,6 +170,15 @@ CASES = {
         section("loop_per_map: 1").encode(),
         "loop_per_map must be true or false, got 1",
     ),
+    # issue 46: the re-rank cascade and its learned floor
+    "cascade a string": (
+        section('rerank_cascade: "on"').encode(),
+        "rerank_cascade must be true or false, got 'on'",
+    ),
+    "learned floor a number": (
+        section("learned_floor: 0").encode(),
+        "learned_floor must be true or false, got 0",
+    ),
     # issue 37: the wait for a depth image
     "negative depth delay": (
         section("depth_max_delay: -0.1").encode(),
