@@ -123,7 +123,7 @@ class Recorder:
 
     calls: list = []
 
-    def __init__(self, model, precision, calibration=None, cache_dir=None):
+    def __init__(self, model, precision, calibration=None, cache_dir=None, threads=None):
         Recorder.calls.append((precision, calibration))
 
 
