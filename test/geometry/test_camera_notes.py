@@ -58,3 +58,28 @@ def test_all_keyframes_inside_the_exclusion_window_is_said():
                            "12.0 s of keyframes, less than exclude_recent_s = 30 s")  # fmt: skip
     assert exclusion_notes(kf, SimpleNamespace(exclusion_s=10.0, positives=0)) == []
     assert exclusion_notes(kf, SimpleNamespace(exclusion_s=30.0, positives=1)) == []
+
+
+def test_an_undeclared_lens_is_said_after_three_loops_of_one_sign(monkeypatch):
+    """One loop's inliers can fit a k1 by chance: the camera is named only when three loops'
+    fit one sign of k1 (a finding of the other sign does not count towards them), once."""
+    from pair_vpr_ros.geometry import keyframes
+    from pair_vpr_ros.geometry.camera import CameraModel
+    from pair_vpr_ros.geometry.relpose import RelativePose
+    from pair_vpr_ros.loops.frames import PipelineCounts
+
+    findings = iter([0.035, -0.10, 0.0, -0.12, -0.14, -0.2])
+    monkeypatch.setattr(
+        keyframes, "relative_pose",
+        lambda *a: RelativePose(status="metric", lens_k1=next(findings)),
+    )  # fmt: skip
+    camera = CameraModel(320, 240, 160.0, 160.0, 160.0, 120.0)
+    geometry = keyframes.KeyframeGeometry(None, PipelineCounts())
+    said = []
+    for _ in range(6):
+        geometry.pose(SimpleNamespace(), SimpleNamespace(camera=camera), None)
+        said.append(len(geometry.camera_warnings))
+    assert said == [0, 0, 0, 0, 1, 1]
+    assert geometry.camera_warnings[0].startswith(
+        "camera 320x240 (fx 160): 3 loops' inliers fit a radial distortion k1 = -0.120 (median)"
+    )

@@ -121,7 +121,7 @@ def test_an_undeclared_lens_is_found_and_said_once_per_camera():
         geometry.pose(SimpleNamespace(), feats[i], feats[j])
     assert len(geometry.camera_warnings) == 1
     assert geometry.camera_warnings[0].startswith(
-        "camera 640x480 (fx 517.3): a loop's inliers fit a radial distortion k1 = -0."
+        "camera 640x480 (fx 517.3): 3 loops' inliers fit a radial distortion k1 = -0."
     )
 
 
