@@ -64,6 +64,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--repeat", type=int, default=1, help="runs of each setting (%(default)s)")
     p.add_argument("--hog-limit", type=float, default=1200.0, help="a hog's longest life, s")
     p.add_argument(
+        "--hog-session", choices=("own", "same"), default="own",
+        help="busy processes each in a session of their own (shared between sessions first, "
+        "autogroup) or in this benchmark's session (shared between threads) (%(default)s)",
+    )  # fmt: skip
+    p.add_argument(
         "--period", type=float, default=None,
         help="latency: seconds between frames (default: 0.1 demo, 1.5 ViT-B int8, 5 torch)",
     )  # fmt: skip
@@ -78,13 +83,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def start_hogs(n: int, limit: float) -> list[subprocess.Popen]:
-    """`n` busy loops, each in a session of its own: on Linux with autogroup scheduling (the
-    desktop and container default) the CPU is shared between sessions first, so hogs in this
-    benchmark's own session would take their time from the measured run alone, not from the
-    machine, unlike a robot's other programs (services, other terminals)."""
+def start_hogs(n: int, limit: float, own_session: bool = True) -> list[subprocess.Popen]:
+    """`n` busy loops, each in a session of its own (default): on Linux with autogroup
+    scheduling (the desktop and container default) the CPU is shared between sessions first,
+    as between a robot's programs started apart (services, other terminals); a run's fair
+    share is then its session's, however many threads it has. `own_session=False`: in this
+    benchmark's session, as programs started from one terminal or launch file, where the CPU
+    is shared between threads."""
     cmd = [sys.executable, "-c", HOG, str(limit)]
-    return [subprocess.Popen(cmd, start_new_session=True) for _ in range(n)]
+    return [subprocess.Popen(cmd, start_new_session=own_session) for _ in range(n)]
 
 
 def stop_hogs(hogs: list[subprocess.Popen]) -> None:
@@ -214,7 +221,7 @@ def fmt(row: dict) -> str:
 def one_run(part: str, model: str, threads: str, hogs: int, bag: Path, tmp: Path, args) -> dict:
     """One run with `hogs` busy processes beside it -> its figures."""
     load = load_avg()
-    running = start_hogs(hogs, args.hog_limit)
+    running = start_hogs(hogs, args.hog_limit, args.hog_session == "own")
     try:
         if part == "replay":
             tree = args.before if threads == "before" else None
