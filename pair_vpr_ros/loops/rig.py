@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from pair_vpr_ros.errors import ConfigError
-from pair_vpr_ros.geometry.rotations import matrix_quaternion, quaternion_matrix
+from pair_vpr_ros.geometry.rotations import matrix_quaternion, quaternion_matrix, skew
 from pair_vpr_ros.loops.records import LoopRecord
 from pair_vpr_ros.types import Pose
 
@@ -194,10 +194,6 @@ def _matrix(pose: Sequence[float]) -> np.ndarray:
     return out
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def compose_base(
     t_a_b: np.ndarray, cov: np.ndarray, base_a: Sequence[float], base_b: Sequence[float]
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -210,7 +206,7 @@ def compose_base(
     out = a @ t_a_b @ b_inv
     ra, lever = a[:3, :3], t_a_b[:3, :3] @ b_inv[:3, 3]
     jac = np.zeros((6, 6))
-    jac[:3, :3], jac[:3, 3:], jac[3:, 3:] = ra, -ra @ _skew(lever), ra
+    jac[:3, :3], jac[:3, 3:], jac[3:, 3:] = ra, -ra @ skew(lever), ra
     return out, jac @ cov @ jac.T
 
 
@@ -227,9 +223,7 @@ def to_base(record: LoopRecord, rig: Rig) -> None:
     base_b = rig.cameras[record.query_camera].camera_to_base
     if base_a is None or base_b is None:
         return
-    t = np.eye(4)
-    t[:3, :3] = quaternion_matrix((record.qx, record.qy, record.qz, record.qw))
-    t[:3, 3] = (record.tx, record.ty, record.tz)
+    t = _matrix((record.tx, record.ty, record.tz, record.qx, record.qy, record.qz, record.qw))
     cov = np.asarray(record.covariance, dtype=np.float64).reshape(6, 6)
     out, cov = compose_base(t, cov, base_a, base_b)
     record.tx, record.ty, record.tz = (float(v) for v in out[:3, 3])

@@ -146,6 +146,10 @@ def test_precision_recall_exact():
     assert glob.recall_at_precision(0.9) == 0.0
     assert glob.operating_point(0.6) == (0.8, pytest.approx(2 / 3), pytest.approx(2 / 3))
     assert glob.operating_point(0.9) is None
+    # the last threshold >= the one asked for; none above the highest score
+    assert glob.at_threshold(0.85) == (pytest.approx(1 / 2), pytest.approx(1 / 3))
+    assert glob.at_threshold(0.5) == (pytest.approx(2 / 5), pytest.approx(2 / 3))
+    assert glob.at_threshold(0.96) is None
     assert glob.best_f1() == (pytest.approx(2 / 3, abs=1e-15), 0.8)
 
     summary = ev.to_dict()

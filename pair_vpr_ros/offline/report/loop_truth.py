@@ -98,6 +98,14 @@ class PRCurve:
         best = ok[np.argmax(self.recall[ok])]
         return float(self.thresholds[best]), float(self.precision[best]), float(self.recall[best])
 
+    def at_threshold(self, threshold: float) -> tuple[float, float] | None:
+        """(precision, recall) when every score >= ``threshold`` is accepted; None when no
+        threshold of the curve is that high."""
+        at = np.flatnonzero(self.thresholds >= threshold)
+        if not len(at):
+            return None
+        return float(self.precision[at[-1]]), float(self.recall[at[-1]])
+
     def best_f1(self) -> tuple[float, float | None]:
         """``(F1, threshold)`` of the best F1 point; ``(0.0, None)`` for an empty curve."""
         denom = self.precision + self.recall

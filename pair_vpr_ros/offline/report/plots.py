@@ -11,7 +11,7 @@ import numpy as np
 from pair_vpr_ros.messages.loop import same_session
 from pair_vpr_ros.offline.report.loop_truth import KeyframeInfo, KeyframeLookup, LoopEvaluation
 
-TARGETS = (0.99, 0.95, 0.90)  # precisions whose thresholds the PR plot marks
+TARGETS = (0.99, 0.95, 0.90)  # precisions whose thresholds the PR plot and the report list
 
 
 def _pyplot() -> Any:
@@ -45,10 +45,9 @@ def plot_pr_curves(
         if point is not None:
             ax.plot(point[2], point[1], marker, color="tab:blue", mfc="white", ms=7,
                     label=f"precision >= {target:g}: threshold {point[0]:.4g}")  # fmt: skip
-    at = np.flatnonzero(curve.thresholds >= threshold) if threshold is not None else []
-    if len(at):
-        i = at[-1]
-        ax.plot(curve.recall[i], curve.precision[i], "x", color="k", ms=9, mew=2,
+    at = curve.at_threshold(threshold) if threshold is not None else None
+    if at is not None:
+        ax.plot(at[1], at[0], "x", color="k", ms=9, mew=2,
                 label=f"the run's threshold {threshold:g} on the curve")  # fmt: skip
     if evaluation.precision is not None and evaluation.recall is not None:
         ax.plot(evaluation.recall, evaluation.precision, "k*", ms=11, label="accepted loops")

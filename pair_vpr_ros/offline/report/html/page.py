@@ -24,11 +24,11 @@ from pair_vpr_ros.offline.report.decision_log import DecisionLog
 from pair_vpr_ros.offline.report.html.labels import row_labels, write_index
 from pair_vpr_ros.offline.report.html.writer import CHUNK, ReportWriter
 from pair_vpr_ros.offline.report.loop_truth import KeyframeInfo, LoopEvaluation, PRCurve
+from pair_vpr_ros.offline.report.plots import TARGETS
 
 TEMPLATES = Path(__file__).with_name("templates")
 # inline in the page (the folder then needs no other file to show it)
 ASSETS = {"style": "report.css", "bootstrap": "bootstrap.js", "script": "report.js"}
-TARGETS = (0.99, 0.95, 0.90)
 # the settings that decide, in the order a reader checks them
 SETTINGS = ("top_k", "score_threshold", "global_weight", "global_floor", "sequence_margin",
             "temporal_consistency", "temporal_tolerance", "geometric_verification",
@@ -62,12 +62,10 @@ def _point(curve: PRCurve | None, precision: float) -> dict | None:
 
 def _at_threshold(curve: PRCurve, threshold: float) -> dict | None:
     """The curve's precision and recall when accepting every score >= `threshold`."""
-    ok = [i for i, t in enumerate(curve.thresholds) if t >= threshold]
-    if not ok:
+    point = curve.at_threshold(threshold)
+    if point is None:
         return None
-    i = ok[-1]
-    return {"threshold": threshold, "precision": float(curve.precision[i]),
-            "recall": float(curve.recall[i])}  # fmt: skip
+    return {"threshold": threshold, "precision": point[0], "recall": point[1]}
 
 
 def curve_points(evaluation: LoopEvaluation | None, threshold: float) -> dict[str, Any]:
